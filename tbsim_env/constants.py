@@ -1,0 +1,153 @@
+"""Every literal of tbsim in one place: time grid, object types, map classes, limits.
+
+Units: metres, seconds, radians. Array shapes are given where a constant sizes one.
+"""
+
+from __future__ import annotations
+
+import enum
+
+# --------------------------------------------------------------------------- time
+DT = 0.1
+"""Simulation step in seconds (WOMD is logged at 10 Hz)."""
+NUM_STEPS = 91
+"""Steps in a standard WOMD scenario (0.0 .. 9.0 s)."""
+CURRENT_INDEX = 10
+"""Index of the "current" step: steps 0..10 are history, 11..90 the future."""
+NUM_HISTORY = 11
+"""History window length, current step included."""
+NUM_FUTURE = 80
+"""Future steps simulated after the current one."""
+
+
+# --------------------------------------------------------------------------- objects
+class ObjectType(enum.IntEnum):
+    """WOMD ``Track.ObjectType`` values (kept numerically identical)."""
+
+    UNSET = 0
+    VEHICLE = 1
+    PEDESTRIAN = 2
+    CYCLIST = 3
+    OTHER = 4
+
+
+NUM_OBJECT_TYPES = 5
+
+# Unicycle limits per object type, indexed by ``ObjectType`` value.
+# Vehicle 5 m/s^2 and 1.5 rad/s, cyclist 6 and 3, pedestrian 7 and 7 (TrafficBots V1.5,
+# spec section 4). UNSET and OTHER get the vehicle limits (the spec has no slot for them).
+MAX_ACCEL = (5.0, 5.0, 7.0, 6.0, 5.0)
+"""Maximum |acceleration| in m/s^2 per ``ObjectType``."""
+MAX_YAW_RATE = (1.5, 1.5, 7.0, 3.0, 1.5)
+"""Maximum |yaw rate| in rad/s per ``ObjectType``."""
+
+
+# --------------------------------------------------------------------------- raw map
+class MapFeatureType(enum.IntEnum):
+    """Which member of ``MapFeature.feature_data`` is set."""
+
+    LANE = 0
+    ROAD_LINE = 1
+    ROAD_EDGE = 2
+    STOP_SIGN = 3
+    CROSSWALK = 4
+    SPEED_BUMP = 5
+    DRIVEWAY = 6
+
+
+class LaneType(enum.IntEnum):
+    """WOMD ``LaneCenter.LaneType``."""
+
+    UNDEFINED = 0
+    FREEWAY = 1
+    SURFACE_STREET = 2
+    BIKE_LANE = 3
+
+
+class RoadLineType(enum.IntEnum):
+    """WOMD ``RoadLine.RoadLineType``."""
+
+    UNKNOWN = 0
+    BROKEN_SINGLE_WHITE = 1
+    SOLID_SINGLE_WHITE = 2
+    SOLID_DOUBLE_WHITE = 3
+    BROKEN_SINGLE_YELLOW = 4
+    BROKEN_DOUBLE_YELLOW = 5
+    SOLID_SINGLE_YELLOW = 6
+    SOLID_DOUBLE_YELLOW = 7
+    PASSING_DOUBLE_YELLOW = 8
+
+
+class RoadEdgeType(enum.IntEnum):
+    """WOMD ``RoadEdge.RoadEdgeType``."""
+
+    UNKNOWN = 0
+    BOUNDARY = 1
+    MEDIAN = 2
+
+
+class SignalState(enum.IntEnum):
+    """WOMD ``TrafficSignalLaneState.State`` (raw, 9 values)."""
+
+    UNKNOWN = 0
+    ARROW_STOP = 1
+    ARROW_CAUTION = 2
+    ARROW_GO = 3
+    STOP = 4
+    CAUTION = 5
+    GO = 6
+    FLASHING_STOP = 7
+    FLASHING_CAUTION = 8
+
+
+# --------------------------------------------------------------------------- tokens
+class MapClass(enum.IntEnum):
+    """The 11 map-piece classes of TrafficBots V1.5 (spec section 1.2)."""
+
+    FREEWAY = 0
+    SURFACE_STREET = 1
+    STOP_SIGN = 2
+    BIKE_LANE = 3
+    ROAD_EDGE_BOUNDARY = 4
+    ROAD_EDGE_MEDIAN = 5
+    BROKEN = 6
+    SOLID_SINGLE = 7
+    DOUBLE = 8
+    SPEED_BUMP = 9
+    CROSSWALK = 10
+
+
+NUM_MAP_CLASSES = 11
+
+
+class TLState(enum.IntEnum):
+    """The 5 traffic-light classes of TrafficBots V1.5 (spec section 1.3)."""
+
+    UNKNOWN = 0
+    STOP = 1
+    CAUTION = 2
+    GO = 3
+    FLASHING = 4
+
+
+NUM_TL_STATES = 5
+
+# Raw WOMD signal state -> TLState, indexed by ``SignalState`` value.
+SIGNAL_TO_TL_STATE = (0, 1, 2, 3, 1, 2, 3, 4, 4)
+
+MAP_PIECE_SEGMENTS = 20
+"""Maximum segments (nodes) per map piece."""
+MAP_RESAMPLE_STRIDE = 2
+"""Keep every 2nd WOMD polyline point (~0.5 m apart) to get ~1 m spacing."""
+
+# Default token limits (configuration, see ``tbsim_env.config``).
+DEFAULT_MAX_MAP_PIECES = 1024
+DEFAULT_MAX_TRAFFIC_LIGHTS = 128
+DEFAULT_MAX_AGENTS = 64
+
+# Default observation neighbour counts.
+DEFAULT_OBS_MAP_PIECES = 64
+DEFAULT_OBS_TRAFFIC_LIGHTS = 25
+DEFAULT_OBS_AGENTS = 25
+
+MPH_TO_MPS = 0.44704

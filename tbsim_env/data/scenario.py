@@ -1,0 +1,270 @@
+"""The typed ``Scenario``: one WOMD scenario as numpy arrays, independent of the file format.
+
+Coordinates are the scenario's own frame (metres, the origin is arbitrary per scenario), headings
+are wrapped to [-pi, pi). Invalid entries hold zeros and must be masked with ``valid``.
+Every reader (raw TFRecord, GPUDrive JSON, the procedural generator) produces this type and
+nothing else, so simulation code never sees a file format.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from tbsim_env.constants import MapFeatureType, ObjectType
+from tbsim_env.errors import ScenarioFormatError
+
+
+def wrap_angle_np(angle: np.ndarray) -> np.ndarray:
+    """Wrap angles (radians) to [-pi, pi)."""
+    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """All objects of a scenario, A tracks over T steps.
+
+    Attributes:
+        id: [A] int64, WOMD ``Track.id`` (unique, non-negative).
+        object_type: [A] int8, ``ObjectType`` values.
+        xyz: [A, T, 3] float64, box centre in metres.
+        heading: [A, T] float32, yaw in radians wrapped to [-pi, pi), CCW from +x.
+        velocity: [A, T, 2] float32, (vx, vy) in m/s.
+        size: [A, T, 3] float32, (length, width, height) in metres.
+        valid: [A, T] bool.
+    """
+
+    id: np.ndarray
+    object_type: np.ndarray
+    xyz: np.ndarray
+    heading: np.ndarray
+    velocity: np.ndarray
+    size: np.ndarray
+    valid: np.ndarray
+
+    @property
+    def num_tracks(self) -> int:
+        return int(self.id.shape[0])
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.valid.shape[1])
+
+
+@dataclass(frozen=True)
+class RoadMap:
+    """Static map features, F features (ragged polylines kept as a tuple of arrays).
+
+    Attributes:
+        id: [F] int64, ``MapFeature.id``.
+        feature_type: [F] int8, ``MapFeatureType``.
+        subtype: [F] int8, lane type / road-line type / road-edge type (raw WOMD enum value);
+            0 for stop signs and polygons.
+        polylines: F arrays [n_i, 3] float64. Lane centre lines, road lines and road edges are
+            open polylines; crosswalk, speed bump and driveway are closed polygons (last point
+            connects to the first); a stop sign is its single position.
+        speed_limit_mph: [F] float32, lanes only (0 elsewhere or when unknown).
+        entry_lanes: F int64 arrays, feature ids of predecessor lanes (lanes only).
+        exit_lanes: F int64 arrays, feature ids of successor lanes (lanes only).
+        left_neighbors: F int64 arrays, ids of left neighbour lanes (lanes only).
+        right_neighbors: F int64 arrays, ids of right neighbour lanes (lanes only).
+        controlled_lanes: F int64 arrays, lanes a stop sign controls (stop signs only).
+    """
+
+    id: np.ndarray
+    feature_type: np.ndarray
+    subtype: np.ndarray
+    polylines: tuple[np.ndarray, ...]
+    speed_limit_mph: np.ndarray
+    entry_lanes: tuple[np.ndarray, ...]
+    exit_lanes: tuple[np.ndarray, ...]
+    left_neighbors: tuple[np.ndarray, ...]
+    right_neighbors: tuple[np.ndarray, ...]
+    controlled_lanes: tuple[np.ndarray, ...]
+
+    @property
+    def num_features(self) -> int:
+        return int(self.id.shape[0])
+
+    def indices_of(self, kind: MapFeatureType) -> np.ndarray:
+        """Indices of the features of one type, in file order."""
+        return np.flatnonzero(self.feature_type == int(kind))
+
+    def index_of_id(self) -> dict[int, int]:
+        """Map from feature id to feature index."""
+        return {int(i): k for k, i in enumerate(self.id)}
+
+    @staticmethod
+    def empty() -> RoadMap:
+        e: tuple[np.ndarray, ...] = ()
+        return RoadMap(
+            id=np.zeros(0, np.int64),
+            feature_type=np.zeros(0, np.int8),
+            subtype=np.zeros(0, np.int8),
+            polylines=e,
+            speed_limit_mph=np.zeros(0, np.float32),
+            entry_lanes=e,
+            exit_lanes=e,
+            left_neighbors=e,
+            right_neighbors=e,
+            controlled_lanes=e,
+        )
+
+
+@dataclass(frozen=True)
+class TrafficSignals:
+    """Traffic-signal lane states, S controlled lanes over T steps.
+
+    One row per unique controlled lane id seen in any step.
+
+    Attributes:
+        lane_id: [S] int64, the controlled lane's ``MapFeature.id``.
+        state: [S, T] int8, raw ``SignalState`` value (0 where not valid).
+        valid: [S, T] bool, whether the lane had a state at that step.
+        stop_point: [S, 3] float64, where objects must stop (first valid value).
+    """
+
+    lane_id: np.ndarray
+    state: np.ndarray
+    valid: np.ndarray
+    stop_point: np.ndarray
+
+    @property
+    def num_signals(self) -> int:
+        return int(self.lane_id.shape[0])
+
+    @staticmethod
+    def empty(num_steps: int) -> TrafficSignals:
+        return TrafficSignals(
+            lane_id=np.zeros(0, np.int64),
+            state=np.zeros((0, num_steps), np.int8),
+            valid=np.zeros((0, num_steps), bool),
+            stop_point=np.zeros((0, 3), np.float64),
+        )
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """One scenario: tracks, map, signals and the WOMD metadata.
+
+    Attributes:
+        scenario_id: WOMD id (16 hex chars) or a generated name.
+        timestamps: [T] float64 seconds (not an exact 0.1 s grid in real data).
+        current_index: index of the current step (10 in WOMD).
+        tracks: all objects.
+        road_map: static map.
+        signals: traffic-signal states per step.
+        sdc_index: index into tracks of the self-driving car.
+        tracks_to_predict: [k] int64 track **indices**.
+        predict_difficulty: [k] int8 difficulty level per tracks_to_predict entry.
+        objects_of_interest: [m] int64 track **ids**.
+        source: where it came from (file path, record), for messages.
+    """
+
+    scenario_id: str
+    timestamps: np.ndarray
+    current_index: int
+    tracks: Tracks
+    road_map: RoadMap
+    signals: TrafficSignals
+    sdc_index: int
+    tracks_to_predict: np.ndarray
+    predict_difficulty: np.ndarray
+    objects_of_interest: np.ndarray
+    source: str = field(default="<memory>", compare=False)
+
+    @property
+    def num_steps(self) -> int:
+        return self.tracks.num_steps
+
+    @property
+    def sdc_id(self) -> int:
+        return int(self.tracks.id[self.sdc_index])
+
+    def replace(self, **changes) -> Scenario:
+        return dataclasses.replace(self, **changes)
+
+    def role_mask(self) -> np.ndarray:
+        """[A, 3] bool: (is SDC, in objects_of_interest, in tracks_to_predict)."""
+        a = self.tracks.num_tracks
+        role = np.zeros((a, 3), bool)
+        role[self.sdc_index, 0] = True
+        role[:, 1] = np.isin(self.tracks.id, self.objects_of_interest)
+        role[self.tracks_to_predict, 2] = True
+        return role
+
+    def validate(self) -> Scenario:
+        """Check shapes, dtypes and cross references; raise ``ScenarioFormatError``.
+
+        Returns self so that readers can ``return Scenario(...).validate()``.
+        """
+
+        def fail(msg: str) -> None:
+            raise ScenarioFormatError(f"scenario {self.scenario_id!r}: {msg}", path=self.source)
+
+        t = self.tracks
+        if t.num_tracks == 0:
+            fail("field 'tracks' is empty (a scenario needs at least one track)")
+        n_t = self.timestamps.shape[0]
+        if n_t < 2:
+            fail(f"field 'timestamps_seconds' has {n_t} entries; need at least 2 steps")
+        a = t.num_tracks
+        expect = {
+            "id": (a,),
+            "object_type": (a,),
+            "xyz": (a, n_t, 3),
+            "heading": (a, n_t),
+            "velocity": (a, n_t, 2),
+            "size": (a, n_t, 3),
+            "valid": (a, n_t),
+        }
+        for name, shape in expect.items():
+            got = getattr(t, name).shape
+            if got != shape:
+                fail(f"track field {name!r} has shape {got}, expected {shape}")
+        if t.valid.dtype != bool:
+            fail("track field 'valid' must be bool")
+        if len(np.unique(t.id)) != a:
+            fail("track ids ('Track.id') are not unique")
+        bad_type = ~np.isin(t.object_type, [int(x) for x in ObjectType])
+        if bad_type.any():
+            fail(f"track {int(t.id[np.argmax(bad_type)])}: unknown 'object_type'")
+        for name in ("xyz", "heading", "velocity", "size"):
+            arr = getattr(t, name)
+            mask = t.valid if arr.ndim == 2 else t.valid[..., None]
+            if not np.isfinite(np.where(mask, arr, 0.0)).all():
+                fail(f"track field {name!r} has a non-finite value at a valid step")
+        if not 0 <= self.current_index < n_t:
+            fail(f"'current_time_index' {self.current_index} outside [0, {n_t})")
+        if not 0 <= self.sdc_index < a:
+            fail(f"'sdc_track_index' {self.sdc_index} outside [0, {a})")
+        if len(self.tracks_to_predict) and (
+            self.tracks_to_predict.min() < 0 or self.tracks_to_predict.max() >= a
+        ):
+            fail("'tracks_to_predict' has a track_index outside the track list")
+        m = self.road_map
+        f = m.num_features
+        for name in ("feature_type", "subtype", "speed_limit_mph"):
+            if getattr(m, name).shape != (f,):
+                fail(f"map field {name!r} has shape {getattr(m, name).shape}, expected ({f},)")
+        for name in (
+            "polylines",
+            "entry_lanes",
+            "exit_lanes",
+            "left_neighbors",
+            "right_neighbors",
+            "controlled_lanes",
+        ):
+            if len(getattr(m, name)) != f:
+                fail(f"map field {name!r} has {len(getattr(m, name))} entries, expected {f}")
+        for k, pl in enumerate(m.polylines):
+            if pl.ndim != 2 or pl.shape[1] != 3 or pl.shape[0] == 0:
+                fail(f"map feature {int(m.id[k])}: polyline has shape {pl.shape}")
+            if not np.isfinite(pl).all():
+                fail(f"map feature {int(m.id[k])}: polyline has a non-finite point")
+        s = self.signals
+        if s.state.shape != (s.num_signals, n_t) or s.valid.shape != (s.num_signals, n_t):
+            fail("traffic-signal arrays do not match (num_signals, num_steps)")
+        return self
