@@ -1,0 +1,1 @@
+"""Batched simulation core: dynamics, geometry, state, collision and off-road checks."""

@@ -1,0 +1,139 @@
+"""Typed simulator state: frozen dataclasses of batched tensors with ``valid`` masks beside them.
+
+Shapes: B scenarios, N agent slots (all tracks of a scenario, padded to the largest scenario in
+the batch), T log steps, S traffic-signal lanes, E road-edge segments.
+Positions are in each scenario's frame shifted by ``origin`` (no rotation), float32 metres.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class AgentInfo:
+    """Static per-agent attributes.
+
+    Attributes:
+        track_id: [B, N] int64, WOMD track id (-1 for padding).
+        track_index: [B, N] int64, row in ``Scenario.tracks`` (-1 for padding).
+        object_type: [B, N] int64, ``ObjectType``.
+        size: [B, N, 3] float32, (length, width, height) m, at the current step (or last valid).
+        role: [B, N, 3] bool, (is SDC, object of interest, track to predict).
+        mask: [B, N] bool, False for padding slots.
+    """
+
+    track_id: torch.Tensor
+    track_index: torch.Tensor
+    object_type: torch.Tensor
+    size: torch.Tensor
+    role: torch.Tensor
+    mask: torch.Tensor
+
+
+@dataclass(frozen=True)
+class LogTrajectory:
+    """The logged trajectories of every agent slot.
+
+    Attributes:
+        pose: [B, N, T, 3] float32 (x m, y m, yaw rad wrapped).
+        speed: [B, N, T] float32 signed speed m/s.
+        velocity: [B, N, T, 2] float32 m/s.
+        z: [B, N, T] float32 box-centre height m.
+        valid: [B, N, T] bool.
+    """
+
+    pose: torch.Tensor
+    speed: torch.Tensor
+    velocity: torch.Tensor
+    z: torch.Tensor
+    valid: torch.Tensor
+
+
+@dataclass(frozen=True)
+class SignalLog:
+    """Traffic-signal lane states from the log.
+
+    Attributes:
+        lane_id: [B, S] int64 controlled lane id (-1 padding).
+        state: [B, S, T] int64 ``TLState`` (5 classes).
+        valid: [B, S, T] bool.
+        stop_point: [B, S, 2] float32 m.
+    """
+
+    lane_id: torch.Tensor
+    state: torch.Tensor
+    valid: torch.Tensor
+    stop_point: torch.Tensor
+
+
+@dataclass(frozen=True)
+class RoadEdges:
+    """Road-edge segments for off-road checks; the road lies on the LEFT of each segment.
+
+    Attributes:
+        start: [B, E, 2] float32 segment start m.
+        end: [B, E, 2] float32 segment end m.
+        valid: [B, E] bool.
+    """
+
+    start: torch.Tensor
+    end: torch.Tensor
+    valid: torch.Tensor
+
+
+@dataclass(frozen=True)
+class SimState:
+    """Everything that changes in a rollout plus the static context it needs.
+
+    Attributes:
+        step: [B] int64 index of the current step in the log time grid.
+        pose: [B, N, 3] float32 current (x, y, yaw).
+        speed: [B, N] float32 current signed speed m/s.
+        valid: [B, N] bool, the agent is present in the simulation now. Once an agent
+            leaves (log invalid while replayed, or removed) it never comes back.
+        controlled: [B, N] bool, the agent is driven by actions (not replayed from the log).
+        agents: static attributes.
+        log: logged trajectories.
+        signals: logged traffic-signal states.
+        road_edges: road-edge segments.
+        origin: [B, 2] float64, scenario-frame xy of this state's (0, 0).
+    """
+
+    step: torch.Tensor
+    pose: torch.Tensor
+    speed: torch.Tensor
+    valid: torch.Tensor
+    controlled: torch.Tensor
+    agents: AgentInfo
+    log: LogTrajectory
+    signals: SignalLog
+    road_edges: RoadEdges
+    origin: torch.Tensor
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.pose.shape[0])
+
+    @property
+    def num_agents(self) -> int:
+        return int(self.pose.shape[1])
+
+    @property
+    def device(self) -> torch.device:
+        return self.pose.device
+
+    def replace(self, **changes) -> SimState:
+        return dataclasses.replace(self, **changes)
+
+    def tl_state_now(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """([B, S] TLState, [B, S] valid) at the current step."""
+        idx = self.step.clamp(0, self.signals.state.shape[-1] - 1)[:, None, None]
+        idx = idx.expand(-1, self.signals.state.shape[1], 1)
+        return (
+            self.signals.state.gather(2, idx)[..., 0],
+            self.signals.valid.gather(2, idx)[..., 0],
+        )
