@@ -1,4 +1,4 @@
-"""Unicycle dynamics: the one source of truth for how agents move (TrafficBots V1.5 spec, section 4).
+"""Unicycle dynamics: the one source of truth for how agents move (TrafficBots spec, section 4).
 
 State per agent: pose (x m, y m, yaw rad) and signed speed v (m/s). Action: acceleration a (m/s^2)
 and yaw rate w (rad/s), bounded per object type by ``constants.MAX_ACCEL`` / ``MAX_YAW_RATE``.

@@ -78,11 +78,16 @@ class RoadEdges:
         start: [B, E, 2] float32 segment start m.
         end: [B, E, 2] float32 segment end m.
         valid: [B, E] bool.
+        prev_index: [B, E] int64, index of the previous segment of the same polyline
+            (wrapping for closed polylines), or the segment itself when there is none.
+        next_index: [B, E] int64, likewise for the next segment.
     """
 
     start: torch.Tensor
     end: torch.Tensor
     valid: torch.Tensor
+    prev_index: torch.Tensor
+    next_index: torch.Tensor
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,191 @@
+"""Turn ``Scenario`` objects into a batched initial ``SimState`` (padding, frame shift, tensors)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from tbsim_env import constants as C
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.sim.dynamics import signed_speed
+from tbsim_env.sim.state import AgentInfo, LogTrajectory, RoadEdges, SignalLog, SimState
+
+CYCLIC_TOLERANCE_SQ = 1.0
+"""A road edge whose ends are closer than 1 m (squared 1 m^2) is closed (WOSAC convention)."""
+
+
+def scenario_origin(scenario: Scenario) -> np.ndarray:
+    """[2] float64: the SDC xy at the current step (mean of valid positions as a fallback)."""
+    t = scenario.tracks
+    if t.valid[scenario.sdc_index, scenario.current_index]:
+        return t.xyz[scenario.sdc_index, scenario.current_index, :2].astype(np.float64)
+    return t.xyz[..., :2][t.valid].mean(axis=0).astype(np.float64)
+
+
+def _agent_sizes(scenario: Scenario, step: int) -> np.ndarray:
+    """[A, 3] sizes at ``step`` where valid, else the last valid size, else 0."""
+    t = scenario.tracks
+    n_t = t.num_steps
+    idx = np.arange(n_t)
+    # Last valid step at or before `step`, else the first valid step after it.
+    before = np.where(t.valid & (idx <= step), idx, -1).max(axis=1)
+    after = np.where(t.valid, idx, n_t).min(axis=1)
+    pick = np.where(before >= 0, before, np.minimum(after, n_t - 1))
+    return t.size[np.arange(t.num_tracks), pick].astype(np.float32)
+
+
+def _road_edge_segments(scenario: Scenario, origin: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Flattened road-edge segments with previous/next links (numpy, unpadded)."""
+    m = scenario.road_map
+    starts, ends, prevs, nexts = [], [], [], []
+    offset = 0
+    for k in m.indices_of(C.MapFeatureType.ROAD_EDGE):
+        pl = m.polylines[k][:, :2] - origin
+        n = len(pl) - 1
+        if n < 1:
+            continue
+        cyclic = float(((pl[0] - pl[-1]) ** 2).sum()) < CYCLIC_TOLERANCE_SQ
+        local = np.arange(n)
+        prev = np.where(local > 0, local - 1, n - 1 if cyclic else 0)
+        nxt = np.where(local < n - 1, local + 1, 0 if cyclic else n - 1)
+        starts.append(pl[:-1])
+        ends.append(pl[1:])
+        prevs.append(prev + offset)
+        nexts.append(nxt + offset)
+        offset += n
+    if not starts:
+        z = np.zeros((0, 2))
+        return z, z, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return (
+        np.concatenate(starts),
+        np.concatenate(ends),
+        np.concatenate(prevs).astype(np.int64),
+        np.concatenate(nexts).astype(np.int64),
+    )
+
+
+def build_sim_state(
+    scenarios: Sequence[Scenario],
+    *,
+    start_step: int = C.CURRENT_INDEX,
+    device: str | torch.device = "cpu",
+) -> SimState:
+    """Batch scenarios into the initial state at ``start_step``, every agent replayed from the log.
+
+    Agent slots follow the track order of each scenario; smaller scenarios are padded.
+    All scenarios must share the same number of steps.
+
+    Args:
+        scenarios: B scenarios.
+        start_step: log step the state starts at (the WOMD current step by default).
+        device: torch device.
+
+    Returns:
+        A ``SimState`` with ``controlled`` all False.
+    """
+    if not scenarios:
+        raise ValueError("build_sim_state needs at least one scenario")
+    n_t = scenarios[0].num_steps
+    for sc in scenarios:
+        if sc.num_steps != n_t:
+            raise ValueError(
+                f"scenario {sc.scenario_id!r} has {sc.num_steps} steps, "
+                f"but {scenarios[0].scenario_id!r} has {n_t}; a batch needs equal lengths"
+            )
+        if not 0 <= start_step < n_t:
+            raise ValueError(f"start_step {start_step} outside [0, {n_t})")
+    b = len(scenarios)
+    n = max(sc.tracks.num_tracks for sc in scenarios)
+    s = max(max(sc.signals.num_signals for sc in scenarios), 1)
+    edges = []
+    origins = np.zeros((b, 2), np.float64)
+    for i, sc in enumerate(scenarios):
+        origins[i] = scenario_origin(sc)
+        edges.append(_road_edge_segments(sc, origins[i]))
+    e = max(max(len(x[0]) for x in edges), 1)
+
+    pose = np.zeros((b, n, n_t, 3), np.float32)
+    vel = np.zeros((b, n, n_t, 2), np.float32)
+    z = np.zeros((b, n, n_t), np.float32)
+    valid = np.zeros((b, n, n_t), bool)
+    track_id = np.full((b, n), -1, np.int64)
+    track_index = np.full((b, n), -1, np.int64)
+    obj_type = np.zeros((b, n), np.int64)
+    size = np.zeros((b, n, 3), np.float32)
+    role = np.zeros((b, n, 3), bool)
+    mask = np.zeros((b, n), bool)
+    tl_lane = np.full((b, s), -1, np.int64)
+    tl_state = np.zeros((b, s, n_t), np.int64)
+    tl_valid = np.zeros((b, s, n_t), bool)
+    tl_stop = np.zeros((b, s, 2), np.float32)
+    e_start = np.zeros((b, e, 2), np.float32)
+    e_end = np.zeros((b, e, 2), np.float32)
+    e_valid = np.zeros((b, e), bool)
+    e_prev = np.tile(np.arange(e), (b, 1))
+    e_next = np.tile(np.arange(e), (b, 1))
+    to_tl = np.asarray(C.SIGNAL_TO_TL_STATE, np.int64)
+    for i, sc in enumerate(scenarios):
+        t = sc.tracks
+        a = t.num_tracks
+        v = t.valid
+        pose[i, :a, :, 0] = np.where(v, t.xyz[..., 0] - origins[i, 0], 0.0)
+        pose[i, :a, :, 1] = np.where(v, t.xyz[..., 1] - origins[i, 1], 0.0)
+        pose[i, :a, :, 2] = np.where(v, t.heading, 0.0)
+        vel[i, :a] = np.where(v[..., None], t.velocity, 0.0)
+        z[i, :a] = np.where(v, t.xyz[..., 2], 0.0)
+        valid[i, :a] = v
+        track_id[i, :a] = t.id
+        track_index[i, :a] = np.arange(a)
+        obj_type[i, :a] = t.object_type
+        size[i, :a] = _agent_sizes(sc, start_step)
+        role[i, :a] = sc.role_mask()
+        mask[i, :a] = True
+        sig = sc.signals
+        k = sig.num_signals
+        tl_lane[i, :k] = sig.lane_id
+        tl_state[i, :k] = np.where(sig.valid, to_tl[np.clip(sig.state, 0, 8)], 0)
+        tl_valid[i, :k] = sig.valid
+        tl_stop[i, :k] = sig.stop_point[:, :2] - origins[i]
+        st, en, pr, nx = edges[i]
+        ne = len(st)
+        e_start[i, :ne], e_end[i, :ne], e_valid[i, :ne] = st, en, True
+        e_prev[i, :ne], e_next[i, :ne] = pr, nx
+
+    dev = torch.device(device)
+
+    def tt(x: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(x).to(dev)
+
+    log_pose, log_vel, log_valid = tt(pose), tt(vel), tt(valid)
+    log_speed = signed_speed(log_vel, log_pose[..., 2]) * log_valid
+    log = LogTrajectory(pose=log_pose, speed=log_speed, velocity=log_vel, z=tt(z), valid=log_valid)
+    step = torch.full((b,), start_step, dtype=torch.int64, device=dev)
+    return SimState(
+        step=step,
+        pose=log_pose[:, :, start_step].clone(),
+        speed=log_speed[:, :, start_step].clone(),
+        valid=log_valid[:, :, start_step].clone(),
+        controlled=torch.zeros((b, n), dtype=torch.bool, device=dev),
+        agents=AgentInfo(
+            track_id=tt(track_id),
+            track_index=tt(track_index),
+            object_type=tt(obj_type),
+            size=tt(size),
+            role=tt(role),
+            mask=tt(mask),
+        ),
+        log=log,
+        signals=SignalLog(
+            lane_id=tt(tl_lane), state=tt(tl_state), valid=tt(tl_valid), stop_point=tt(tl_stop)
+        ),
+        road_edges=RoadEdges(
+            start=tt(e_start),
+            end=tt(e_end),
+            valid=tt(e_valid),
+            prev_index=tt(e_prev),
+            next_index=tt(e_next),
+        ),
+        origin=tt(origins),
+    )

@@ -1,0 +1,84 @@
+"""One batched simulation step: controlled agents integrate actions, the others replay the log.
+
+Controller assignment is a mask (``SimState.controlled``); the caller merges the actions of
+external controllers and policies into one ``[B, N, 2]`` tensor beforehand (see
+``merge_actions``), so a step is a handful of tensor operations whatever the mix.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from tbsim_env.sim.dynamics import clip_action, unicycle_step
+from tbsim_env.sim.state import SimState
+
+
+def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """Merge actions of several controllers by mask; later pairs win where masks overlap.
+
+    Args:
+        pairs: (mask [B, N] bool, action [B, N, 2]) per controller.
+
+    Returns:
+        [B, N, 2] merged action (zero where no mask is set).
+    """
+    out = torch.zeros_like(pairs[0][1])
+    for mask, action in pairs:
+        out = torch.where(mask[..., None], action, out)
+    return out
+
+
+def _at_step(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """Gather ``x[b, n, step[b], ...]`` -> [B, N, ...] from a [B, N, T, ...] log tensor."""
+    idx = step.view(-1, 1, 1).expand(x.shape[0], x.shape[1], 1)
+    if x.dim() == 4:
+        return x.gather(2, idx[..., None].expand(-1, -1, 1, x.shape[-1]))[:, :, 0]
+    return x.gather(2, idx)[:, :, 0]
+
+
+def seen_before(state: SimState) -> torch.Tensor:
+    """[B, N] bool: the agent was valid in the log at some step <= the current one."""
+    n_t = state.log.valid.shape[-1]
+    steps = torch.arange(n_t, device=state.device)
+    upto = steps[None, None, :] <= state.step[:, None, None]
+    return (state.log.valid & upto).any(-1)
+
+
+def step(state: SimState, action: torch.Tensor) -> SimState:
+    """Advance every scenario of the batch by one step.
+
+    * Controlled agents that are present move by the unicycle with the action clipped to their
+      type limits. A controlled agent that has not appeared yet spawns from the log when the log
+      first shows it; once present it stays present (as in TrafficBots) until the caller removes
+      it by clearing ``valid``.
+    * Other agents take the logged state of the next step. An agent that disappears from the log
+      leaves for good, even if the log shows it again later.
+
+    Args:
+        state: current state (``step`` < T - 1 for every scenario).
+        action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s), finite; only read where
+            ``state.controlled``.
+
+    Returns:
+        The state at ``step + 1``.
+    """
+    n_t = state.log.valid.shape[-1]
+    nxt = (state.step + 1).clamp(max=n_t - 1)
+    log_valid = _at_step(state.log.valid, nxt) & state.agents.mask
+    log_pose = _at_step(state.log.pose, nxt)
+    log_speed = _at_step(state.log.speed, nxt)
+    fresh = ~seen_before(state)
+
+    moving = state.controlled & state.valid
+    act = clip_action(action, state.agents.object_type) * moving[..., None]
+    sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
+
+    spawn = state.controlled & ~state.valid & fresh & log_valid
+    replay_valid = ~state.controlled & log_valid & (state.valid | fresh)
+    from_log = spawn | replay_valid
+    pose = torch.where(
+        moving[..., None], sim_pose, torch.where(from_log[..., None], log_pose, state.pose)
+    )
+    speed = torch.where(moving, sim_speed, torch.where(from_log, log_speed, state.speed))
+    valid = moving | from_log
+    return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
