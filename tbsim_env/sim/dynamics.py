@@ -185,16 +185,15 @@ def rollout_from_log(
     """
     n_t = pose.shape[-2]
     cur_pose, cur_speed = pose[..., 0, :], speed[..., 0]
-    poses, speeds = [cur_pose], [cur_speed]
-    for t in range(n_t - 1):
+    poses, speeds = [], []
+    for t in range(n_t):
         restart = valid[..., t] & ~(valid[..., t - 1] if t > 0 else torch.zeros_like(valid[..., 0]))
         cur_pose = torch.where(restart[..., None], pose[..., t, :], cur_pose)
         cur_speed = torch.where(restart, speed[..., t], cur_speed)
-        if t == 0:
-            poses[0], speeds[0] = cur_pose, cur_speed
-        cur_pose, cur_speed = unicycle_step(cur_pose, cur_speed, action[..., t, :], dt)
         poses.append(cur_pose)
         speeds.append(cur_speed)
+        if t < n_t - 1:
+            cur_pose, cur_speed = unicycle_step(cur_pose, cur_speed, action[..., t, :], dt)
     out_pose = torch.stack(poses, dim=-2) * valid[..., None]
     out_speed = torch.stack(speeds, dim=-1) * valid
     return out_pose, out_speed
