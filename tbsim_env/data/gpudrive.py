@@ -1,0 +1,343 @@
+"""GPUDrive JSON (a conversion of one WOMD scenario) -> typed ``Scenario``.
+
+Format (see data/womd/README.md, section 2): ``objects`` in ``Scenario.tracks`` order with
+per-step ``position`` / ``velocity`` / ``heading`` / ``valid`` lists (invalid steps hold the
+sentinel -10000), box sizes as scalars (the last valid state's), ``roads`` with GPUDrive map
+types, an always-empty ``tl_states`` and a ``metadata`` block with the WOMD indices and ids.
+
+What the JSON does not carry is filled as follows: timestamps are the 0.1 s grid
+(``constants.DT``) and the current step is ``constants.CURRENT_INDEX``; sizes are broadcast over
+steps; lane speed limits, entry/exit lanes, neighbours and stop-sign lanes are empty; there are
+no traffic signals. Invalid entries are zeroed, headings wrapped to [-pi, pi).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import warnings
+from typing import Any
+
+import numpy as np
+
+from tbsim_env.constants import (
+    CURRENT_INDEX,
+    DT,
+    MapFeatureType,
+    ObjectType,
+)
+from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
+from tbsim_env.data.womd import wrap_heading_f32
+from tbsim_env.errors import ScenarioFormatError
+
+PathLike = str | os.PathLike
+
+INVALID_SENTINEL = -10000.0
+"""Value GPUDrive writes into position/velocity/heading at invalid steps."""
+
+OBJECT_TYPES: dict[str, ObjectType] = {
+    "unset": ObjectType.UNSET,
+    "vehicle": ObjectType.VEHICLE,
+    "pedestrian": ObjectType.PEDESTRIAN,
+    "cyclist": ObjectType.CYCLIST,
+    "other": ObjectType.OTHER,
+}
+
+ROAD_TYPES: dict[str, MapFeatureType] = {
+    "lane": MapFeatureType.LANE,
+    "road_line": MapFeatureType.ROAD_LINE,
+    "road_edge": MapFeatureType.ROAD_EDGE,
+    "stop_sign": MapFeatureType.STOP_SIGN,
+    "crosswalk": MapFeatureType.CROSSWALK,
+    "speed_bump": MapFeatureType.SPEED_BUMP,
+    "driveway": MapFeatureType.DRIVEWAY,
+}
+
+
+def map_element_to_feature(element_id: int) -> tuple[MapFeatureType, int] | None:
+    """GPUDrive ``map_element_id`` -> (``MapFeatureType``, raw WOMD subtype).
+
+    GPUDrive numbers map elements like the WOMD tf.Example ``roadgraph_samples/type`` (also
+    Waymax ``MapElementIds``): the WOMD sub-enums laid end to end with gaps. Lane types
+    0-3 are ``LaneCenter.LaneType`` 0-3 as is; 4 is unused; 5-13 are ``RoadLine.RoadLineType``
+    0-8 (offset 5); 14-16 are ``RoadEdge.RoadEdgeType`` 0-2 (offset 14); then 17 stop sign,
+    18 crosswalk, 19 speed bump, 20 driveway (no subtype). Checked against the three sample
+    files: every road's ``type`` string agrees with its id range, ``road_line`` ids are 6, 7
+    and 12 (broken single white, solid single white, solid double yellow: the usual lane and
+    centre markings) and ``road_edge`` ids are 15 (boundary, i.e. curbs), consistent with this
+    reading and not with a 0-based one.
+
+    Returns:
+        The pair, or ``None`` for -1 (unknown) and any id outside the table.
+    """
+    if 0 <= element_id <= 3:
+        return MapFeatureType.LANE, element_id
+    if 5 <= element_id <= 13:
+        return MapFeatureType.ROAD_LINE, element_id - 5
+    if 14 <= element_id <= 16:
+        return MapFeatureType.ROAD_EDGE, element_id - 14
+    fixed = {
+        17: MapFeatureType.STOP_SIGN,
+        18: MapFeatureType.CROSSWALK,
+        19: MapFeatureType.SPEED_BUMP,
+        20: MapFeatureType.DRIVEWAY,
+    }
+    if element_id in fixed:
+        return fixed[element_id], 0
+    return None
+
+
+class _Ctx:
+    """Error helper bound to one file."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def error(self, reason: str) -> ScenarioFormatError:
+        return ScenarioFormatError(reason, self.path)
+
+
+def _get(obj: Any, key: str, where: str, ctx: _Ctx) -> Any:
+    if not isinstance(obj, dict):
+        raise ctx.error(f"{where}: expected a JSON object, got {type(obj).__name__}")
+    if key not in obj:
+        raise ctx.error(f"{where}: missing key {key!r}")
+    return obj[key]
+
+
+def _array(rows: Any, dtype: type, where: str, ctx: _Ctx) -> np.ndarray:
+    try:
+        return np.asarray(rows, dtype=dtype)
+    except (TypeError, ValueError) as err:
+        raise ctx.error(f"{where}: values are not numbers ({err})") from err
+
+
+def _xyz_rows(points: Any, keys: tuple[str, ...], where: str, ctx: _Ctx) -> np.ndarray:
+    """[n, len(keys)] float64 from a list of {"x", "y", ...} dicts (z defaults to 0)."""
+    if not isinstance(points, list):
+        raise ctx.error(f"{where}: expected a list, got {type(points).__name__}")
+    try:
+        rows = [tuple(p[k] if k != "z" else p.get("z", 0.0) for k in keys) for p in points]
+    except (KeyError, TypeError, AttributeError) as err:
+        bad = next(
+            (
+                i
+                for i, p in enumerate(points)
+                if not isinstance(p, dict) or not {"x", "y"} <= p.keys()
+            ),
+            0,
+        )
+        raise ctx.error(f"{where}[{bad}]: expected an object with keys {keys} ({err!r})") from err
+    return _array(rows, np.float64, where, ctx).reshape(-1, len(keys))
+
+
+def _object_arrays(obj: Any, k: int, ctx: _Ctx) -> dict[str, Any]:
+    """Per-step arrays of one object (index ``k`` in ``objects``)."""
+    w = f"objects[{k}]"
+    pos = _xyz_rows(_get(obj, "position", w, ctx), ("x", "y", "z"), f"{w}.position", ctx)
+    vel = _xyz_rows(_get(obj, "velocity", w, ctx), ("x", "y"), f"{w}.velocity", ctx)
+    heading = _array(_get(obj, "heading", w, ctx), np.float64, f"{w}.heading", ctx)
+    valid_raw = _get(obj, "valid", w, ctx)
+    if not isinstance(valid_raw, list) or not all(isinstance(v, (bool, int)) for v in valid_raw):
+        raise ctx.error(f"{w}.valid: expected a list of booleans")
+    valid = np.asarray(valid_raw, dtype=bool)
+    lengths = {len(pos), len(vel), heading.reshape(-1).shape[0], len(valid)}
+    if len(lengths) != 1 or heading.ndim != 1:
+        raise ctx.error(
+            f"{w}: position/velocity/heading/valid have different lengths "
+            f"({len(pos)}, {len(vel)}, {heading.size}, {len(valid)})"
+        )
+    size = [
+        _array(_get(obj, key, w, ctx), np.float64, f"{w}.{key}", ctx)
+        for key in ("length", "width", "height")
+    ]
+    if any(s.ndim != 0 for s in size):
+        raise ctx.error(f"{w}: 'length', 'width' and 'height' must be numbers")
+    type_name = _get(obj, "type", w, ctx)
+    if type_name not in OBJECT_TYPES:
+        raise ctx.error(f"{w}.type: unknown object type {type_name!r}")
+    obj_id = _get(obj, "id", w, ctx)
+    if isinstance(obj_id, bool) or not isinstance(obj_id, int):
+        raise ctx.error(f"{w}.id: expected an integer, got {obj_id!r}")
+    return {
+        "id": obj_id,
+        "type": int(OBJECT_TYPES[type_name]),
+        "pos": pos,
+        "vel": vel,
+        "heading": heading,
+        "valid": valid,
+        "size": np.stack(size),
+    }
+
+
+def _tracks(objects: Any, ctx: _Ctx) -> Tracks:
+    if not isinstance(objects, list) or not objects:
+        raise ctx.error("key 'objects' must be a non-empty list (a scenario needs a track)")
+    per = [_object_arrays(obj, k, ctx) for k, obj in enumerate(objects)]
+    steps = np.array([p["valid"].shape[0] for p in per])
+    if (steps != steps[0]).any():
+        k = int(np.argmax(steps != steps[0]))
+        raise ctx.error(
+            f"objects[{k}]: has {int(steps[k])} steps but objects[0] has {int(steps[0])}"
+        )
+    valid = np.stack([p["valid"] for p in per])  # [A, T]
+    pos = np.stack([p["pos"] for p in per])  # [A, T, 3]
+    vel = np.stack([p["vel"] for p in per])  # [A, T, 2]
+    heading = np.stack([p["heading"] for p in per])  # [A, T]
+    size = np.stack([p["size"] for p in per])  # [A, 3] length, width, height
+    sentinel = valid & (pos[..., 0] == INVALID_SENTINEL) & (pos[..., 1] == INVALID_SENTINEL)
+    if sentinel.any():
+        k, t = (int(i) for i in np.argwhere(sentinel)[0])
+        raise ctx.error(
+            f"objects[{k}]: step {t} is marked valid but its position is the invalid "
+            f"sentinel {INVALID_SENTINEL}"
+        )
+    v3 = valid[..., None]
+    with np.errstate(over="ignore", invalid="ignore"):
+        return Tracks(
+            id=np.array([p["id"] for p in per], dtype=np.int64),
+            object_type=np.array([p["type"] for p in per], dtype=np.int8),
+            xyz=np.where(v3, pos, 0.0),
+            heading=np.where(valid, wrap_heading_f32(heading), np.float32(0.0)),
+            velocity=np.where(v3, vel, 0.0).astype(np.float32),
+            size=np.where(v3, size[:, None, :], 0.0).astype(np.float32),
+            valid=valid,
+        )
+
+
+def _road_map(roads: Any, ctx: _Ctx) -> RoadMap:
+    if not isinstance(roads, list):
+        raise ctx.error("key 'roads' must be a list")
+    ids: list[int] = []
+    kinds: list[int] = []
+    subtypes: list[int] = []
+    polylines: list[np.ndarray] = []
+    skipped: list[str] = []
+    for k, road in enumerate(roads):
+        w = f"roads[{k}]"
+        type_name = _get(road, "type", w, ctx)
+        element = road.get("map_element_id")
+        mapped = map_element_to_feature(element) if isinstance(element, int) else None
+        if mapped is None:
+            if type_name not in ROAD_TYPES:
+                skipped.append(f"{w} (type {type_name!r}, map_element_id {element!r})")
+                continue
+            # No usable element id: take the kind from the type string, subtype unknown.
+            mapped = (ROAD_TYPES[type_name], 0)
+        elif ROAD_TYPES.get(type_name) != mapped[0]:
+            raise ctx.error(
+                f"{w}: type {type_name!r} disagrees with map_element_id {element} "
+                f"({mapped[0].name.lower()})"
+            )
+        feature_id = _get(road, "id", w, ctx)
+        if isinstance(feature_id, bool) or not isinstance(feature_id, int):
+            raise ctx.error(f"{w}.id: expected an integer, got {feature_id!r}")
+        pts = _xyz_rows(_get(road, "geometry", w, ctx), ("x", "y", "z"), f"{w}.geometry", ctx)
+        if pts.shape[0] == 0:
+            skipped.append(f"{w} (no geometry)")
+            continue
+        ids.append(feature_id)
+        kinds.append(int(mapped[0]))
+        subtypes.append(mapped[1])
+        polylines.append(pts)
+    if skipped:
+        warnings.warn(
+            str(ctx.error(f"skipped {len(skipped)} road(s): {', '.join(skipped[:5])}")),
+            stacklevel=3,
+        )
+    f = len(ids)
+    empty = tuple(np.zeros(0, np.int64) for _ in range(f))
+    return RoadMap(
+        id=np.asarray(ids, np.int64),
+        feature_type=np.asarray(kinds, np.int8),
+        subtype=np.asarray(subtypes, np.int8),
+        polylines=tuple(polylines),
+        speed_limit_mph=np.zeros(f, np.float32),
+        entry_lanes=empty,
+        exit_lanes=empty,
+        left_neighbors=empty,
+        right_neighbors=empty,
+        controlled_lanes=empty,
+    )
+
+
+def _metadata(meta: Any, ctx: _Ctx) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
+    """(sdc index, tracks_to_predict indices, difficulties, objects_of_interest ids)."""
+    sdc = _get(meta, "sdc_track_index", "metadata", ctx)
+    if isinstance(sdc, bool) or not isinstance(sdc, int):
+        raise ctx.error(f"metadata.sdc_track_index: expected an integer, got {sdc!r}")
+    ttp = meta.get("tracks_to_predict", [])
+    if not isinstance(ttp, list):
+        raise ctx.error("metadata.tracks_to_predict: expected a list")
+    idx = [
+        _get(r, "track_index", f"metadata.tracks_to_predict[{i}]", ctx) for i, r in enumerate(ttp)
+    ]
+    diff = [r.get("difficulty", 0) for r in ttp]
+    ooi = meta.get("objects_of_interest", [])
+    return (
+        sdc,
+        _array(idx, np.int64, "metadata.tracks_to_predict", ctx).reshape(-1),
+        _array(diff, np.int8, "metadata.tracks_to_predict.difficulty", ctx).reshape(-1),
+        _array(ooi, np.int64, "metadata.objects_of_interest", ctx).reshape(-1),
+    )
+
+
+def scenario_from_gpudrive(data: Any, *, source: str = "<memory>") -> Scenario:
+    """Convert an already-decoded GPUDrive JSON document to a validated ``Scenario``.
+
+    Args:
+        data: the decoded JSON (a dict).
+        source: file name for messages and ``Scenario.source``.
+
+    Raises:
+        ScenarioFormatError: missing or malformed keys (naming the key and object index).
+    """
+    ctx = _Ctx(source)
+    if not isinstance(data, dict):
+        raise ctx.error(f"top level: expected a JSON object, got {type(data).__name__}")
+    sid = _get(data, "scenario_id", "top level", ctx)
+    if not isinstance(sid, str) or not sid:
+        raise ctx.error(f"top level: 'scenario_id' must be a non-empty string, got {sid!r}")
+    tracks = _tracks(_get(data, "objects", "top level", ctx), ctx)
+    road_map = _road_map(_get(data, "roads", "top level", ctx), ctx)
+    if road_map.num_features == 0:
+        warnings.warn(str(ctx.error(f"scenario {sid!r} has no map features")), stacklevel=2)
+    if data.get("tl_states"):
+        warnings.warn(
+            str(ctx.error("'tl_states' is not empty; GPUDrive traffic signals are not read")),
+            stacklevel=2,
+        )
+    sdc, ttp, diff, ooi = _metadata(_get(data, "metadata", "top level", ctx), ctx)
+    n_steps = tracks.num_steps
+    scenario = Scenario(
+        scenario_id=sid,
+        timestamps=np.arange(n_steps, dtype=np.float64) * DT,
+        current_index=CURRENT_INDEX,
+        tracks=tracks,
+        road_map=road_map,
+        signals=TrafficSignals.empty(n_steps),
+        sdc_index=sdc,
+        tracks_to_predict=ttp,
+        predict_difficulty=diff,
+        objects_of_interest=ooi,
+        source=source,
+    )
+    return scenario.validate()
+
+
+def read_gpudrive_json(path: PathLike) -> Scenario:
+    """Read one GPUDrive JSON scenario file.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ScenarioFormatError: not JSON, or not a GPUDrive scenario (names the key at fault).
+    """
+    name = os.fspath(path)
+    try:
+        with open(name, "rb") as fh:
+            data = json.loads(fh.read())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise ScenarioFormatError(f"not valid JSON: {err}", name) from err
+    except RecursionError as err:
+        raise ScenarioFormatError("not valid JSON: nested too deeply", name) from err
+    return scenario_from_gpudrive(data, source=name)
