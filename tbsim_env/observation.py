@@ -1,0 +1,388 @@
+"""Pairwise-relative observations (TrafficBots V1.5 spec section 2), batched and pure.
+
+Every token is described in its own local frame, and its relation to the observer only by its
+relative pose (dx, dy, dyaw) in the observer's frame. Nothing is expressed in scenario
+coordinates, so observations do not change when a whole scenario is rotated and translated.
+
+For each observer agent:
+
+* ``ego_history`` [H, 5]: its last H poses in its current frame (x, y, cos yaw, sin yaw) and
+  speed; ``ego_history_mask`` [H]; ``ego_attributes`` [7] (length, width, 4-way type one-hot,
+  speed).
+* ``agents`` [Ka, H, 5]: the Ka nearest other agents, each history in that agent's own current
+  frame; ``agents_attributes`` [Ka, 7]; ``agents_pose`` [Ka, 3] relative pose;
+  ``agents_history_mask`` [Ka, H]; ``agents_mask`` [Ka].
+* ``map`` [Km, P, 4]: the Km nearest map pieces, nodes in the piece frame (x, y, cos, sin of
+  the segment direction); ``map_nodes_mask`` [Km, P]; ``map_class`` [Km, 11] one-hot;
+  ``map_pose`` [Km, 3]; ``map_mask`` [Km].
+* ``traffic_lights`` [Kt, 5] state one-hot; ``traffic_lights_pose`` [Kt, 3] (pose of the
+  controlled lane piece); ``traffic_lights_mask`` [Kt].
+
+Neighbours are the nearest by 2-D distance, within a radius, invalid slots zero with mask 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from tbsim_env import constants as C
+from tbsim_env.config import TokenConfig
+from tbsim_env.data.preprocess.map_filter import filter_map_pieces
+from tbsim_env.data.preprocess.map_pieces import build_map_pieces
+from tbsim_env.data.preprocess.selection import relevant_positions
+from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.sim.geometry import relative_pose, to_local
+from tbsim_env.sim.state import SimState
+
+NUM_TYPE_FEATURES = 4
+"""Type one-hot over (vehicle, pedestrian, cyclist, other)."""
+HISTORY_FEATURES = 5
+"""Per history step: x, y, cos(yaw), sin(yaw), speed."""
+ATTRIBUTE_FEATURES = 2 + NUM_TYPE_FEATURES + 1
+"""length, width, type one-hot, speed."""
+NODE_FEATURES = 4
+"""Per map node: x, y, cos, sin of the segment direction, in the piece frame."""
+
+
+@dataclass(frozen=True)
+class ObsConfig:
+    """Observation sizes.
+
+    Attributes:
+        history: steps of history per agent (current included).
+        num_agents: nearest other agents observed.
+        num_map: nearest map pieces observed.
+        num_traffic_lights: nearest traffic-light tokens observed.
+        agent_radius: m, agents farther away are masked.
+        map_radius: m, map pieces whose start is farther away are masked.
+        traffic_light_radius: m.
+        tokens: limits of the map / traffic-light preprocessing.
+    """
+
+    history: int = C.NUM_HISTORY
+    num_agents: int = C.DEFAULT_OBS_AGENTS
+    num_map: int = C.DEFAULT_OBS_MAP_PIECES
+    num_traffic_lights: int = C.DEFAULT_OBS_TRAFFIC_LIGHTS
+    agent_radius: float = 100.0
+    map_radius: float = 200.0
+    traffic_light_radius: float = 200.0
+    tokens: TokenConfig = TokenConfig()
+
+    def __post_init__(self) -> None:
+        for f in ("history", "num_agents", "num_map", "num_traffic_lights"):
+            if getattr(self, f) < 1:
+                raise ValueError(f"ObsConfig.{f} must be >= 1")
+
+
+@dataclass(frozen=True)
+class MapContext:
+    """Static map and traffic-light tokens of a batch, computed once per scenario.
+
+    Attributes:
+        pose: [B, M, 3] piece pose (node 0 position, first segment heading).
+        nodes: [B, M, P, 4] node features in the piece frame.
+        nodes_valid: [B, M, P] bool.
+        map_class: [B, M] int64 (``MapClass``), 0 for padding.
+        valid: [B, M] bool.
+        tl_pose: [B, L, 3] pose of the controlled lane piece.
+        tl_state: [B, L, T] int64 ``TLState`` from the log.
+        tl_valid: [B, L, T] bool.
+    """
+
+    pose: torch.Tensor
+    nodes: torch.Tensor
+    nodes_valid: torch.Tensor
+    map_class: torch.Tensor
+    valid: torch.Tensor
+    tl_pose: torch.Tensor
+    tl_state: torch.Tensor
+    tl_valid: torch.Tensor
+
+
+@dataclass(frozen=True)
+class History:
+    """The last H simulated states of every agent slot (oldest first).
+
+    Attributes:
+        pose: [B, N, H, 3]; speed: [B, N, H]; valid: [B, N, H] bool.
+    """
+
+    pose: torch.Tensor
+    speed: torch.Tensor
+    valid: torch.Tensor
+
+
+def _scene_map_numpy(scenario: Scenario, origin: np.ndarray, cfg: TokenConfig) -> dict:
+    """Map pieces and TL tokens of one scenario, frame shifted by ``origin`` (numpy)."""
+    n_hist = scenario.current_index + 1
+    hist = np.zeros_like(scenario.tracks.valid)
+    hist[:, :n_hist] = scenario.tracks.valid[:, :n_hist]
+    reference = relevant_positions(scenario, origin, hist)
+    pieces = build_map_pieces(scenario.road_map, origin, cfg)
+    pieces = pieces.take(filter_map_pieces(pieces, reference, cfg))
+    lights = attach_traffic_lights(scenario.signals, pieces, reference, cfg)
+    d = pieces.dir[..., :2]
+    yaw = np.arctan2(d[..., 1], d[..., 0])
+    pose = np.concatenate([pieces.pos[:, 0, :2], yaw[:, :1]], axis=-1)
+    rel = pieces.pos[..., :2] - pose[:, None, :2]
+    c, s = np.cos(pose[:, 2])[:, None], np.sin(pose[:, 2])[:, None]
+    local = np.stack([c * rel[..., 0] + s * rel[..., 1], -s * rel[..., 0] + c * rel[..., 1]], -1)
+    dyaw = yaw - pose[:, None, 2]
+    nodes = np.concatenate([local, np.cos(dyaw)[..., None], np.sin(dyaw)[..., None]], -1)
+    nodes = np.where(pieces.valid[..., None], nodes, 0.0)
+    return {
+        "pose": pose,
+        "nodes": nodes,
+        "nodes_valid": pieces.valid,
+        "map_class": pieces.map_class,
+        "tl_pose": pose[lights.piece] if lights.num_tokens else np.zeros((0, 3)),
+        "tl_state": lights.state,
+        "tl_valid": lights.valid,
+    }
+
+
+def build_map_context(
+    scenarios: list[Scenario], origins: torch.Tensor, cfg: ObsConfig
+) -> MapContext:
+    """Static observation context of a batch (map pieces and traffic lights).
+
+    Args:
+        scenarios: the B scenarios.
+        origins: [B, 2] float64, the frame origin of each scenario (``SimState.origin``).
+        cfg: observation configuration.
+    """
+    parts = [
+        _scene_map_numpy(sc, origins[i].cpu().numpy(), cfg.tokens) for i, sc in enumerate(scenarios)
+    ]
+    b = len(parts)
+    m = max(max(len(p["pose"]) for p in parts), 1)
+    n_l = max(max(len(p["tl_pose"]) for p in parts), 1)
+    n_t = scenarios[0].num_steps
+    p_n = cfg.tokens.piece_segments
+    out = {
+        "pose": np.zeros((b, m, 3), np.float32),
+        "nodes": np.zeros((b, m, p_n, NODE_FEATURES), np.float32),
+        "nodes_valid": np.zeros((b, m, p_n), bool),
+        "map_class": np.zeros((b, m), np.int64),
+        "valid": np.zeros((b, m), bool),
+        "tl_pose": np.zeros((b, n_l, 3), np.float32),
+        "tl_state": np.zeros((b, n_l, n_t), np.int64),
+        "tl_valid": np.zeros((b, n_l, n_t), bool),
+    }
+    for i, p in enumerate(parts):
+        k, lt = len(p["pose"]), len(p["tl_pose"])
+        for key in ("pose", "nodes", "nodes_valid", "map_class"):
+            out[key][i, :k] = p[key]
+        out["valid"][i, :k] = p["nodes_valid"][:, 0] if k else False
+        for key in ("tl_pose", "tl_state", "tl_valid"):
+            out[key][i, :lt] = p[key]
+    dev = origins.device
+    return MapContext(**{k: torch.from_numpy(v).to(dev) for k, v in out.items()})
+
+
+def init_history(state: SimState, length: int) -> History:
+    """History window ending at the state's step, filled from the log (oldest first)."""
+    n_t = state.log.valid.shape[-1]
+    steps = state.step[:, None] - torch.arange(length - 1, -1, -1, device=state.device)  # [B, H]
+    inside = steps >= 0
+    idx = steps.clamp(0, n_t - 1)[:, None, :].expand(-1, state.num_agents, -1)
+    pose = state.log.pose.gather(2, idx[..., None].expand(-1, -1, -1, 3))
+    speed = state.log.speed.gather(2, idx)
+    valid = state.log.valid.gather(2, idx) & inside[:, None, :]
+    valid[..., -1] = state.valid
+    pose[..., -1, :] = state.pose
+    speed[..., -1] = state.speed
+    return History(pose=pose, speed=speed, valid=valid)
+
+
+def push_history(history: History, state: SimState) -> History:
+    """Drop the oldest step and append the state's current one."""
+    return History(
+        pose=torch.cat([history.pose[:, :, 1:], state.pose[:, :, None]], dim=2),
+        speed=torch.cat([history.speed[:, :, 1:], state.speed[:, :, None]], dim=2),
+        valid=torch.cat([history.valid[:, :, 1:], state.valid[:, :, None]], dim=2),
+    )
+
+
+def _history_features(pose: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
+    """[..., H, 5] history in ``frame`` ([..., 3]): x, y, cos, sin, speed."""
+    xy = to_local(pose[..., :2], frame[..., None, :])
+    dyaw = pose[..., 2] - frame[..., None, 2]
+    return torch.cat(
+        [xy, torch.cos(dyaw)[..., None], torch.sin(dyaw)[..., None], speed[..., None]], -1
+    )
+
+
+def _attributes(state: SimState, speed: torch.Tensor) -> torch.Tensor:
+    """[B, N, 7] length, width, type one-hot (vehicle, pedestrian, cyclist, other), speed."""
+    t = state.agents.object_type
+    onehot = torch.stack(
+        [
+            t == C.ObjectType.VEHICLE,
+            t == C.ObjectType.PEDESTRIAN,
+            t == C.ObjectType.CYCLIST,
+            (t == C.ObjectType.OTHER) | (t == C.ObjectType.UNSET),
+        ],
+        dim=-1,
+    ).float()
+    return torch.cat([state.agents.size[..., :2], onehot, speed[..., None]], dim=-1)
+
+
+def _nearest(
+    dist: torch.Tensor, valid: torch.Tensor, k: int, radius: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Indices [B, Q, k] of the k nearest valid targets and their mask (within radius).
+
+    Args:
+        dist: [B, Q, M] distances; valid: [B, Q, M] bool.
+    """
+    m = dist.shape[-1]
+    d = torch.where(valid, dist, torch.full_like(dist, float("inf")))
+    if m < k:
+        d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
+    top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
+    mask = top <= radius
+    return idx.clamp(max=m - 1), mask
+
+
+def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """x: [B, M, ...], idx: [B, Q, K] -> [B, Q, K, ...]."""
+    b, q, k = idx.shape
+    flat = idx.reshape(b, q * k)
+    extra = x.shape[2:]
+    g = x.gather(1, flat.view(b, q * k, *([1] * len(extra))).expand(b, q * k, *extra))
+    return g.view(b, q, k, *extra)
+
+
+def observe(
+    state: SimState,
+    history: History,
+    ctx: MapContext,
+    observers: torch.Tensor,
+    cfg: ObsConfig,
+) -> dict[str, torch.Tensor]:
+    """Observations of the ``observers`` agents.
+
+    Args:
+        state: current state.
+        history: ``History`` ending at the current step.
+        ctx: static map context of the batch.
+        observers: [B, Q] int64 agent-slot indices.
+        cfg: observation sizes.
+
+    Returns:
+        dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
+    """
+    b_idx = torch.arange(state.batch_size, device=state.device)[:, None]
+    me = state.pose[b_idx, observers]  # [B, Q, 3]
+    hist_pose, hist_speed, hist_valid = history.pose, history.speed, history.valid
+    attrs = _attributes(state, state.speed)
+    own_hist = _history_features(hist_pose, hist_speed, state.pose)  # [B, N, H, 5]
+    own_hist = own_hist * hist_valid[..., None]
+
+    # Agents.
+    diff = state.pose[:, None, :, :2] - me[:, :, None, :2]  # [B, Q, N, 2]
+    dist = torch.linalg.vector_norm(diff, dim=-1)
+    other = state.valid[:, None, :] & (
+        torch.arange(state.num_agents, device=state.device) != observers[..., None]
+    )
+    a_idx, a_mask = _nearest(dist, other, cfg.num_agents, cfg.agent_radius)
+    a_pose = relative_pose(me[:, :, None], _gather(state.pose, a_idx))
+
+    # Map pieces.
+    m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
+    m_idx, m_mask = _nearest(
+        m_dist, ctx.valid[:, None].expand_as(m_dist), cfg.num_map, cfg.map_radius
+    )
+    m_pose = relative_pose(me[:, :, None], _gather(ctx.pose, m_idx))
+    m_class = torch.nn.functional.one_hot(_gather(ctx.map_class, m_idx), C.NUM_MAP_CLASSES)
+
+    # Traffic lights at the current step.
+    n_t = ctx.tl_state.shape[-1]
+    t_now = state.step.clamp(max=n_t - 1)[:, None, None].expand(-1, ctx.tl_state.shape[1], 1)
+    tl_state = ctx.tl_state.gather(2, t_now)[..., 0]
+    tl_valid = ctx.tl_valid.gather(2, t_now)[..., 0]
+    t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
+    t_idx, t_mask = _nearest(
+        t_dist,
+        tl_valid[:, None].expand_as(t_dist),
+        cfg.num_traffic_lights,
+        cfg.traffic_light_radius,
+    )
+    t_pose = relative_pose(me[:, :, None], _gather(ctx.tl_pose, t_idx))
+    t_state = torch.nn.functional.one_hot(_gather(tl_state, t_idx), C.NUM_TL_STATES)
+
+    def masked(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+        return x * mask.view(*mask.shape, *([1] * (x.dim() - mask.dim()))).to(x.dtype)
+
+    a_hist_valid = _gather(hist_valid, a_idx) & a_mask[..., None]
+    return {
+        "ego_history": own_hist[b_idx, observers],
+        "ego_history_mask": hist_valid[b_idx, observers].float(),
+        "ego_attributes": attrs[b_idx, observers],
+        "agents": masked(_gather(own_hist, a_idx), a_mask),
+        "agents_history_mask": a_hist_valid.float(),
+        "agents_attributes": masked(_gather(attrs, a_idx), a_mask),
+        "agents_pose": masked(a_pose, a_mask),
+        "agents_mask": a_mask.float(),
+        "map": masked(_gather(ctx.nodes, m_idx), m_mask),
+        "map_nodes_mask": masked(_gather(ctx.nodes_valid, m_idx), m_mask).float(),
+        "map_class": masked(m_class, m_mask).float(),
+        "map_pose": masked(m_pose, m_mask),
+        "map_mask": m_mask.float(),
+        "traffic_lights": masked(t_state, t_mask).float(),
+        "traffic_lights_pose": masked(t_pose, t_mask),
+        "traffic_lights_mask": t_mask.float(),
+    }
+
+
+def observation_shapes(cfg: ObsConfig) -> dict[str, tuple[int, ...]]:
+    """Per-agent shape of every observation key."""
+    h, ka, km, kt = cfg.history, cfg.num_agents, cfg.num_map, cfg.num_traffic_lights
+    p = cfg.tokens.piece_segments
+    return {
+        "ego_history": (h, HISTORY_FEATURES),
+        "ego_history_mask": (h,),
+        "ego_attributes": (ATTRIBUTE_FEATURES,),
+        "agents": (ka, h, HISTORY_FEATURES),
+        "agents_history_mask": (ka, h),
+        "agents_attributes": (ka, ATTRIBUTE_FEATURES),
+        "agents_pose": (ka, 3),
+        "agents_mask": (ka,),
+        "map": (km, p, NODE_FEATURES),
+        "map_nodes_mask": (km, p),
+        "map_class": (km, C.NUM_MAP_CLASSES),
+        "map_pose": (km, 3),
+        "map_mask": (km,),
+        "traffic_lights": (kt, C.NUM_TL_STATES),
+        "traffic_lights_pose": (kt, 3),
+        "traffic_lights_mask": (kt,),
+    }
+
+
+def observation_space(cfg: ObsConfig) -> gym.spaces.Dict:
+    """The fixed-shape ``Dict`` of ``Box`` es of one agent's observation."""
+    spaces = {}
+    for key, shape in observation_shapes(cfg).items():
+        if key.endswith("mask") or key in ("map_class", "traffic_lights"):
+            spaces[key] = gym.spaces.Box(0.0, 1.0, shape, np.float32)
+        else:
+            spaces[key] = gym.spaces.Box(-np.inf, np.inf, shape, np.float32)
+    return gym.spaces.Dict(spaces)
+
+
+__all__ = [
+    "History",
+    "MapContext",
+    "ObsConfig",
+    "build_map_context",
+    "init_history",
+    "observation_space",
+    "observe",
+    "push_history",
+]
