@@ -66,8 +66,8 @@ def test_polygon_long_sides_both_ways():
     np.testing.assert_allclose(parts[2][-1], [0, 3, 0])
     np.testing.assert_allclose(parts[1], parts[0][::-1])
     np.testing.assert_allclose(parts[3], parts[2][::-1])
-    # 1 m steps plus the end point: 0, 1, ..., 10, 10 (length is an exact integer).
-    assert parts[0].shape == (12, 3)
+    # 1 m steps plus the end point: 0, 1, ..., 10 (the end point is not repeated).
+    assert parts[0].shape == (11, 3)
     np.testing.assert_allclose(np.diff(parts[0][:-1, 0]), 1.0)
 
 
@@ -76,7 +76,9 @@ def test_polygon_short_first_side_uses_other_pair():
     parts = polygon_to_polylines(np.c_[corners, np.zeros(4)])
     np.testing.assert_allclose(parts[0][[0, -1], :2], [[0, 0], [10, 0]])  # v0 -> v3
     np.testing.assert_allclose(parts[2][[0, -1], :2], [[10, 3], [0, 3]])  # v2 -> v1
-    assert parts[0].shape[0] == 12
+    assert parts[0].shape[0] == 11
+    side = polygon_to_polylines(np.c_[corners * [1.0, 1.0], np.zeros(4)] * [1.05, 1.0, 1.0])[0]
+    np.testing.assert_allclose(side[:, 0], [*range(11), 10.5])  # 10.5 m: 0..10, then the end
 
 
 @pytest.mark.parametrize(

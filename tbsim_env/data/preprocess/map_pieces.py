@@ -150,13 +150,16 @@ def densify_segment(start: np.ndarray, end: np.ndarray) -> np.ndarray:
         end: [3] float64 metres.
 
     Returns:
-        [n, 3] float64: start + k * unit for k = 0..floor(length), then ``end``.
+        [n, 3] float64: start + k * unit for k = 0..floor(length), then ``end``. When the
+        length is an exact integer the last k-point equals ``end`` and is not repeated (the
+        reference would emit a zero-length segment there; deliberate deviation).
     """
     vec = end - start
     length = float(np.linalg.norm(vec))
     if length == 0.0:
         return np.stack([start, end])
-    k = np.arange(int(np.floor(length)) + 1, dtype=np.float64)
+    count = int(np.ceil(length))  # == floor(length) + 1 unless the length is an integer
+    k = np.arange(count, dtype=np.float64)
     return np.concatenate([start + k[:, None] * (vec / length), end[None]])
 
 
