@@ -218,6 +218,16 @@ def test_pedestrian_cyclist_and_invalid_destinations():
     assert dest[3] == -1
 
 
+def test_destinations_without_bike_lanes_or_boundaries():
+    rm = make_road_map([Feature(1, LANE, line((0, 0), (20, 0)), subtype=2)])
+    pieces, dest = _dest(rm, [CYC, PED, VEH], [(5, 0)] * 3, [0.0] * 3, [1.0] * 3)
+    assert dest[0] == -1 and dest[1] == -1  # no bike lane and no boundary: no destination
+    assert dest[2] == _last_piece(pieces, 1)
+    rm = make_road_map([Feature(2, EDGE, line((0, 5), (20, 5)), subtype=1)])
+    pieces, dest = _dest(rm, [CYC], [(5, 0)], [0.0], [1.0])
+    assert pieces.map_class[dest[0]] == MapClass.ROAD_EDGE_BOUNDARY
+
+
 def test_walk_lane_graph_is_driven_by_rng():
     exits = {1: np.array([2, 3]), 2: np.array([4]), 3: np.array([5])}
     last_piece = {1: 0, 2: 1, 3: 2, 4: 3, 5: 4}

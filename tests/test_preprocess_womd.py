@@ -221,3 +221,16 @@ def test_runtime_budget(one_scenario):
         preprocess_scenario(one_scenario)
     per_call = (time.perf_counter() - start) / 3
     assert per_call < 1.0  # target < 0.2 s; loose bound for a shared 2-core machine
+
+
+@pytest.mark.parametrize("training", [False, True], ids=["eval", "training"])
+def test_gpudrive_conversions_preprocess(womd_dir, training):
+    scenarios = load_scenarios(womd_dir / "gpudrive")
+    assert len(scenarios) == 3
+    for sc in scenarios:
+        tok = preprocess_scenario(sc, TokenConfig(training=training))
+        live = tok.agent_track_index >= 0
+        assert tok.agent_track_index[0] == sc.sdc_index
+        assert set(np.flatnonzero(sc.role_mask().any(1))) <= set(tok.agent_track_index[live])
+        for kind, dest in zip(tok.agent_type[live], tok.agent_dest[live]):
+            assert int(tok.map_class[dest]) in ALLOWED_DEST[int(kind)]

@@ -159,7 +159,9 @@ def destination_labels(
     cyclist = object_type == ObjectType.CYCLIST
     bike = _nodes(pieces, (int(MapClass.BIKE_LANE),))
     bike_hit = _nearest_aligned(extended[cyclist], goals.yaw[cyclist], bike)
-    dest[cyclist] = np.where(bike_hit >= 0, bike.piece[np.maximum(bike_hit, 0)], boundary[cyclist])
+    if bike.piece.shape[0] > 0:
+        hit_piece = bike.piece[np.maximum(bike_hit, 0)]
+        dest[cyclist] = np.where(bike_hit >= 0, hit_piece, boundary[cyclist])
 
     vehicle_like = ~np.isin(object_type, (int(ObjectType.PEDESTRIAN), int(ObjectType.CYCLIST)))
     lanes = _nodes(pieces, VEHICLE_LANE_CLASSES)
