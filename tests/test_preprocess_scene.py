@@ -355,3 +355,16 @@ def test_preprocess_scenario_without_map():
         [hist[:, 0].min(), hist[:, 0].max(), hist[:, 1].min(), hist[:, 1].max()],
     )
     assert tok.map_boundary[3] == pytest.approx(300.0)  # the still pedestrian at y = 300
+
+
+@pytest.mark.parametrize("layout", ["intersection", "merge"])
+def test_generated_scenes_preprocess(layout):
+    generator = pytest.importorskip("tbsim_env.data.generator")
+    sc = generator.generate_scenario(layout, 0)
+    tok = preprocess_scenario(sc)
+    live = tok.agent_track_index >= 0
+    assert tok.agent_track_index[0] == sc.sdc_index and live.sum() >= 2
+    assert (tok.map_class >= 0).sum() > 20 and (tok.agent_dest[live] >= 0).all()
+    assert (tok.map_class[tok.agent_dest[live]] >= 0).all()
+    assert (tok.map_feature_id[tok.tl_piece[tok.tl_piece >= 0]] >= 0).all()
+    np.testing.assert_array_equal(tok.tl_valid[tok.tl_piece < 0], False)
