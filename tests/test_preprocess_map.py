@@ -52,6 +52,10 @@ def test_feature_classes_cover_all_types_and_stop_sign_overwrite():
         -1, c.CROSSWALK, c.SPEED_BUMP, c.SPEED_BUMP,
     ]  # fmt: skip
     np.testing.assert_array_equal(got, [int(x) for x in expected])
+    # Unknown road-line/edge types are skipped without error; stop signs yield no piece.
+    pieces = build_map_pieces(make_road_map(feats), np.zeros(2), CFG)
+    assert not np.isin(pieces.feature_id, [10, 20, 30]).any()
+    assert set(pieces.feature_id.tolist()) == {f.id for f in feats} - {10, 20, 30}
 
 
 def test_polygon_long_sides_both_ways():

@@ -62,6 +62,7 @@ class _Nodes:
 
 
 def _nodes(pieces: MapPieces, classes: tuple[int, ...]) -> _Nodes:
+    """The valid nodes of the pieces whose class is in ``classes``."""
     mask = pieces.valid & np.isin(pieces.map_class, classes)[:, None]
     row = np.broadcast_to(np.arange(pieces.num_pieces)[:, None], mask.shape)
     return _Nodes(xy=pieces.pos[mask][:, :2], dir=pieces.dir[mask][:, :2], piece=row[mask])

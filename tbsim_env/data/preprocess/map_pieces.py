@@ -8,6 +8,7 @@ the segment vector to the next point (``dir``, not normalised, ~1 m). Positions 
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,6 +22,8 @@ from tbsim_env.constants import (
     RoadLineType,
 )
 from tbsim_env.data.scenario import RoadMap
+
+_LOG = logging.getLogger(__name__)
 
 NO_CLASS = -1
 """Class of a feature that yields no piece (stop sign, unknown road-line/edge type)."""
@@ -254,6 +257,11 @@ def build_map_pieces(road_map: RoadMap, origin: np.ndarray, cfg: TokenConfig) ->
     origin = np.asarray(origin, np.float64)
     shift = np.array([origin[0], origin[1], 0.0])
     classes = feature_classes(road_map)
+    unknown = (classes == NO_CLASS) & (road_map.feature_type != int(MapFeatureType.STOP_SIGN))
+    if unknown.any():
+        _LOG.debug(
+            "skipped %d map features of unknown type: ids %s", unknown.sum(), road_map.id[unknown]
+        )
     polylines: list[np.ndarray] = []
     owner: list[int] = []
     for k in np.flatnonzero(classes != NO_CLASS):
