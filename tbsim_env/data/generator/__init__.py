@@ -1,0 +1,12 @@
+"""Embedded procedural scenario generator: WOMD-like scenes without any download.
+
+Layouts (``LAYOUTS``) are built in ``roads``, vehicles are driven by the rule-based driver in
+``driver`` and ``scenes`` packs the result into the same ``Scenario`` type the WOMD reader
+produces.
+"""
+
+from __future__ import annotations
+
+from tbsim_env.data.generator.scenes import LAYOUTS, default_scenarios, generate_scenario
+
+__all__ = ["LAYOUTS", "default_scenarios", "generate_scenario"]

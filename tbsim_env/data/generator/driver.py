@@ -1,0 +1,398 @@
+"""Rule-based driver of the generator: lane routes, IDM car following, signals and merges.
+
+Every vehicle moves along its route (a lane path chosen at spawn) by its arc length ``s``.
+Each step a vehicle takes the lowest of these IDM accelerations:
+
+* free road toward its desired speed, capped by the route curvature ahead (lateral accel);
+* following the nearest vehicle ahead on its route (including a vehicle that just diverged
+  onto a sibling connector, and the merge partner lane seen in merge coordinates);
+* stopping before a stop line, treated as a stationary leader, when the lane's signal is
+  red, or yellow and the vehicle can stop comfortably, or when vehicles of another
+  intersection approach are still in the box;
+* stopping before the conflict point of a merging lane until a gap is accepted.
+
+The loop runs over time only; every per-vehicle operation is vectorised over vehicles.
+Units: metres, seconds, m/s, m/s^2.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from tbsim_env.constants import DT, SignalState
+from tbsim_env.data.generator.roads import RoadNetwork, signal_states
+from tbsim_env.data.generator.routes import RouteTable
+
+_BIG = 1.0e9
+
+
+@dataclass(frozen=True)
+class DriverConfig:
+    """Ranges of driver parameters (drawn uniformly per vehicle) and global settings.
+
+    Attributes:
+        desired_speed: desired speed range, m/s.
+        time_headway: IDM time headway range, s.
+        min_gap: IDM standstill gap range, m.
+        max_accel: IDM maximum acceleration range, m/s^2.
+        comfort_decel: IDM comfortable deceleration range, m/s^2.
+        max_decel: hard braking limit, m/s^2 (positive).
+        lateral_accel: lateral acceleration used to cap speed in bends, m/s^2.
+        yellow_decel: a vehicle stops at yellow when this deceleration suffices, m/s^2.
+        inflow: mean vehicles per second entering through each source lane.
+        warmup_s: seconds simulated before the first logged step.
+        diverge_clear: a vehicle on a sibling connector stays a leader until its rear is this
+            far past the branch point, m.
+        merge_front_gap: accepted merge gap ahead = this + 1.0 s * own speed, m.
+        merge_rear_gap: accepted merge gap behind = this + 1.5 s * follower speed + 2 s *
+            closing speed, m.
+    """
+
+    desired_speed: tuple[float, float]
+    time_headway: tuple[float, float] = (1.0, 1.8)
+    min_gap: tuple[float, float] = (2.0, 3.0)
+    max_accel: tuple[float, float] = (1.2, 2.0)
+    comfort_decel: tuple[float, float] = (1.5, 2.5)
+    max_decel: float = 5.0
+    lateral_accel: float = 2.0
+    yellow_decel: float = 3.0
+    inflow: float = 0.08
+    warmup_s: float = 12.0
+    diverge_clear: float = 10.0
+    merge_front_gap: float = 4.0
+    merge_rear_gap: float = 6.0
+
+
+@dataclass(frozen=True)
+class Fleet:
+    """Static per-vehicle attributes, N vehicle slots (spawned or not).
+
+    Attributes:
+        route: [N] int64 route index.
+        size: [N, 3] float64 (length, width, height) in metres.
+        desired_speed, time_headway, min_gap, max_accel, comfort_decel: [N] float64 IDM
+            parameters in SI units.
+    """
+
+    route: np.ndarray
+    size: np.ndarray
+    desired_speed: np.ndarray
+    time_headway: np.ndarray
+    min_gap: np.ndarray
+    max_accel: np.ndarray
+    comfort_decel: np.ndarray
+
+
+@dataclass(frozen=True)
+class DriveLog:
+    """Simulated trajectories along routes, N vehicle slots over T steps.
+
+    Attributes:
+        fleet: per-vehicle attributes.
+        s: [N, T] float64 route arc length of the box centre, metres.
+        speed: [N, T] float64 m/s.
+        alive: [N, T] bool, on the map at that step.
+    """
+
+    fleet: Fleet
+    s: np.ndarray
+    speed: np.ndarray
+    alive: np.ndarray
+
+
+def draw_fleet(
+    routes: RouteTable,
+    route_weights: np.ndarray,
+    n: int,
+    cfg: DriverConfig,
+    rng: np.random.Generator,
+) -> Fleet:
+    """Draw ``n`` vehicles: route (by weight), size (cars, some vans) and IDM parameters."""
+    route = rng.choice(routes.num_routes, size=n, p=route_weights / route_weights.sum())
+    van = rng.random(n) < 0.08
+    length = np.where(van, rng.uniform(5.5, 6.5, n), rng.uniform(4.2, 5.1, n))
+    width = np.where(van, rng.uniform(2.1, 2.3, n), rng.uniform(1.8, 2.05, n))
+    height = np.where(van, rng.uniform(2.2, 2.8, n), rng.uniform(1.4, 1.8, n))
+
+    def u(r: tuple[float, float]) -> np.ndarray:
+        return rng.uniform(r[0], r[1], n)
+
+    return Fleet(
+        route=route.astype(np.int64),
+        size=np.stack([length, width, height], axis=1),
+        desired_speed=u(cfg.desired_speed),
+        time_headway=u(cfg.time_headway),
+        min_gap=u(cfg.min_gap),
+        max_accel=u(cfg.max_accel),
+        comfort_decel=u(cfg.comfort_decel),
+    )
+
+
+def _idm(
+    fleet: Fleet, v: np.ndarray, v0: np.ndarray, gap: np.ndarray, v_lead: np.ndarray
+) -> np.ndarray:
+    """IDM acceleration [N] for gaps [N] (inf = free road) to leaders moving at v_lead [N]."""
+    ab = np.sqrt(fleet.max_accel * fleet.comfort_decel)
+    s_star = fleet.min_gap + np.maximum(0.0, v * fleet.time_headway + v * (v - v_lead) / (2 * ab))
+    inter = np.where(np.isfinite(gap), (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
+    return fleet.max_accel * (1.0 - (v / np.maximum(v0, 0.1)) ** 4 - inter)
+
+
+@dataclass(frozen=True)
+class _Static:
+    """Lookup tables derived once per network (see ``_prepare``)."""
+
+    parent: np.ndarray  # [L+1] branch lane id of a diverging connector, 0 if none
+    conn_arm: np.ndarray  # [L+1] approach of a connector lane, -1 otherwise
+    signal_row: np.ndarray  # [R] row in the signal table of the route's stop line, -1 if none
+    line_s: np.ndarray  # [R] route s of that stop line (inf if none)
+    route_arm: np.ndarray  # [R] approach of the route (-1 if none)
+    merge_virtual: np.ndarray  # [R, L+1] merge-frame lane offsets for yielding routes
+    merge_prio: np.ndarray  # [R, L+1] merge-frame lane offsets of the yield lane for priority
+    conflict_s: np.ndarray  # [R] route s of the merge conflict point for yielding routes
+    yield_lane: np.ndarray  # [L+1] True for lanes that must yield
+
+
+def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
+    n_l = len(net.lanes) + 1
+    n_r = routes.num_routes
+    parent = np.zeros(n_l, np.int64)
+    conn_arm = np.full(n_l, -1, np.int64)
+    for ln in net.lanes:
+        if len(ln.entry) == 1 and len(net.lane(ln.entry[0]).exit) > 1:
+            parent[ln.id] = ln.entry[0]
+        if ln.is_connector:
+            conn_arm[ln.id] = ln.approach
+    signal_row = np.full(n_r, -1, np.int64)
+    line_s = np.full(n_r, np.inf)
+    route_arm = np.full(n_r, -1, np.int64)
+    if net.signals is not None:
+        rows = {lid: k for k, lid in enumerate(net.signals.lane_ids)}
+        for r, path in enumerate(routes.lanes):
+            for lid in path:
+                if lid in rows:
+                    signal_row[r] = rows[lid]
+                    line_s[r] = routes.lane_offset[r, lid] + routes.lane_length[lid]
+                    route_arm[r] = net.lane(lid).approach
+                    break
+    merge_virtual = np.full((n_r, n_l), np.nan)
+    merge_prio = np.full((n_r, n_l), np.nan)
+    conflict_s = np.full(n_r, np.inf)
+    yield_lane = np.zeros(n_l, bool)
+    off, ll = routes.lane_offset, routes.lane_length
+    for m in net.merges:
+        p, y = m.priority_lane, m.yield_lane
+        yield_lane[y] = True
+        on_y = ~np.isnan(off[:, y])
+        on_p = ~np.isnan(off[:, p])
+        merge_virtual[on_y, p] = off[on_y, y] + ll[y] - ll[p]
+        conflict_s[on_y] = off[on_y, y] + m.conflict_s
+        merge_prio[on_p, y] = off[on_p, p] + ll[p] - ll[y]
+    return _Static(
+        parent=parent,
+        conn_arm=conn_arm,
+        signal_row=signal_row,
+        line_s=line_s,
+        route_arm=route_arm,
+        merge_virtual=merge_virtual,
+        merge_prio=merge_prio,
+        conflict_s=conflict_s,
+        yield_lane=yield_lane,
+    )
+
+
+def _curve_accel(
+    routes: RouteTable, r: np.ndarray, s: np.ndarray, v: np.ndarray, a_lat: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bend speed cap at the current point [N] and the braking needed for bends ahead [N].
+
+    Args:
+        routes: route table.
+        r: [N] route index per vehicle.
+        s: [N] route arc length, m.
+        v: [N] speed, m/s.
+        a_lat: allowed lateral acceleration, m/s^2.
+    """
+    cap = np.sqrt(a_lat / np.maximum(routes.curvature[r], 1e-4))  # [N, P]
+    d = routes.s[r] - s[:, None]
+    ahead = (d > 0.0) & (d < 80.0)
+    need = np.where(ahead, (cap**2 - v[:, None] ** 2) / (2.0 * np.maximum(d, 0.5)), np.inf)
+    here = np.abs(d) <= 1.0
+    cap_here = np.where(here, cap, np.inf).min(axis=1)
+    return cap_here, need.min(axis=1)
+
+
+def simulate(
+    net: RoadNetwork,
+    routes: RouteTable,
+    fleet: Fleet,
+    s0: np.ndarray,
+    v0: np.ndarray,
+    num_initial: int,
+    spawn_prob: np.ndarray,
+    route_weights: np.ndarray,
+    num_steps: int,
+    cfg: DriverConfig,
+    rng: np.random.Generator,
+    signal_offset_s: float,
+) -> DriveLog:
+    """Run the driver for ``num_steps`` steps of ``DT`` starting at time ``-cfg.warmup_s``.
+
+    Slots ``[0, num_initial)`` start on the map at ``s0``/``v0``; the remaining slots are
+    spawned in order at the start of a source lane when it is clear (each step with
+    probability ``spawn_prob`` per source lane) and get a route from that lane by weight.
+
+    Args:
+        net: road network.
+        routes: its routes.
+        fleet: N vehicle slots.
+        s0, v0: [N] initial route coordinate and speed (used for the first slots only).
+        num_initial: vehicles on the map at the first step.
+        spawn_prob: [num source lanes] spawn probability per step of each source lane
+            (sources in increasing lane id order).
+        route_weights: [R] relative probability of each route among those of its source.
+        num_steps: steps to simulate (warm-up included).
+        cfg: driver configuration.
+        rng: random generator (spawn times).
+        signal_offset_s: signal plan phase offset in seconds.
+
+    Returns:
+        The ``DriveLog`` of all N slots over ``num_steps`` steps.
+    """
+    st = _prepare(net, routes)
+    n = fleet.route.shape[0]
+    length = fleet.size[:, 0]
+    s = np.where(np.arange(n) < num_initial, s0, 0.0).astype(float)
+    v = np.where(np.arange(n) < num_initial, v0, 0.0).astype(float)
+    alive = np.arange(n) < num_initial
+    done = np.zeros(n, bool)
+    latch = np.zeros(n, np.int8)  # yellow decision: 0 none, 1 stop, 2 go
+    merge_ok = np.zeros(n, bool)
+    next_slot = num_initial
+    times = -cfg.warmup_s + DT * np.arange(num_steps)
+    sig = (
+        signal_states(net.signals, times, signal_offset_s)
+        if net.signals is not None
+        else np.zeros((0, num_steps), np.int8)
+    )
+    sources = np.unique(routes.source)
+    out_s = np.zeros((n, num_steps))
+    out_v = np.zeros((n, num_steps))
+    out_alive = np.zeros((n, num_steps), bool)
+    r = fleet.route.copy()
+    idx = np.arange(n)
+
+    for t in range(num_steps):
+        lane_c, sig_c = routes.locate(r, s)
+        lane_f, _ = routes.locate(r, s + 0.5 * length)
+        lane_b, _ = routes.locate(r, s - 0.5 * length)
+
+        # ---------------------------------------------------------------- spawning
+        for k, src in enumerate(sources):
+            if next_slot >= n or rng.random() >= spawn_prob[k]:
+                continue
+            on_src = alive & ((lane_b == src) | (lane_c == src))
+            rear = np.where(on_src, s - 0.5 * length, np.inf)
+            j = int(np.argmin(rear)) if on_src.any() else -1
+            want = next_slot
+            if j >= 0 and rear[j] < length[want] + 10.0:
+                continue
+            v_new = fleet.desired_speed[want] * 0.9
+            if j >= 0:
+                v_new = min(v_new, v[j] + 1.0)
+            choices = np.flatnonzero(routes.source == src)
+            w = route_weights[choices]
+            r[want] = choices[rng.choice(choices.size, p=w / w.sum())]
+            s[want], v[want], alive[want] = 0.0, v_new, True
+            lane_new, sig_new = routes.locate(r[[want]], s[[want]])
+            lane_c[want], sig_c[want] = lane_new[0], sig_new[0]
+            lane_f[want] = lane_b[want] = lane_new[0]
+            next_slot += 1
+
+        # ---------------------------------------------------------------- leaders
+        off = routes.lane_offset[r[:, None], lane_c[None, :]]  # [N, N] j's lane in i's route
+        pos = off + sig_c[None, :]
+        par = st.parent[lane_c]
+        par_off = routes.lane_offset[r[:, None], par[None, :]] + routes.lane_length[par][None, :]
+        par_ok = (par > 0) & (sig_c - 0.5 * length < cfg.diverge_clear)
+        pos = np.where(np.isnan(pos) & par_ok[None, :], par_off + sig_c[None, :], pos)
+        front = s + 0.5 * length
+        committed = merge_ok | (front >= st.conflict_s[r])
+        v_off = st.merge_virtual[r[:, None], lane_c[None, :]] + sig_c[None, :]
+        engaged = np.isfinite(st.conflict_s[r]) & (front > st.conflict_s[r] - 60.0)
+        pos = np.where(np.isnan(pos) & engaged[:, None], v_off, pos)
+        p_off = st.merge_prio[r[:, None], lane_c[None, :]] + sig_c[None, :]
+        pos = np.where(np.isnan(pos) & committed[None, :], p_off, pos)
+        valid_pair = alive[:, None] & alive[None, :] & (idx[:, None] != idx[None, :])
+        ahead = valid_pair & (pos > s[:, None])
+        gap_m = np.where(ahead, pos - s[:, None] - 0.5 * (length[:, None] + length[None, :]), _BIG)
+        lead = np.argmin(gap_m, axis=1)
+        gap = gap_m[idx, lead]
+        gap = np.where(gap >= _BIG, np.inf, gap)
+        v_lead = v[lead]
+
+        # ---------------------------------------------------------------- stop lines
+        stop_at = np.full(n, np.inf)
+        has_line = st.signal_row[r] >= 0
+        line = st.line_s[r]
+        before = has_line & (front < line)
+        if sig.shape[0]:
+            state = np.where(has_line, sig[np.maximum(st.signal_row[r], 0), t], 0)
+            to_line = np.maximum(line - front, 0.01)
+            need = v**2 / (2.0 * to_line)
+            latch = np.where(state == int(SignalState.GO), 0, latch).astype(np.int8)
+            decide = before & (state == int(SignalState.CAUTION)) & (latch == 0)
+            latch = np.where(decide, np.where(need <= cfg.yellow_decel, 1, 2), latch)
+            red = state == int(SignalState.STOP)
+            must = (red & ((latch != 2) | (need <= cfg.max_decel))) | (
+                (state == int(SignalState.CAUTION)) & (latch == 1)
+            )
+            occupied = np.zeros(max(int(st.conn_arm.max()) + 1, 1), bool)
+            for lane in (lane_c, lane_f, lane_b):
+                arm = st.conn_arm[lane]
+                occupied[arm[alive & (arm >= 0)]] = True
+            other = np.arange(occupied.size)[None, :] != st.route_arm[r][:, None]
+            busy = (occupied[None, :] & other).any(axis=1)
+            must = must | busy
+            stop_at = np.where(before & must, line, stop_at)
+
+        # ---------------------------------------------------------------- merge gaps
+        yielding = alive & np.isfinite(st.conflict_s[r]) & ~committed
+        if yielding.any():
+            rel = np.where(valid_pair & ~np.isnan(v_off), v_off - s[:, None], np.nan)
+            half = 0.5 * (length[:, None] + length[None, :])
+            fgap = np.where(rel >= 0, rel - half, np.inf).min(axis=1)
+            rgap_m = np.where(rel < 0, -rel - half, np.inf)
+            follower = np.argmin(rgap_m, axis=1)
+            rgap = rgap_m[idx, follower]
+            vf = v[follower]
+            ok_front = fgap >= cfg.merge_front_gap + 1.0 * v
+            ok_rear = rgap >= cfg.merge_rear_gap + 1.5 * vf + 2.0 * np.maximum(vf - v, 0.0)
+            c_s = st.conflict_s[r]
+            near = c_s - front <= v**2 / (2.0 * fleet.comfort_decel) + 2.0
+            merge_ok = merge_ok | (yielding & near & ok_front & ok_rear)
+            wait = yielding & ~merge_ok
+            stop_at = np.where(wait, np.minimum(stop_at, c_s), stop_at)
+
+        # ---------------------------------------------------------------- acceleration
+        cap_here, a_curve = _curve_accel(routes, r, s, v, cfg.lateral_accel)
+        v_des = np.minimum(fleet.desired_speed, cap_here)
+        acc = _idm(fleet, v, v_des, gap, v_lead)
+        line_gap = np.where(np.isfinite(stop_at), stop_at - front, np.inf)
+        acc = np.minimum(acc, _idm(fleet, v, v_des, line_gap, np.zeros(n)))
+        acc = np.where(a_curve < -0.3, np.minimum(acc, a_curve), acc)
+        acc = np.clip(acc, -cfg.max_decel, fleet.max_accel)
+
+        out_s[:, t], out_v[:, t], out_alive[:, t] = s, v, alive
+        v_new = np.maximum(v + acc * DT, 0.0)
+        s = np.where(alive, s + 0.5 * (v + v_new) * DT, s)
+        v = np.where(alive, v_new, v)
+        gone = alive & (s >= routes.length[r])
+        done |= gone
+        alive &= ~gone
+    return DriveLog(
+        fleet=dataclasses.replace(fleet, route=r), s=out_s, speed=out_v, alive=out_alive
+    )

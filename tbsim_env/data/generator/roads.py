@@ -1,0 +1,427 @@
+"""Road layouts of the procedural generator: lane graph, road lines, edges, crosswalks, signals.
+
+All geometry is 2-D in metres (z = 0 when written to a ``RoadMap``), traffic drives on the
+right. Lane ids are 1..L in lane order; the other map features get the following ids.
+Layouts are fixed (the seed only changes traffic and signal timing).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from tbsim_env.constants import (
+    LaneType,
+    MapFeatureType,
+    RoadEdgeType,
+    RoadLineType,
+    SignalState,
+)
+from tbsim_env.data.generator.geometry import bezier, circle_arc, line, offset, resample
+from tbsim_env.data.scenario import RoadMap
+
+LANE_WIDTH = 3.5
+"""Lane width in metres."""
+
+
+@dataclass(frozen=True)
+class Lane:
+    """One lane centre line of the generated map.
+
+    Attributes:
+        id: map feature id (1-based, unique).
+        points: [n, 2] float64 centre line in metres, ~0.5 m spacing, in driving direction.
+        entry: ids of predecessor lanes.
+        exit: ids of successor lanes.
+        left: ids of left neighbour lanes.
+        right: ids of right neighbour lanes.
+        approach: intersection arm the lane enters from (inbound and connector lanes), else -1.
+        is_connector: True for lanes inside the intersection box.
+    """
+
+    id: int
+    points: np.ndarray
+    entry: tuple[int, ...]
+    exit: tuple[int, ...]
+    left: tuple[int, ...]
+    right: tuple[int, ...]
+    approach: int
+    is_connector: bool
+
+
+@dataclass(frozen=True)
+class Merge:
+    """A lane that must yield where it merges into a priority lane (same successor lane).
+
+    Attributes:
+        priority_lane: id of the lane with right of way.
+        yield_lane: id of the merging lane.
+        conflict_s: arc length (m) along the yield lane from which vehicles on the two lanes
+            could touch; a yielding vehicle must not pass it without an accepted gap.
+    """
+
+    priority_lane: int
+    yield_lane: int
+    conflict_s: float
+
+
+@dataclass(frozen=True)
+class SignalPlan:
+    """Fixed-time signal plan: each phase gets green, then yellow, then an all-red clearance.
+
+    Attributes:
+        lane_ids: ids of the controlled (inbound) lanes, [S].
+        phase: phase index of each controlled lane, [S].
+        num_phases: phases per cycle, served in index order.
+        green_s: green time of a phase in seconds.
+        yellow_s: yellow time in seconds.
+        all_red_s: all-red clearance after each yellow, in seconds.
+    """
+
+    lane_ids: tuple[int, ...]
+    phase: tuple[int, ...]
+    num_phases: int
+    green_s: float
+    yellow_s: float
+    all_red_s: float
+
+    @property
+    def phase_s(self) -> float:
+        """Duration of one phase (green + yellow + all-red) in seconds."""
+        return self.green_s + self.yellow_s + self.all_red_s
+
+    @property
+    def cycle_s(self) -> float:
+        """Duration of one full cycle in seconds."""
+        return self.phase_s * self.num_phases
+
+
+def signal_states(plan: SignalPlan, times: np.ndarray, offset_s: float) -> np.ndarray:
+    """Signal state of every controlled lane at the given times.
+
+    Args:
+        plan: the signal plan.
+        times: [T] seconds (any real values; the plan is periodic).
+        offset_s: phase offset in seconds, added to ``times``.
+
+    Returns:
+        [S, T] int8 ``SignalState`` values (GO, CAUTION or STOP).
+    """
+    t = np.mod(np.asarray(times, float) + offset_s, plan.cycle_s)
+    start = np.asarray(plan.phase, float)[:, None] * plan.phase_s
+    local = np.mod(t[None, :] - start, plan.cycle_s)
+    state = np.full(local.shape, int(SignalState.STOP), np.int8)
+    state[local < plan.green_s + plan.yellow_s] = int(SignalState.CAUTION)
+    state[local < plan.green_s] = int(SignalState.GO)
+    return state
+
+
+@dataclass(frozen=True)
+class RoadNetwork:
+    """A complete generated road layout.
+
+    Attributes:
+        layout: layout name.
+        lane_type: ``LaneType`` of every lane.
+        speed_limit_mph: speed limit of every lane.
+        lanes: lane centre lines with the lane graph; ``lanes[k].id == k + 1``.
+        road_lines: polylines [n, 2] of painted lines.
+        road_line_types: ``RoadLineType`` per road line.
+        road_edges: polylines [n, 2], oriented with the road on their left.
+        crosswalks: polygons [4, 2].
+        sidewalks: pedestrian walking paths [n, 2] (off-road).
+        signals: the signal plan, or None for an unsignalised layout.
+        merges: lanes that must yield to another lane.
+        half_extent: the map covers [-half_extent, half_extent]^2; objects leave beyond it.
+    """
+
+    layout: str
+    lane_type: LaneType
+    speed_limit_mph: float
+    lanes: tuple[Lane, ...]
+    road_lines: tuple[np.ndarray, ...]
+    road_line_types: tuple[RoadLineType, ...]
+    road_edges: tuple[np.ndarray, ...]
+    crosswalks: tuple[np.ndarray, ...]
+    sidewalks: tuple[np.ndarray, ...]
+    signals: SignalPlan | None
+    merges: tuple[Merge, ...]
+    half_extent: float
+
+    def lane(self, lane_id: int) -> Lane:
+        """The lane with this id."""
+        return self.lanes[lane_id - 1]
+
+    @property
+    def source_lanes(self) -> tuple[int, ...]:
+        """Ids of lanes without predecessors (where traffic enters the map)."""
+        return tuple(ln.id for ln in self.lanes if not ln.entry)
+
+
+def _link(
+    points: list[np.ndarray],
+    exits: dict[int, list[int]],
+    left: dict[int, list[int]],
+    right: dict[int, list[int]],
+    approach: list[int],
+    connector: list[bool],
+) -> tuple[Lane, ...]:
+    """Freeze 0-based lane lists into ``Lane`` objects with 1-based ids and symmetric entries."""
+    entries: dict[int, list[int]] = {k: [] for k in range(len(points))}
+    for k, outs in exits.items():
+        for o in outs:
+            entries[o].append(k)
+    return tuple(
+        Lane(
+            id=k + 1,
+            points=points[k],
+            entry=tuple(e + 1 for e in entries[k]),
+            exit=tuple(e + 1 for e in exits.get(k, [])),
+            left=tuple(e + 1 for e in left.get(k, [])),
+            right=tuple(e + 1 for e in right.get(k, [])),
+            approach=approach[k],
+            is_connector=connector[k],
+        )
+        for k in range(len(points))
+    )
+
+
+def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
+    """Signalised 4-way intersection of two roads with 2 lanes per direction.
+
+    Arm k points along polar angle k*pi/2 (east, north, west, south). Inbound lanes end at the
+    stop line 14 m from the centre; connector lanes (through from both lanes, left turn from
+    the inner lane, right turn from the outer lane) cross the box. Signals use split phasing
+    (one arm at a time), so turning movements of different arms never run together.
+
+    Args:
+        arm_length: distance from the centre to the map border along each arm, metres.
+    """
+    w, n_lanes, stop, half = LANE_WIDTH, 2, 14.0, 2 * LANE_WIDTH
+    points: list[np.ndarray] = []
+    approach: list[int] = []
+    connector: list[bool] = []
+    exits: dict[int, list[int]] = {}
+    left: dict[int, list[int]] = {}
+    right: dict[int, list[int]] = {}
+
+    def add(pts: np.ndarray, arm: int, is_conn: bool) -> int:
+        points.append(pts)
+        approach.append(arm)
+        connector.append(is_conn)
+        return len(points) - 1
+
+    def axes(k: int) -> tuple[np.ndarray, np.ndarray]:
+        th = k * np.pi / 2
+        return np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
+
+    inbound = [[0] * n_lanes for _ in range(4)]
+    outbound = [[0] * n_lanes for _ in range(4)]
+    for k in range(4):
+        u, r = axes(k)
+        for i in range(n_lanes):
+            lat = (i + 0.5) * w
+            inbound[k][i] = add(line(arm_length * u + lat * r, stop * u + lat * r), k, False)
+            outbound[k][i] = add(line(stop * u - lat * r, arm_length * u - lat * r), -1, False)
+        for lanes in (inbound[k], outbound[k]):
+            for i in range(n_lanes - 1):
+                right[lanes[i]] = [lanes[i + 1]]
+                left[lanes[i + 1]] = [lanes[i]]
+    for k in range(4):
+        th_in = k * np.pi / 2 + np.pi
+        moves = [(i, (k + 2) % 4, i) for i in range(n_lanes)]
+        moves += [(0, (k + 3) % 4, 0), (n_lanes - 1, (k + 1) % 4, n_lanes - 1)]
+        for i, k_out, j in moves:
+            a, b = points[inbound[k][i]][-1], points[outbound[k_out][j]][0]
+            conn = add(bezier(a, th_in, b, k_out * np.pi / 2), k, True)
+            exits.setdefault(inbound[k][i], []).append(conn)
+            exits[conn] = [outbound[k_out][j]]
+    lanes = _link(points, exits, left, right, approach, connector)
+
+    road_lines: list[np.ndarray] = []
+    line_types: list[RoadLineType] = []
+    edges: list[np.ndarray] = []
+    crosswalks: list[np.ndarray] = []
+    sidewalks: list[np.ndarray] = []
+    for k in range(4):
+        u, r = axes(k)
+        road_lines.append(line(stop * u, arm_length * u))
+        line_types.append(RoadLineType.SOLID_DOUBLE_YELLOW)
+        for side in (1.0, -1.0):
+            for i in range(1, n_lanes):
+                road_lines.append(
+                    line(stop * u + side * i * w * r, arm_length * u + side * i * w * r)
+                )
+                line_types.append(RoadLineType.BROKEN_SINGLE_WHITE)
+            walk = side * (half + 2.5) * r
+            sidewalks.append(line((stop + 3.0) * u + walk, arm_length * u + walk))
+        c0, c1 = 8.5, 12.0
+        crosswalks.append(
+            np.stack([c0 * u - half * r, c1 * u - half * r, c1 * u + half * r, c0 * u + half * r])
+        )
+        # Kerb of the quadrant between arm k and arm k+1, road on the left of the direction.
+        b, _ = axes(k + 1)
+        a0 = np.arctan2(-b[1], -b[0])
+        arc = circle_arc(stop * u + stop * b, stop - half, a0, a0 - np.pi / 2)
+        edge = np.concatenate(
+            [
+                line(arm_length * u + half * b, stop * u + half * b)[:-1],
+                arc,
+                line(half * u + stop * b, half * u + arm_length * b)[1:],
+            ]
+        )
+        edges.append(edge)
+
+    inbound_ids = tuple(inbound[k][i] + 1 for k in range(4) for i in range(n_lanes))
+    plan = SignalPlan(
+        lane_ids=inbound_ids,
+        phase=tuple(k for k in range(4) for _ in range(n_lanes)),
+        num_phases=4,
+        green_s=10.0,
+        yellow_s=4.0,
+        all_red_s=3.0,
+    )
+    return RoadNetwork(
+        layout="intersection",
+        lane_type=LaneType.SURFACE_STREET,
+        speed_limit_mph=35.0,
+        lanes=lanes,
+        road_lines=tuple(road_lines),
+        road_line_types=tuple(line_types),
+        road_edges=tuple(edges),
+        crosswalks=tuple(crosswalks),
+        sidewalks=tuple(sidewalks),
+        signals=plan,
+        merges=(),
+        half_extent=arm_length,
+    )
+
+
+def _ease(t: np.ndarray) -> np.ndarray:
+    """Cosine ease from 0 to 1 on t in [0, 1] (zero slope at both ends)."""
+    return 0.5 - 0.5 * np.cos(np.pi * np.clip(t, 0.0, 1.0))
+
+
+def build_merge(half_length: float = 120.0) -> RoadNetwork:
+    """Two-lane one-way freeway carriageway with an on-ramp merging into the right lane.
+
+    The ramp comes in from the lower left, runs beside the right lane as an acceleration lane
+    (x in [-40, 0]), then tapers into it over 60 m and ends at x = 60, where the right main
+    lane is split so that both the ramp and the upstream right lane exit into the same lane.
+
+    Args:
+        half_length: the carriageway runs from -half_length to +half_length along x, metres.
+    """
+    w = LANE_WIDTH
+    x_par, x_taper, x_merge = -40.0, 0.0, 60.0
+    y_inner, y_outer, y_ramp0 = 0.0, -w, -25.0
+    xs = np.linspace(-half_length, x_merge, 4000)
+    approach_t = (xs + half_length) / (x_par + half_length)
+    y = y_ramp0 + (y_outer - w - y_ramp0) * _ease(approach_t)
+    y = y + w * _ease((xs - x_taper) / (x_merge - x_taper))
+    ramp_dense = np.stack([xs, y], axis=1)
+    ramp = resample(ramp_dense)
+
+    points = [
+        line([-half_length, y_inner], [half_length, y_inner]),
+        line([-half_length, y_outer], [x_merge, y_outer]),
+        line([x_merge, y_outer], [half_length, y_outer]),
+        ramp,
+    ]
+    inner, up, down, rmp = 0, 1, 2, 3
+    exits = {up: [down], rmp: [down]}
+    left = {up: [inner], down: [inner], rmp: [up]}
+    right = {inner: [up, down], up: [rmp]}
+    lanes = _link(points, exits, left, right, [-1] * 4, [False] * 4)
+    touching = np.abs(ramp[:, 1] - y_outer) < 2.6
+    seg = np.linalg.norm(np.diff(ramp, axis=0), axis=1)
+    conflict_s = float(np.concatenate([[0.0], np.cumsum(seg)])[np.argmax(touching)])
+
+    half_w = 0.5 * w
+    top = line([half_length, y_inner + half_w], [-half_length, y_inner + half_w])
+    gore_pts = ramp_dense[ramp_dense[:, 0] <= x_par]
+    gore = np.concatenate(
+        [
+            line([-half_length, y_outer - half_w], [x_par, y_outer - half_w])[:-1],
+            resample(offset(gore_pts, half_w)[::-1]),
+        ]
+    )
+    bottom = np.concatenate(
+        [
+            resample(offset(ramp_dense, -half_w)),
+            line([x_merge, y_outer - half_w], [half_length, y_outer - half_w])[1:],
+        ]
+    )
+    road_lines = (
+        line([-half_length, y_inner - half_w], [half_length, y_inner - half_w]),
+        line([x_par, y_outer - half_w], [x_taper, y_outer - half_w]),
+    )
+    return RoadNetwork(
+        layout="merge",
+        lane_type=LaneType.FREEWAY,
+        speed_limit_mph=45.0,
+        lanes=lanes,
+        road_lines=road_lines,
+        road_line_types=(RoadLineType.BROKEN_SINGLE_WHITE, RoadLineType.BROKEN_SINGLE_WHITE),
+        road_edges=(top, gore, bottom),
+        crosswalks=(),
+        sidewalks=(),
+        signals=None,
+        merges=(Merge(priority_lane=up + 1, yield_lane=rmp + 1, conflict_s=conflict_s),),
+        half_extent=half_length,
+    )
+
+
+def to_road_map(net: RoadNetwork) -> RoadMap:
+    """Convert a generated network into the WOMD-like ``RoadMap`` (z = 0 everywhere).
+
+    Lanes keep their ids (1..L); road lines, road edges and crosswalks follow in that order.
+    """
+    polylines: list[np.ndarray] = []
+    ftype: list[int] = []
+    subtype: list[int] = []
+    speed: list[float] = []
+    entry: list[np.ndarray] = []
+    exit_: list[np.ndarray] = []
+    lefts: list[np.ndarray] = []
+    rights: list[np.ndarray] = []
+
+    def ids(x: tuple[int, ...]) -> np.ndarray:
+        return np.asarray(x, np.int64)
+
+    def add(pts: np.ndarray, kind: MapFeatureType, sub: int, lane: Lane | None = None) -> None:
+        polylines.append(np.concatenate([pts, np.zeros((len(pts), 1))], axis=1))
+        ftype.append(int(kind))
+        subtype.append(sub)
+        speed.append(net.speed_limit_mph if lane is not None else 0.0)
+        entry.append(ids(lane.entry) if lane else ids(()))
+        exit_.append(ids(lane.exit) if lane else ids(()))
+        lefts.append(ids(lane.left) if lane else ids(()))
+        rights.append(ids(lane.right) if lane else ids(()))
+
+    for ln in net.lanes:
+        add(ln.points, MapFeatureType.LANE, int(net.lane_type), ln)
+    for pts, kind in zip(net.road_lines, net.road_line_types):
+        add(pts, MapFeatureType.ROAD_LINE, int(kind))
+    for pts in net.road_edges:
+        add(pts, MapFeatureType.ROAD_EDGE, int(RoadEdgeType.BOUNDARY))
+    for pts in net.crosswalks:
+        add(pts, MapFeatureType.CROSSWALK, 0)
+    n = len(polylines)
+    return RoadMap(
+        id=np.arange(1, n + 1, dtype=np.int64),
+        feature_type=np.asarray(ftype, np.int8),
+        subtype=np.asarray(subtype, np.int8),
+        polylines=tuple(polylines),
+        speed_limit_mph=np.asarray(speed, np.float32),
+        entry_lanes=tuple(entry),
+        exit_lanes=tuple(exit_),
+        left_neighbors=tuple(lefts),
+        right_neighbors=tuple(rights),
+        controlled_lanes=tuple(ids(()) for _ in range(n)),
+    )
+
+
+LAYOUT_BUILDERS = {"intersection": build_intersection, "merge": build_merge}
+"""Layout name -> builder of its ``RoadNetwork``."""

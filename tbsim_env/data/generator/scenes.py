@@ -1,0 +1,317 @@
+"""Public API of the generator: seeded WOMD-like ``Scenario`` objects from the layouts."""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass
+
+import numpy as np
+
+from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
+from tbsim_env.data.generator.driver import DriveLog, DriverConfig, draw_fleet, simulate
+from tbsim_env.data.generator.roads import LAYOUT_BUILDERS, RoadNetwork, signal_states, to_road_map
+from tbsim_env.data.generator.routes import RouteTable, build_routes
+from tbsim_env.data.scenario import Scenario, Tracks, TrafficSignals, wrap_angle_np
+
+LAYOUTS: tuple[str, ...] = tuple(LAYOUT_BUILDERS)
+"""Names of the available layouts."""
+
+_DEFAULT_SCENES: tuple[tuple[str, int], ...] = (
+    ("intersection", 0),
+    ("merge", 0),
+    ("intersection", 1),
+    ("merge", 1),
+    ("intersection", 2),
+    ("merge", 2),
+    ("intersection", 3),
+    ("merge", 3),
+)
+
+
+@dataclass(frozen=True)
+class LayoutTraffic:
+    """Traffic settings of one layout.
+
+    Attributes:
+        driver: driver parameter ranges.
+        initial_vehicles: range (inclusive) of vehicles placed at the start of the warm-up.
+        pedestrians: default number of pedestrians.
+    """
+
+    driver: DriverConfig
+    initial_vehicles: tuple[int, int]
+    pedestrians: int
+
+
+TRAFFIC = {
+    "intersection": LayoutTraffic(
+        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.07),
+        initial_vehicles=(18, 24),
+        pedestrians=4,
+    ),
+    "merge": LayoutTraffic(
+        driver=DriverConfig(desired_speed=(15.0, 20.0), inflow=0.15),
+        initial_vehicles=(10, 14),
+        pedestrians=0,
+    ),
+}
+
+
+def _rng(layout: str, seed: int) -> np.random.Generator:
+    return np.random.default_rng([int(seed), zlib.crc32(layout.encode())])
+
+
+def _route_weights(routes: RouteTable) -> np.ndarray:
+    """[R] weights: every source lane equally likely, its routes equally likely."""
+    counts = {int(src): int((routes.source == src).sum()) for src in np.unique(routes.source)}
+    n_src = len(counts)
+    return np.asarray([1.0 / (n_src * counts[int(src)]) for src in routes.source])
+
+
+def _place_initial(
+    net: RoadNetwork,
+    routes: RouteTable,
+    route: np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+) -> np.ndarray:
+    """Route coordinates [n] for the first n slots, spread out (>= 14 m between centres).
+
+    Vehicles are not placed inside the intersection box nor past a merge point. A slot that
+    finds no free spot after a few tries is put at the start of its route (where the driver
+    holds it back behind the others, as the warm-up sorts it out).
+    """
+    conn = np.zeros(len(net.lanes) + 1, bool)
+    for ln in net.lanes:
+        conn[ln.id] = ln.is_connector or bool(ln.entry and len(ln.entry) > 1)
+    placed_xy = np.zeros((0, 2))
+    s_out = np.zeros(n)
+    for k in range(n):
+        r = route[k : k + 1]
+        for _ in range(30):
+            s = rng.uniform(5.0, routes.length[r] - 10.0)
+            lane, _ = routes.locate(r, s)
+            xy, _ = routes.interpolate(r, s)
+            if conn[lane[0]]:
+                continue
+            if placed_xy.size and np.min(np.linalg.norm(placed_xy - xy, axis=1)) < 14.0:
+                continue
+            s_out[k] = s[0]
+            placed_xy = np.concatenate([placed_xy, xy])
+            break
+        else:
+            s_out[k] = -1.0
+    return s_out
+
+
+def _vehicle_tracks(
+    routes: RouteTable, log: DriveLog, window: slice
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Vehicles seen in the logged window: (slot [V], xy [V,T,2], heading, velocity, valid)."""
+    alive = log.alive[:, window]
+    keep = np.flatnonzero(alive.any(axis=1))
+    s, speed, valid = log.s[keep, window], log.speed[keep, window], alive[keep]
+    route = np.broadcast_to(log.fleet.route[keep, None], s.shape)
+    xy, heading = routes.interpolate(route, s)
+    heading = wrap_angle_np(heading)
+    vel = speed[..., None] * np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+    return keep, xy, heading, vel, valid
+
+
+def _pedestrians(
+    net: RoadNetwork, n: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pedestrians walking along sidewalks at constant speed: (size [P,3], xy, heading, vel,
+    valid), arrays over the logged steps; they become invalid past the sidewalk ends."""
+    t = DT * np.arange(NUM_STEPS)
+    size = np.zeros((n, 3))
+    xy = np.zeros((n, NUM_STEPS, 2))
+    heading = np.zeros((n, NUM_STEPS))
+    vel = np.zeros((n, NUM_STEPS, 2))
+    valid = np.zeros((n, NUM_STEPS), bool)
+    if n == 0 or not net.sidewalks:
+        return size[:0], xy[:0], heading[:0], vel[:0], valid[:0]
+    for k in range(n):
+        walk = net.sidewalks[rng.integers(len(net.sidewalks))]
+        a, b = walk[0], walk[-1]
+        total = float(np.linalg.norm(b - a))
+        d = (b - a) / total
+        sign = 1.0 if rng.random() < 0.5 else -1.0
+        direction = d * sign
+        side = np.array([-direction[1], direction[0]]) * -0.6  # keep to the right
+        # Slot along the walk so that pedestrians on the same walk do not overlap.
+        start = (k + rng.uniform(0.1, 0.9)) / n * total
+        speed = rng.uniform(1.0, 1.6)
+        along = start + sign * speed * t
+        xy[k] = a + along[:, None] * d + side
+        heading[k] = np.arctan2(direction[1], direction[0])
+        vel[k] = speed * direction
+        valid[k] = (along >= 0.0) & (along <= total)
+        size[k] = [rng.uniform(0.6, 0.9), rng.uniform(0.6, 0.9), rng.uniform(1.6, 1.9)]
+    heading = wrap_angle_np(heading)
+    return size, xy, heading, vel, valid
+
+
+def generate_scenario(
+    layout: str = "intersection",
+    seed: int = 0,
+    *,
+    num_vehicles: int | None = None,
+    num_pedestrians: int | None = None,
+) -> Scenario:
+    """Generate one WOMD-like scenario (91 steps at 10 Hz, current index 10).
+
+    Deterministic: the same (layout, seed, counts) gives identical arrays.
+
+    Args:
+        layout: one of ``LAYOUTS``.
+        seed: random seed (traffic, driver parameters, signal phase offset, track ids).
+        num_vehicles: vehicles placed on the map at the start of the warm-up (more enter
+            during the run through the map borders); None draws a layout default.
+        num_pedestrians: pedestrians on the sidewalks; None uses the layout default.
+
+    Returns:
+        A validated ``Scenario``: vehicles then pedestrians, the SDC last.
+
+    Raises:
+        ValueError: unknown layout or negative counts.
+    """
+    if layout not in LAYOUT_BUILDERS:
+        raise ValueError(f"unknown layout {layout!r}; valid layouts are {', '.join(LAYOUTS)}")
+    if (num_vehicles is not None and num_vehicles < 1) or (
+        num_pedestrians is not None and num_pedestrians < 0
+    ):
+        raise ValueError("num_vehicles must be >= 1 and num_pedestrians >= 0")
+    traffic = TRAFFIC[layout]
+    cfg = traffic.driver
+    rng = _rng(layout, seed)
+    net = LAYOUT_BUILDERS[layout]()
+    routes = build_routes(net)
+    weights = _route_weights(routes)
+    lo, hi = traffic.initial_vehicles
+    n_init = int(rng.integers(lo, hi + 1)) if num_vehicles is None else int(num_vehicles)
+    warm = int(round(cfg.warmup_s / DT))
+    total_steps = warm + NUM_STEPS
+    n_src = int(np.unique(routes.source).size)
+    capacity = n_init + int(3 * cfg.inflow * n_src * total_steps * DT) + 4
+    fleet = draw_fleet(routes, weights, capacity, cfg, rng)
+    s0 = _place_initial(net, routes, fleet.route, n_init, rng)
+    v0 = fleet.desired_speed * rng.uniform(0.6, 0.9, capacity)
+    placed = np.concatenate([s0 >= 0.0, np.zeros(capacity - n_init, bool)])
+    # Slots that found no spot are moved to the end and spawned later instead.
+    order = np.concatenate([np.flatnonzero(placed), np.flatnonzero(~placed)])
+    fleet = type(fleet)(**{k: getattr(fleet, k)[order] for k in fleet.__dataclass_fields__})
+    s0 = np.concatenate([s0, np.zeros(capacity - n_init)])[order]
+    n_placed = int(placed.sum())
+    offset_s = float(rng.uniform(0.0, net.signals.cycle_s)) if net.signals else 0.0
+    log = simulate(
+        net,
+        routes,
+        fleet,
+        s0,
+        v0[order],
+        n_placed,
+        np.full(n_src, cfg.inflow * DT),
+        weights,
+        total_steps,
+        cfg,
+        rng,
+        offset_s,
+    )
+    window = slice(warm, warm + NUM_STEPS)
+    slot, vxy, vhead, vvel, vvalid = _vehicle_tracks(routes, log, window)
+    n_ped = traffic.pedestrians if num_pedestrians is None else num_pedestrians
+    psize, pxy, phead, pvel, pvalid = _pedestrians(net, n_ped, rng)
+
+    n_veh = slot.size
+    vsize = np.broadcast_to(log.fleet.size[slot, None, :], (n_veh, NUM_STEPS, 3))
+    size = np.concatenate([vsize, np.broadcast_to(psize[:, None, :], (n_ped, NUM_STEPS, 3))])
+    xy = np.concatenate([vxy, pxy])
+    heading = np.concatenate([vhead, phead])
+    vel = np.concatenate([vvel, pvel])
+    valid = np.concatenate([vvalid, pvalid])
+    otype = np.concatenate(
+        [np.full(n_veh, int(ObjectType.VEHICLE)), np.full(n_ped, int(ObjectType.PEDESTRIAN))]
+    )
+    z = 0.5 * size[..., 2:3]
+    xyz = np.concatenate([xy, z], axis=-1)
+
+    sdc = _choose_sdc(xy[:n_veh], valid[:n_veh])
+    order = np.concatenate([np.delete(np.arange(n_veh + n_ped), sdc), [sdc]])
+    xyz, heading, vel, size, valid, otype = (
+        a[order] for a in (xyz, heading, vel, size, valid, otype)
+    )
+    mask3 = valid[..., None]
+    tracks = Tracks(
+        id=(1 + rng.permutation(10 * len(order))[: len(order)]).astype(np.int64),
+        object_type=otype.astype(np.int8),
+        xyz=np.where(mask3, xyz, 0.0).astype(np.float64),
+        heading=np.where(valid, heading, 0.0).astype(np.float32),
+        velocity=np.where(mask3, vel, 0.0).astype(np.float32),
+        size=np.where(mask3, size, 0.0).astype(np.float32),
+        valid=valid,
+    )
+    predict = _tracks_to_predict(tracks, otype, valid)
+    return Scenario(
+        scenario_id=f"gen-{layout}-{seed:04d}",
+        timestamps=DT * np.arange(NUM_STEPS, dtype=np.float64),
+        current_index=CURRENT_INDEX,
+        tracks=tracks,
+        road_map=to_road_map(net),
+        signals=_signals(net, offset_s),
+        sdc_index=len(order) - 1,
+        tracks_to_predict=predict,
+        predict_difficulty=np.ones(predict.size, np.int8),
+        objects_of_interest=np.zeros(0, np.int64),
+        source=f"<generated {layout} seed {seed}>",
+    ).validate()
+
+
+def _choose_sdc(xy: np.ndarray, valid: np.ndarray) -> int:
+    """Index of the vehicle to be the SDC: valid at the current step, valid longest, then
+    closest to the map centre at the current step."""
+    cur = valid[:, CURRENT_INDEX]
+    if not cur.any():
+        raise ValueError("no vehicle is valid at the current step; use more vehicles")
+    dist = np.linalg.norm(xy[:, CURRENT_INDEX], axis=-1)
+    score = np.where(cur, valid.sum(axis=1) * 1000.0 - dist, -np.inf)
+    return int(np.argmax(score))
+
+
+def _tracks_to_predict(tracks: Tracks, otype: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Up to 4 vehicle indices (not the SDC) nearest to the SDC at the current step that are
+    valid then and for at least half of the future steps."""
+    sdc = tracks.num_tracks - 1
+    cur = CURRENT_INDEX
+    ok = (otype == int(ObjectType.VEHICLE)) & valid[:, cur]
+    ok &= valid[:, cur + 1 :].mean(axis=1) >= 0.5
+    ok[sdc] = False
+    d = np.linalg.norm(tracks.xyz[:, cur, :2] - tracks.xyz[sdc, cur, :2], axis=-1)
+    cand = np.flatnonzero(ok)
+    return np.sort(cand[np.argsort(d[cand], kind="stable")[:4]]).astype(np.int64)
+
+
+def _signals(net: RoadNetwork, offset_s: float) -> TrafficSignals:
+    """Lane states of the logged window, stop point at the end of each controlled lane."""
+    if net.signals is None:
+        return TrafficSignals.empty(NUM_STEPS)
+    times = DT * np.arange(NUM_STEPS)
+    state = signal_states(net.signals, times, offset_s)
+    stop = np.asarray([np.append(net.lane(lid).points[-1], 0.0) for lid in net.signals.lane_ids])
+    return TrafficSignals(
+        lane_id=np.asarray(net.signals.lane_ids, np.int64),
+        state=state,
+        valid=np.ones(state.shape, bool),
+        stop_point=stop,
+    )
+
+
+def default_scenarios(n: int = 4) -> list[Scenario]:
+    """The embedded default scenes: a fixed list alternating layouts and seeds.
+
+    Args:
+        n: how many (1 .. 8).
+    """
+    if not 1 <= n <= len(_DEFAULT_SCENES):
+        raise ValueError(f"n must be in [1, {len(_DEFAULT_SCENES)}], got {n}")
+    return [generate_scenario(layout, seed) for layout, seed in _DEFAULT_SCENES[:n]]
