@@ -35,3 +35,71 @@ class TokenConfig:
                 raise ValueError(f"TokenConfig.{name} must be >= 1, got {getattr(self, name)}")
         if self.resample_stride < 1:
             raise ValueError("TokenConfig.resample_stride must be >= 1")
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Weights of the per-step reward terms of an externally controlled agent.
+
+    reward = collision * [collided] + offroad * [off road] + progress * (metres gained along
+    the logged route this step) + goal * [goal reached this step] + log_divergence * (distance
+    to the logged position at this step, metres) + alive * 1.
+
+    Attributes:
+        collision: weight of the collision indicator (usually negative).
+        offroad: weight of the off-road indicator (usually negative).
+        progress: weight per metre of progress along the agent's logged route.
+        goal: weight of reaching the logged final position (given once).
+        log_divergence: weight per metre of distance to the log (usually <= 0).
+        alive: constant reward per step.
+        goal_radius: m, distance to the logged final position that counts as reached.
+    """
+
+    collision: float = -1.0
+    offroad: float = -1.0
+    progress: float = 0.05
+    goal: float = 1.0
+    log_divergence: float = 0.0
+    alive: float = 0.0
+    goal_radius: float = 2.0
+
+
+@dataclass(frozen=True)
+class TerminationConfig:
+    """Which events end an externally controlled agent's episode (it then leaves the scene).
+
+    Attributes:
+        collision: terminate on collision.
+        offroad: terminate on leaving the road.
+        goal: terminate on reaching the logged final position.
+    """
+
+    collision: bool = True
+    offroad: bool = False
+    goal: bool = True
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Configuration of ``TrafficEnv``.
+
+    Attributes:
+        start_step: log step the episode starts at (history before it comes from the log).
+        end_step: last log step; None means the last step of the scenario (90 in WOMD).
+        reward: reward weights.
+        termination: termination events.
+        remove_terminated: remove terminated agents from the simulation (otherwise they stay
+            as frozen obstacles).
+    """
+
+    start_step: int = C.CURRENT_INDEX
+    end_step: int | None = None
+    reward: RewardConfig = RewardConfig()
+    termination: TerminationConfig = TerminationConfig()
+    remove_terminated: bool = True
+
+    def __post_init__(self) -> None:
+        if self.start_step < 0:
+            raise ValueError("EnvConfig.start_step must be >= 0")
+        if self.end_step is not None and self.end_step <= self.start_step:
+            raise ValueError("EnvConfig.end_step must be greater than start_step")

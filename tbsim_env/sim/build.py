@@ -160,7 +160,16 @@ def build_sim_state(
 
     log_pose, log_vel, log_valid = tt(pose), tt(vel), tt(valid)
     log_speed = signed_speed(log_vel, log_pose[..., 2]) * log_valid
-    log = LogTrajectory(pose=log_pose, speed=log_speed, velocity=log_vel, z=tt(z), valid=log_valid)
+    steps = np.arange(n_t)
+    first = np.where(valid, steps, n_t).min(axis=-1)
+    log = LogTrajectory(
+        pose=log_pose,
+        speed=log_speed,
+        velocity=log_vel,
+        z=tt(z),
+        valid=log_valid,
+        first_valid=tt(first.astype(np.int64)),
+    )
     step = torch.full((b,), start_step, dtype=torch.int64, device=dev)
     return SimState(
         step=step,

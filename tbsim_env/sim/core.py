@@ -38,10 +38,7 @@ def _at_step(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
 
 def seen_before(state: SimState) -> torch.Tensor:
     """[B, N] bool: the agent was valid in the log at some step <= the current one."""
-    n_t = state.log.valid.shape[-1]
-    steps = torch.arange(n_t, device=state.device)
-    upto = steps[None, None, :] <= state.step[:, None, None]
-    return (state.log.valid & upto).any(-1)
+    return state.log.first_valid <= state.step[:, None]
 
 
 def step(state: SimState, action: torch.Tensor) -> SimState:

@@ -8,6 +8,8 @@ This is the environment's fast 2-D check; ``tbsim_env.metrics`` carries the exac
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 
 from tbsim_env.sim.collision import box_corners
@@ -15,6 +17,34 @@ from tbsim_env.sim.state import RoadEdges
 
 NO_EDGE_DISTANCE = -1.0e10
 """Distance reported when a scenario has no road edge (always on-road)."""
+
+
+@dataclass(frozen=True)
+class EdgeCandidates:
+    """The C road-edge segments nearest to K query boxes at a reference position.
+
+    Any segment closer than ``reach`` to ``center`` is in ``index``, so a query point whose
+    nearest candidate is at distance d, and which lies within s of ``center``, has its true
+    nearest segment among the candidates whenever d + s <= reach (triangle inequality).
+
+    Attributes:
+        index: [B, K, C] int64 segment indices.
+        center: [B, K, 2] reference positions.
+        reach: [B, K] distance of the C-th nearest segment from ``center`` (inf if fewer).
+    """
+
+    index: torch.Tensor
+    center: torch.Tensor
+    reach: torch.Tensor
+
+    @staticmethod
+    def build(pose: torch.Tensor, edges: RoadEdges, count: int = 256) -> EdgeCandidates:
+        """Candidates around ``pose`` [B, K, 3] (``count`` segments, fewer if E is smaller)."""
+        dist, _ = point_segment_distance(pose[..., :2], edges)
+        c = min(count, dist.shape[-1])
+        top, index = torch.topk(dist, c, dim=-1, largest=False, sorted=True)
+        reach = top[..., -1] if c < dist.shape[-1] else torch.full_like(top[..., -1], float("inf"))
+        return EdgeCandidates(index=index, center=pose[..., :2].clone(), reach=reach)
 
 
 def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -28,32 +58,67 @@ def _take(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1]))
 
 
-def signed_distance_to_edges(points: torch.Tensor, edges: RoadEdges) -> torch.Tensor:
+def _gather_segments(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """x: [B, E, ...], index: [B, K, C] -> [B, K, C, ...]."""
+    b, k, c = index.shape
+    flat = index.reshape(b, k * c)
+    if x.dim() == 2:
+        return x.gather(1, flat).view(b, k, c)
+    return x.gather(1, flat[..., None].expand(-1, -1, x.shape[-1])).view(b, k, c, x.shape[-1])
+
+
+def point_segment_distance(
+    points: torch.Tensor, edges: RoadEdges, segment_index: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Distance of each point to each (candidate) segment and the projection parameter.
+
+    Args:
+        points: [B, K, 2].
+        edges: road edges.
+        segment_index: optional [B, K, C] candidate segments per point (all E by default).
+
+    Returns:
+        (distance [B, K, C or E] with +inf for invalid segments, t [B, K, C or E]).
+    """
+    if segment_index is None:
+        a, b, valid = edges.start[:, None], edges.end[:, None], edges.valid[:, None]
+    else:
+        a = _gather_segments(edges.start, segment_index)
+        b = _gather_segments(edges.end, segment_index)
+        valid = _gather_segments(edges.valid, segment_index)
+    ab = b - a
+    q = points[:, :, None]
+    len2 = (ab * ab).sum(-1)
+    t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
+    t = torch.where(len2 > 0, t, torch.zeros_like(t))
+    closest = a + t.clamp(0.0, 1.0)[..., None] * ab
+    dist = torch.linalg.vector_norm(q - closest, dim=-1)
+    return torch.where(valid, dist, torch.full_like(dist, float("inf"))), t
+
+
+def signed_distance_to_edges(
+    points: torch.Tensor, edges: RoadEdges, segment_index: torch.Tensor | None = None
+) -> torch.Tensor:
     """Signed distance of points to the nearest road edge.
 
     Args:
         points: [B, K, 2] m.
         edges: road-edge segments of the B scenarios.
+        segment_index: optional [B, K, C] candidate segments per point; the nearest segment
+            must be among them for the result to be exact (see ``EdgeCandidates``).
 
     Returns:
         [B, K] m; positive off-road, negative on-road, ``NO_EDGE_DISTANCE`` without edges.
     """
-    a, b = edges.start[:, None], edges.end[:, None]  # [B, 1, E, 2]
-    ab = b - a
-    q = points[:, :, None]  # [B, K, 1, 2]
-    len2 = (ab * ab).sum(-1)
-    t = torch.where(
-        len2 > 0, ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12), torch.zeros_like(len2)
-    )
-    closest = a + t.clamp(0.0, 1.0)[..., None] * ab
-    dist = torch.linalg.vector_norm(q - closest, dim=-1)
-    dist = torch.where(edges.valid[:, None], dist, torch.full_like(dist, float("inf")))
-    best = dist.argmin(-1)  # [B, K]
-    d = dist.gather(2, best[..., None])[..., 0]
-    t_best = t.gather(2, best[..., None])[..., 0]
+    dist, t = point_segment_distance(points, edges, segment_index)
+    local = dist.argmin(-1, keepdim=True)  # [B, K, 1]
+    d = dist.gather(2, local)[..., 0]
+    t_best = t.gather(2, local)[..., 0]
+    best = local[..., 0] if segment_index is None else segment_index.gather(2, local)[..., 0]
 
-    def side(seg: torch.Tensor) -> torch.Tensor:
-        sa, sab = _take(edges.start, seg), _take(edges.end, seg) - _take(edges.start, seg)
+    def side(seg: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        sa = _take(edges.start, seg)
+        sab = _take(edges.end, seg) - sa
         return torch.sign(_cross(points - sa, sab)), sab
 
     n, dir_this = side(best)
@@ -72,17 +137,42 @@ def signed_distance_to_edges(points: torch.Tensor, edges: RoadEdges) -> torch.Te
     return torch.where(has_edge, out, torch.full_like(out, NO_EDGE_DISTANCE))
 
 
-def box_offroad_distance(pose: torch.Tensor, size: torch.Tensor, edges: RoadEdges) -> torch.Tensor:
+def box_offroad_distance(
+    pose: torch.Tensor,
+    size: torch.Tensor,
+    edges: RoadEdges,
+    candidates: EdgeCandidates | None = None,
+) -> tuple[torch.Tensor, EdgeCandidates | None]:
     """Max signed road-edge distance over the 4 box corners (positive: a corner is off-road).
 
     Args:
         pose: [B, K, 3]; size: [B, K, 2] (length, width).
         edges: road edges.
+        candidates: optional cached candidate segments of these K boxes (``EdgeCandidates``);
+            refreshed where the cache cannot guarantee the exact answer.
 
     Returns:
-        [B, K] m.
+        ([B, K] m, the candidates to pass next time, or None when none were given).
     """
     corners = box_corners(pose, size[..., 0], size[..., 1])  # [B, K, 4, 2]
     bsz, k = pose.shape[:2]
-    dist = signed_distance_to_edges(corners.reshape(bsz, k * 4, 2), edges)
-    return dist.view(bsz, k, 4).amax(-1)
+    flat = corners.reshape(bsz, k * 4, 2)
+    if candidates is None:
+        return signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1), None
+    half_diag = 0.5 * torch.linalg.vector_norm(size, dim=-1)
+    stale = torch.linalg.vector_norm(pose[..., :2] - candidates.center, dim=-1) + half_diag
+    idx = candidates.index.repeat_interleave(4, dim=1)  # [B, K*4, C]
+    dist_c, _ = point_segment_distance(flat, edges, idx)
+    nearest = dist_c.amin(-1).view(bsz, k, 4).amax(-1)
+    # Exact while every segment that could be nearest to a corner is in the candidate set.
+    if bool((nearest + stale > candidates.reach).any()):
+        candidates = EdgeCandidates.build(pose, edges, candidates.index.shape[-1])
+        idx = candidates.index.repeat_interleave(4, dim=1)
+        dist_c, _ = point_segment_distance(flat, edges, idx)
+        nearest = dist_c.amin(-1).view(bsz, k, 4).amax(-1)
+        if bool((nearest + half_diag > candidates.reach).any()):
+            # The cache cannot vouch for these boxes (e.g. far from every edge): use all.
+            full = signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1)
+            return full, candidates
+    dist = signed_distance_to_edges(flat, edges, idx).view(bsz, k, 4).amax(-1)
+    return dist, candidates

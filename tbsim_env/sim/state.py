@@ -44,6 +44,7 @@ class LogTrajectory:
         velocity: [B, N, T, 2] float32 m/s.
         z: [B, N, T] float32 box-centre height m.
         valid: [B, N, T] bool.
+        first_valid: [B, N] int64, first step the agent is valid (T if never).
     """
 
     pose: torch.Tensor
@@ -51,6 +52,7 @@ class LogTrajectory:
     velocity: torch.Tensor
     z: torch.Tensor
     valid: torch.Tensor
+    first_valid: torch.Tensor
 
 
 @dataclass(frozen=True)

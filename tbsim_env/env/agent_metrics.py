@@ -1,0 +1,135 @@
+"""Per-agent step metrics of the controlled agents: collision, off-road, progress, goal, log gap.
+
+Pure functions over a ``SimState`` and a set of query agents ``[B, Q]``; they feed both the
+rewards and the ``infos`` of ``TrafficEnv``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from tbsim_env.sim.collision import collided
+from tbsim_env.sim.offroad import EdgeCandidates, box_offroad_distance
+from tbsim_env.sim.state import SimState
+
+
+@dataclass(frozen=True)
+class Route:
+    """The logged route of each query agent.
+
+    Attributes:
+        points: [B, Q, T, 2] logged positions (invalid steps repeat the previous valid one).
+        arc: [B, Q, T] cumulative arc length m.
+        goal: [B, Q, 2] last valid logged position.
+        valid: [B, Q] the agent has at least one valid logged position.
+    """
+
+    points: torch.Tensor
+    arc: torch.Tensor
+    goal: torch.Tensor
+    valid: torch.Tensor
+
+
+@dataclass(frozen=True)
+class StepMetrics:
+    """Metrics of the query agents at one step, each [B, Q].
+
+    Attributes:
+        collision: bool, overlaps another present agent.
+        offroad: bool, a box corner is beyond a road edge.
+        offroad_distance: m, signed (positive off-road).
+        progress: m, arc length of the projection on the logged route.
+        goal_distance: m, to the last valid logged position.
+        log_divergence: m, distance to the logged position at this step (0 if no log).
+        log_valid: bool, the log has the agent at this step.
+    """
+
+    collision: torch.Tensor
+    offroad: torch.Tensor
+    offroad_distance: torch.Tensor
+    progress: torch.Tensor
+    goal_distance: torch.Tensor
+    log_divergence: torch.Tensor
+    log_valid: torch.Tensor
+
+
+def build_route(state: SimState, query: torch.Tensor) -> Route:
+    """Routes of the query agents from the log.
+
+    Args:
+        state: any state of the rollout (only the log is read).
+        query: [B, Q] int64 agent slots.
+    """
+    b_idx = torch.arange(state.batch_size, device=state.device)[:, None]
+    pts = state.log.pose[b_idx, query, :, :2]  # [B, Q, T, 2]
+    valid = state.log.valid[b_idx, query]  # [B, Q, T]
+    n_t = valid.shape[-1]
+    steps = torch.arange(n_t, device=state.device)
+    # Forward-fill invalid steps with the last valid one (backward-fill before the first).
+    last = torch.where(valid, steps, torch.full_like(steps, -1)).cummax(-1).values
+    first = torch.where(valid, steps, torch.full_like(steps, n_t)).min(-1, keepdim=True).values
+    idx = torch.where(last >= 0, last, first.clamp(max=n_t - 1))
+    filled = pts.gather(2, idx[..., None].expand(-1, -1, -1, 2))
+    seg = torch.linalg.vector_norm(filled[..., 1:, :] - filled[..., :-1, :], dim=-1)
+    arc = torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], dim=-1)
+    return Route(points=filled, arc=arc, goal=filled[..., -1, :], valid=valid.any(-1))
+
+
+def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
+    """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
+    a, b = route.points[..., :-1, :], route.points[..., 1:, :]
+    ab = b - a
+    len2 = (ab * ab).sum(-1)
+    t = (((xy[..., None, :] - a) * ab).sum(-1) / len2.clamp_min(1e-9)).clamp(0.0, 1.0)
+    proj = a + t[..., None] * ab
+    d = torch.linalg.vector_norm(xy[..., None, :] - proj, dim=-1)
+    best = d.argmin(-1, keepdim=True)
+    seg_len = len2.clamp_min(0).sqrt()
+    return (route.arc[..., :-1].gather(-1, best) + (t * seg_len).gather(-1, best))[..., 0]
+
+
+def step_metrics(
+    state: SimState,
+    query: torch.Tensor,
+    route: Route,
+    candidates: EdgeCandidates | None = None,
+) -> tuple[StepMetrics, EdgeCandidates]:
+    """Metrics of the query agents in ``state``.
+
+    Args:
+        state: current state.
+        query: [B, Q] int64 agent slots.
+        route: their logged routes (``build_route``).
+        candidates: road-edge candidates of the query agents from the previous call (built
+            here when None); the off-road distance is exact either way.
+
+    Returns:
+        (metrics, candidates for the next call).
+    """
+    b_idx = torch.arange(state.batch_size, device=state.device)[:, None]
+    qmask = torch.zeros_like(state.valid)
+    qmask[b_idx, query] = True
+    coll = collided(state.pose, state.agents.size[..., :2], state.valid, qmask)[b_idx, query]
+    pose = state.pose[b_idx, query]
+    present = state.valid[b_idx, query]
+    size = state.agents.size[b_idx, query, :2]
+    if candidates is None:
+        candidates = EdgeCandidates.build(pose, state.road_edges)
+    off_d, candidates = box_offroad_distance(pose, size, state.road_edges, candidates)
+    n_t = state.log.valid.shape[-1]
+    t = state.step.clamp(max=n_t - 1)[:, None].expand_as(query)
+    log_valid = state.log.valid[b_idx, query, t]
+    log_xy = state.log.pose[b_idx, query, t, :2]
+    gap = torch.linalg.vector_norm(pose[..., :2] - log_xy, dim=-1) * log_valid
+    metrics = StepMetrics(
+        collision=coll & present,
+        offroad=(off_d > 0) & present,
+        offroad_distance=off_d,
+        progress=progress_along(route, pose[..., :2]),
+        goal_distance=torch.linalg.vector_norm(pose[..., :2] - route.goal, dim=-1),
+        log_divergence=gap,
+        log_valid=log_valid,
+    )
+    return metrics, candidates

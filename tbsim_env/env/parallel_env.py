@@ -1,0 +1,454 @@
+"""``TrafficEnv``: a PettingZoo ``ParallelEnv`` over real or generated driving scenarios.
+
+The PettingZoo agents are the *externally controlled* agents (an RL learner, a planner, a
+script), named ``track_<WOMD track id>``. Every other agent is an NPC driven by ``npc_policy``:
+exact log replay, constant velocity, TrafficBots V1.5, or any ``policies.base.Policy``.
+
+Actions are physical: ``np.float32[2]`` = (acceleration m/s^2, yaw rate rad/s). Actions outside
+the agent type's limits (vehicle 5 m/s^2 / 1.5 rad/s, cyclist 6 / 3, pedestrian 7 / 7) are
+clipped; NaN or infinite actions, unknown agent names and missing agents raise ``ActionError``.
+
+An episode starts at the WOMD current step (10) with the logged history and ends at the last
+logged step (90): every remaining agent is truncated then. An agent terminates (and leaves the
+scene for good) on the events ``EnvConfig.termination`` selects.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from gymnasium.utils import EzPickle
+from pettingzoo import ParallelEnv
+
+from policies import make_policy
+from policies.base import Policy
+from tbsim_env import constants as C
+from tbsim_env.config import EnvConfig
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, step_metrics
+from tbsim_env.errors import ActionError
+from tbsim_env.observation import (
+    History,
+    MapContext,
+    ObsConfig,
+    build_map_context,
+    init_history,
+    observation_space,
+    observe,
+    push_history,
+)
+from tbsim_env.sim import core
+from tbsim_env.sim.build import build_sim_state
+from tbsim_env.sim.state import SimState
+
+ControlledSpec = str | Sequence[int]
+
+
+def agent_name(track_id: int) -> str:
+    """PettingZoo name of the agent with WOMD track id ``track_id``."""
+    return f"track_{int(track_id)}"
+
+
+def resolve_scenarios(scenarios: Any) -> list[Scenario]:
+    """Scenarios from None (embedded default), a path / glob / folder, or a list of either."""
+    if scenarios is None:
+        from tbsim_env.data.generator import default_scenarios
+
+        return list(default_scenarios())
+    if isinstance(scenarios, Scenario):
+        return [scenarios]
+    from tbsim_env.data import load_scenarios
+
+    if isinstance(scenarios, (str, os.PathLike)):
+        out = load_scenarios(scenarios)
+    else:
+        items = list(scenarios)
+        if all(isinstance(s, Scenario) for s in items):
+            out = items
+        else:
+            out = load_scenarios(items)
+    if not out:
+        raise ValueError(f"no scenarios found in {scenarios!r}")
+    return out
+
+
+def controlled_indices(scenario: Scenario, controlled: ControlledSpec, start: int) -> list[int]:
+    """Track indices of the externally controlled agents (all must be valid at ``start``).
+
+    Args:
+        scenario: the scenario.
+        controlled: ``"sdc"``, ``"tracks_to_predict"``, ``"all"``, ``"none"``, or track ids.
+        start: the first simulated step.
+    """
+    valid = scenario.tracks.valid[:, start]
+    if isinstance(controlled, str):
+        if controlled == "sdc":
+            idx = [scenario.sdc_index]
+        elif controlled == "tracks_to_predict":
+            idx = sorted(set(int(i) for i in scenario.tracks_to_predict) | {scenario.sdc_index})
+        elif controlled == "all":
+            idx = [int(i) for i in np.flatnonzero(valid)]
+        elif controlled == "none":
+            idx = []
+        else:
+            raise ValueError(
+                f"controlled={controlled!r}; use 'sdc', 'tracks_to_predict', 'all', 'none' "
+                "or a list of track ids"
+            )
+        return [i for i in idx if valid[i]]
+    ids = {int(t): k for k, t in enumerate(scenario.tracks.id)}
+    out = []
+    for tid in controlled:
+        if int(tid) not in ids:
+            raise ValueError(
+                f"scenario {scenario.scenario_id!r} has no track with id {tid} "
+                f"(controlled={list(controlled)!r})"
+            )
+        if not valid[ids[int(tid)]]:
+            raise ValueError(
+                f"track {tid} of scenario {scenario.scenario_id!r} is not valid at step {start}, "
+                "so it cannot be controlled from the start"
+            )
+        out.append(ids[int(tid)])
+    return out
+
+
+class TrafficEnv(ParallelEnv, EzPickle):
+    """Multi-agent driving on WOMD-style scenarios with NPCs driven by a policy.
+
+    Args:
+        scenarios: None for the embedded generated scenes, a TFRecord / GPUDrive JSON path,
+            glob or folder, or a list of ``Scenario`` objects.
+        controlled: which agents the caller controls: ``"sdc"`` (default),
+            ``"tracks_to_predict"`` (those plus the SDC), ``"all"`` valid at the start, or a
+            list of WOMD track ids.
+        npc_policy: ``"log_replay"`` (exact), ``"constant_velocity"``, ``"trafficbots"``, or a
+            policy object.
+        config: episode, reward and termination settings.
+        obs_config: observation sizes.
+        render_mode: None or ``"rgb_array"``.
+        device: torch device of the simulation.
+        scenario_order: ``"cycle"`` through the scenarios in order on each reset, or
+            ``"random"`` (drawn with the env's seeded generator).
+    """
+
+    metadata = {
+        "render_modes": ["rgb_array"],
+        "name": "tbsim_traffic_v0",
+        "is_parallelizable": True,
+        "render_fps": 10,
+    }
+
+    def __init__(
+        self,
+        scenarios: Any = None,
+        *,
+        controlled: ControlledSpec = "sdc",
+        npc_policy: str | Policy = "log_replay",
+        config: EnvConfig | None = None,
+        obs_config: ObsConfig | None = None,
+        render_mode: str | None = None,
+        device: str | torch.device = "cpu",
+        scenario_order: str = "cycle",
+    ) -> None:
+        EzPickle.__init__(
+            self,
+            scenarios,
+            controlled=controlled,
+            npc_policy=npc_policy,
+            config=config,
+            obs_config=obs_config,
+            render_mode=render_mode,
+            device=device,
+            scenario_order=scenario_order,
+        )
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode={render_mode!r}; supported: None, 'rgb_array'")
+        if scenario_order not in ("cycle", "random"):
+            raise ValueError("scenario_order must be 'cycle' or 'random'")
+        self.config = config or EnvConfig()
+        self.obs_config = obs_config or ObsConfig()
+        self.render_mode = render_mode
+        self.device = torch.device(device)
+        self.scenario_order = scenario_order
+        self.scenarios = resolve_scenarios(scenarios)
+        self.controlled_spec = controlled
+        self.npc_policy = make_policy(npc_policy)
+        start = self.config.start_step
+        self._controlled: list[list[int]] = []
+        names: dict[str, None] = {}
+        for sc in self.scenarios:
+            if start >= sc.num_steps - 1:
+                raise ValueError(
+                    f"scenario {sc.scenario_id!r} has {sc.num_steps} steps; "
+                    f"start_step {start} leaves nothing to simulate"
+                )
+            idx = controlled_indices(sc, controlled, start)
+            self._controlled.append(idx)
+            for i in idx:
+                names[agent_name(sc.tracks.id[i])] = None
+        self.possible_agents = list(names)
+        self._obs_space = observation_space(self.obs_config)
+        self._act_spaces: dict[str, gym.spaces.Box] = {}
+        for sc, idx in zip(self.scenarios, self._controlled):
+            for i in idx:
+                name = agent_name(sc.tracks.id[i])
+                if name not in self._act_spaces:
+                    t = int(sc.tracks.object_type[i])
+                    hi = np.array([C.MAX_ACCEL[t], C.MAX_YAW_RATE[t]], np.float32)
+                    self._act_spaces[name] = gym.spaces.Box(-hi, hi, dtype=np.float32)
+        self.agents: list[str] = []
+        self._cache: dict[int, tuple[SimState, MapContext]] = {}
+        self._episode = -1
+        self.np_random, _ = gym.utils.seeding.np_random(None)
+        self._generator = torch.Generator(device="cpu")
+        self._scenario_index = 0
+        self.state_: SimState | None = None
+        self._renderer = None
+
+    # ------------------------------------------------------------------ spaces
+    def observation_space(self, agent: str) -> gym.spaces.Dict:
+        return self._obs_space
+
+    def action_space(self, agent: str) -> gym.spaces.Box:
+        if agent not in self._act_spaces:
+            raise ActionError(f"unknown agent {agent!r}; possible agents: {self.possible_agents}")
+        return self._act_spaces[agent]
+
+    # ------------------------------------------------------------------ reset
+    @property
+    def scenario(self) -> Scenario:
+        """The scenario of the current episode."""
+        return self.scenarios[self._scenario_index]
+
+    @property
+    def sim_state(self) -> SimState:
+        """The current batched simulator state (batch of one)."""
+        if self.state_ is None:
+            raise RuntimeError("call reset() first")
+        return self.state_
+
+    def _initial(self, k: int) -> tuple[SimState, MapContext]:
+        if k not in self._cache:
+            sc = self.scenarios[k]
+            state = build_sim_state([sc], start_step=self.config.start_step, device=self.device)
+            ctx = build_map_context([sc], state.origin, self.obs_config)
+            self._cache[k] = (state, ctx)
+        return self._cache[k]
+
+    def reset(
+        self, seed: int | None = None, options: dict | None = None
+    ) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, dict]]:
+        """Start an episode.
+
+        Args:
+            seed: reseeds the env's generators (scenario choice, stochastic policies).
+            options: ``{"scenario_index": k}`` or ``{"scenario_id": s}`` picks the scenario.
+        """
+        if seed is not None:
+            self.np_random, _ = gym.utils.seeding.np_random(seed)
+            self._generator.manual_seed(int(seed))
+            self._episode = -1
+        self._episode += 1
+        options = options or {}
+        if "scenario_index" in options:
+            k = int(options["scenario_index"])
+            if not 0 <= k < len(self.scenarios):
+                raise ValueError(f"scenario_index {k} outside [0, {len(self.scenarios)})")
+        elif "scenario_id" in options:
+            ids = [s.scenario_id for s in self.scenarios]
+            if options["scenario_id"] not in ids:
+                raise ValueError(f"unknown scenario_id {options['scenario_id']!r}")
+            k = ids.index(options["scenario_id"])
+        elif self.scenario_order == "random":
+            k = int(self.np_random.integers(len(self.scenarios)))
+        else:
+            k = self._episode % len(self.scenarios)
+        self._scenario_index = k
+        sc = self.scenarios[k]
+        state, self._ctx = self._initial(k)
+        ext = self._controlled[k]
+        self._ext_slots = torch.tensor([ext], dtype=torch.int64, device=self.device)
+        self._ext_names = [agent_name(sc.tracks.id[i]) for i in ext]
+        self._slot_of = {n: j for j, n in enumerate(self._ext_names)}
+        external = torch.zeros_like(state.controlled)
+        external[0, ext] = True
+        self._external = external
+        exact = getattr(self.npc_policy, "exact_replay", False)
+        npc = torch.zeros_like(external) if exact else state.agents.mask & ~external
+        self._npc = npc
+        self.state_ = state.replace(controlled=external | npc)
+        self._has_npc = bool(npc.any())
+        self._policy_state = (
+            self.npc_policy.initial_state(self.state_, [sc], self._generator)
+            if self._has_npc
+            else None
+        )
+        self._history: History = init_history(self.state_, self.obs_config.history)
+        self._route: Route = build_route(self.state_, self._ext_slots)
+        self._end = sc.num_steps - 1 if self.config.end_step is None else self.config.end_step
+        self._end = min(self._end, sc.num_steps - 1)
+        self.agents = list(self._ext_names)
+        self._alive = torch.ones(len(ext), dtype=torch.bool)
+        self._goal_reached = torch.zeros(len(ext), dtype=torch.bool)
+        # Agents whose logged route is shorter than the goal radius have no goal to reach.
+        self._has_goal = self._route.arc[0, :, -1].cpu() > self.config.reward.goal_radius
+        metrics, self._edge_cache = step_metrics(self.state_, self._ext_slots, self._route)
+        self._progress = metrics.progress[0].clone()
+        obs = self._observations(self.agents)
+        infos = {a: self._info(metrics, self._slot_of[a]) for a in self.agents}
+        return obs, infos
+
+    # ------------------------------------------------------------------ step
+    def _action_tensor(self, actions: dict[str, Any]) -> torch.Tensor:
+        unknown = [a for a in actions if a not in self._slot_of or a not in self.agents]
+        if unknown:
+            raise ActionError(
+                f"actions for agents that are not active: {unknown}; active agents: {self.agents}"
+            )
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise ActionError(f"no action for active agents {missing}")
+        out = torch.zeros(1, self.state_.num_agents, 2)
+        for name, act in actions.items():
+            arr = np.asarray(act, dtype=np.float64)
+            if arr.shape != (2,):
+                raise ActionError(
+                    f"action of {name!r} has shape {arr.shape}; expected (2,) = "
+                    "(acceleration m/s^2, yaw rate rad/s)"
+                )
+            if not np.isfinite(arr).all():
+                raise ActionError(f"action of {name!r} is not finite: {arr.tolist()}")
+            out[0, int(self._ext_slots[0, self._slot_of[name]]), :] = torch.from_numpy(arr)
+        return out.to(self.device)
+
+    def step(self, actions: dict[str, Any]):
+        """Advance one step (0.1 s). See the module docstring for the action format."""
+        if self.state_ is None:
+            raise RuntimeError("call reset() before step()")
+        if not self.agents:
+            raise RuntimeError("the episode is over: call reset()")
+        ext_action = self._action_tensor(actions)
+        if self._has_npc:
+            npc_action, self._policy_state = self.npc_policy.act(
+                self.state_, self._policy_state, self._generator
+            )
+            action = core.merge_actions((self._npc, npc_action), (self._external, ext_action))
+        else:
+            action = ext_action
+        state = core.step(self.state_, action)
+        metrics, self._edge_cache = step_metrics(
+            state, self._ext_slots, self._route, self._edge_cache
+        )
+        live_before = list(self.agents)
+        rewards, terms, truncs, infos = {}, {}, {}, {}
+        rc, tc = self.config.reward, self.config.termination
+        progress = metrics.progress[0]
+        gained = progress - self._progress
+        self._progress = torch.maximum(self._progress, progress)
+        goal_now = (
+            (metrics.goal_distance[0] <= rc.goal_radius) & self._has_goal & ~self._goal_reached
+        )
+        self._goal_reached |= goal_now
+        truncated_all = int(state.step[0]) >= self._end
+        self.state_ = state
+        remove = torch.zeros_like(state.valid)
+        for name in live_before:
+            j = self._slot_of[name]
+            coll = bool(metrics.collision[0, j])
+            off = bool(metrics.offroad[0, j])
+            r = (
+                rc.collision * coll
+                + rc.offroad * off
+                + rc.progress * float(gained[j].clamp_min(0.0))
+                + rc.goal * bool(goal_now[j])
+                + rc.log_divergence * float(metrics.log_divergence[0, j])
+                + rc.alive
+            )
+            term = (
+                (tc.collision and coll) or (tc.offroad and off) or (tc.goal and bool(goal_now[j]))
+            )
+            rewards[name] = float(r)
+            terms[name] = bool(term)
+            truncs[name] = bool(truncated_all and not term)
+            infos[name] = self._info(metrics, j)
+            if term and self.config.remove_terminated:
+                remove[0, int(self._ext_slots[0, j])] = True
+        if bool(remove.any()):
+            state = state.replace(valid=state.valid & ~remove)
+        self.state_ = state
+        self._history = push_history(self._history, state)
+        obs = self._observations(live_before)
+        self.agents = [a for a in live_before if not (terms[a] or truncs[a])]
+        return obs, rewards, terms, truncs, infos
+
+    # ------------------------------------------------------------------ helpers
+    def _observations(self, names: list[str]) -> dict[str, dict[str, np.ndarray]]:
+        if not names:
+            return {}
+        o = observe(self.state_, self._history, self._ctx, self._ext_slots, self.obs_config)
+        o = {k: v[0].detach().cpu().numpy() for k, v in o.items()}
+        return {n: {k: v[self._slot_of[n]] for k, v in o.items()} for n in names}
+
+    def _info(self, m: StepMetrics, j: int) -> dict[str, Any]:
+        slot = int(self._ext_slots[0, j])
+        return {
+            "scenario_id": self.scenario.scenario_id,
+            "track_id": int(self.state_.agents.track_id[0, slot]),
+            "step": int(self.state_.step[0]),
+            "collision": bool(m.collision[0, j]),
+            "offroad": bool(m.offroad[0, j]),
+            "offroad_distance": float(m.offroad_distance[0, j]),
+            "progress": float(m.progress[0, j]),
+            "goal_distance": float(m.goal_distance[0, j]),
+            "goal_reached": bool(self._goal_reached[j]),
+            "log_divergence": float(m.log_divergence[0, j]),
+            "speed": float(self.state_.speed[0, slot]),
+        }
+
+    def expert_actions(self) -> dict[str, np.ndarray]:
+        """Inverse-dynamics actions that follow the log from the current step, per live agent."""
+        from tbsim_env.sim.dynamics import inverse_unicycle
+
+        s = self.sim_state
+        log = s.log
+        act, valid = inverse_unicycle(log.pose, log.speed, log.valid, s.agents.object_type)
+        t = min(int(s.step[0]), act.shape[2] - 1)
+        out = {}
+        for name in self.agents:
+            slot = int(self._ext_slots[0, self._slot_of[name]])
+            out[name] = act[0, slot, t].cpu().numpy().astype(np.float32) * bool(valid[0, slot, t])
+        return out
+
+    def render(self) -> np.ndarray | None:
+        """Bird's-eye RGB frame of the current state (``render_mode="rgb_array"``)."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without render_mode; use render_mode='rgb_array'")
+            return None
+        from tbsim_env.rendering import AgentGroup, MapLayer, render_state, view_for
+
+        if self._renderer is None or self._renderer[0] != self._scenario_index:
+            layer = MapLayer.build(self.scenario, view_for(self.scenario, size=(600, 600)))
+            self._renderer = (self._scenario_index, layer)
+        state = self.sim_state
+        groups = np.full(state.num_agents, int(AgentGroup.LOG_REPLAY), np.int64)
+        groups[self._npc[0].cpu().numpy()] = int(AgentGroup.POLICY)
+        groups[self._external[0].cpu().numpy()] = int(AgentGroup.EXTERNAL)
+        return render_state(self._renderer[1], state, 0, groups)
+
+    def close(self) -> None:
+        self._renderer = None
+
+
+def episode_length(env: TrafficEnv) -> int:
+    """Steps of a full episode of the current scenario."""
+    return int(math.floor(env._end - env.config.start_step))
+
+
+__all__ = ["TrafficEnv", "agent_name", "controlled_indices", "resolve_scenarios"]
