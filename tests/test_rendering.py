@@ -523,3 +523,20 @@ def test_real_scenario_frame_and_video(one_scenario_path, tmp_path) -> None:
     meta_size = reader.get_meta_data()["size"]
     reader.close()
     assert n == scn.num_steps and tuple(meta_size) == (300, 200)
+
+
+def test_real_scenario_render_state_matches_log(one_scenario_path) -> None:
+    build = pytest.importorskip("tbsim_env.sim.build")
+    scn = _load_real(one_scenario_path)
+    state = build.build_sim_state([scn])
+    assert np.abs(state.origin.numpy()).max() > 100.0  # the shift really is exercised
+    layer = MapLayer.build(scn, view_for(scn, (300, 300)))
+    step = int(state.step[0])
+    from_state = render_state(layer, state, 0, title="x")
+    from_log = render_log_frame(layer, scn, step, trail_steps=0, title="x")
+    assert from_state.shape == (300, 300, 3)
+    # Same poses, sizes, groups and signals: the images agree up to a few edge pixels
+    # (float32 state positions, sizes averaged over the log vs per step).
+    differ = np.abs(from_state.astype(int) - from_log).max(axis=-1) > 0
+    assert differ.mean() < 0.01
+    assert (from_state != layer.image).any(axis=-1).mean() > 0.01

@@ -23,9 +23,11 @@ from tbsim_env.sim.state import SimState
 
 _NUM_GROUPS = len(AgentGroup)
 _GROUP_RGB = np.array([P.GROUP_COLORS[g] for g in AgentGroup], np.uint8)
+_TRAIL_RGB = np.rint(
+    P.TRAIL_MIX * _GROUP_RGB + (1.0 - P.TRAIL_MIX) * np.asarray(P.BACKGROUND)
+).astype(np.uint8)
 _TL_RGB = np.array([P.TL_COLORS[TLState(s)] for s in range(NUM_TL_STATES)], np.uint8)
 _SIGNAL_TO_TL = np.asarray(SIGNAL_TO_TL_STATE, np.int64)
-TRAIL_WIDTH_M = 0.4
 
 
 @functools.lru_cache(maxsize=8)
@@ -188,9 +190,9 @@ def render_frame(
         if trail_valid is not None:
             tv &= _as("trail_valid", trail_valid, (n, k), bool)
         tuv = view.to_pixels(np.where(tv[..., None], tr, 0.0)) - 0.5
-        width = max(1, int(round(TRAIL_WIDTH_M / mpp)))
+        width = max(P.TRAIL_MIN_PX, int(round(P.TRAIL_WIDTH_M / mpp)))
         for i in np.flatnonzero(valid):
-            color = (*P.GROUP_COLORS[AgentGroup(group[i])], P.TRAIL_ALPHA)
+            color = tuple(_TRAIL_RGB[group[i]].tolist())
             for a, b in _valid_runs(tv[i]):
                 if b - a >= 2:
                     draw.line(tuv[i, a:b].reshape(-1).tolist(), fill=color, width=width)

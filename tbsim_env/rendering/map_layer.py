@@ -302,6 +302,7 @@ def rasterize_map(scenario: Scenario, view: View, *, supersample: int = 1) -> np
             rotation=22.5,
             fill=P.STOP_SIGN,
             outline=P.STOP_SIGN_OUTLINE,
+            width=P.STOP_SIGN_OUTLINE_PX * ss,
         )
 
     if ss > 1:

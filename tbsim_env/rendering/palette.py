@@ -79,7 +79,8 @@ STOP_SIGN_RADIUS_M = 1.2
 LANE_CENTER_MIN_PX = 1
 ROAD_LINE_MIN_PX = 1
 ROAD_EDGE_MIN_PX = 2
-STOP_SIGN_MIN_PX = 4.5
+STOP_SIGN_MIN_PX = 5.0
+STOP_SIGN_OUTLINE_PX = 1
 
 # --------------------------------------------------------------------------- dynamic layer
 AGENT_OUTLINE: RGB = (20, 20, 20)
@@ -92,7 +93,10 @@ PEDESTRIAN_MIN_RADIUS_M = 0.35
 SIGNAL_RADIUS_M = 1.0
 SIGNAL_MIN_PX = 3.0
 SIGNAL_OUTLINE: RGB = (15, 15, 15)
-TRAIL_ALPHA = 110
+TRAIL_MIX = 0.6
+"""Trails are opaque: this fraction of the group colour, the rest background colour."""
+TRAIL_WIDTH_M = 0.5
+TRAIL_MIN_PX = 2
 TEXT: RGB = (250, 250, 250)
 TEXT_BOX: RGBA = (0, 0, 0, 140)
 FONT_PX = 14
