@@ -1,0 +1,162 @@
+"""Typed configuration of the TrafficBots V1.5 network (spec sections 2-3).
+
+Two presets: ``TrafficBotsConfig.paper()`` reproduces the sizes of the published model
+(hidden 128, 8/4/4 layers, ~7.9 M used parameters); ``TrafficBotsConfig.small()`` is a CPU-sized
+variant (hidden 64, 2/1/1 layers, fewer neighbours) for tests and quick experiments.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from tbsim_env import constants as C
+
+
+@dataclass(frozen=True)
+class TrafficBotsConfig:
+    """Hyper-parameters of the TrafficBots network.
+
+    Attributes:
+        hidden_dim: token width d (paper 128).
+        n_heads: attention heads (paper 4).
+        ff_mult: FFN inner width = ff_mult * hidden_dim (paper 4 -> 512).
+        dropout: dropout of attention probabilities, FFN, PointNet and AddNaviLatent (0.1).
+        rpe_xy_dim: RPE width of each of dx and dy (paper 32).
+        rpe_yaw_dim: RPE width of dyaw (paper 64).
+        pose_xy_dim: agent input pose-encoding width of each of x and y (paper 16).
+        pose_yaw_dim: agent input pose-encoding width of yaw (paper 32).
+        pe_base: frequency base of the position encodings (theta_xy = 1000).
+        pointnet_layers: PointNet layers (3).
+        mlp_layers: hidden layers of the input MLPs and heads (3 Linear layers in total).
+        map_layers: intra-map self layers (paper 8).
+        tl_layers: TL decoder layers (paper 4).
+        agent_layers: agent decoder layers (paper 4).
+        map_knn, map_dist: map -> map neighbours and range (32, 500 m).
+        tl_knn, tl_dist: TL -> TL neighbours and range (24, 250 m).
+        tl_map_knn, tl_map_dist: TL -> map neighbours and range (24, 250 m).
+        ag_knn, ag_dist: agent -> agent neighbours and range (25, 500 m).
+        ag_map_knn, ag_map_dist: agent -> map neighbours and range (64, 500 m).
+        ag_tl_knn, ag_tl_dist: agent -> TL neighbours and range (25, 500 m).
+        latent_dim: personality latent size (16).
+        posterior_log_std_init: initial value of the posterior's learnable log sigma (0.0).
+        tl_logit_clamp: TL-state head logits are clamped to [-c, c] (3).
+        n_history: window of history steps fed to the encoders (11).
+        posterior_stride: temporal downsampling of the posterior input (5 -> 19 of 91 steps).
+        n_steps: episode length the posterior is built for (91).
+        map_nodes: nodes per map piece (20).
+        dest_reach_lane_dist: lane destination reached within this distance (50 m).
+        dest_reach_lane_yaw: ... and this heading difference (30 deg, in rad).
+        dest_reach_edge_dist: road-edge destination reached within this distance (10 m).
+    """
+
+    hidden_dim: int = 128
+    n_heads: int = 4
+    ff_mult: int = 4
+    dropout: float = 0.1
+    rpe_xy_dim: int = 32
+    rpe_yaw_dim: int = 64
+    pose_xy_dim: int = 16
+    pose_yaw_dim: int = 32
+    pe_base: float = 1000.0
+    pointnet_layers: int = 3
+    mlp_layers: int = 3
+    map_layers: int = 8
+    tl_layers: int = 4
+    agent_layers: int = 4
+    map_knn: int = 32
+    map_dist: float = 500.0
+    tl_knn: int = 24
+    tl_dist: float = 250.0
+    tl_map_knn: int = 24
+    tl_map_dist: float = 250.0
+    ag_knn: int = 25
+    ag_dist: float = 500.0
+    ag_map_knn: int = 64
+    ag_map_dist: float = 500.0
+    ag_tl_knn: int = 25
+    ag_tl_dist: float = 500.0
+    latent_dim: int = 16
+    posterior_log_std_init: float = 0.0
+    tl_logit_clamp: float = 3.0
+    n_history: int = C.NUM_HISTORY
+    posterior_stride: int = 5
+    n_steps: int = C.NUM_STEPS
+    map_nodes: int = C.MAP_PIECE_SEGMENTS
+    dest_reach_lane_dist: float = 50.0
+    dest_reach_lane_yaw: float = 0.5235987755982988
+    dest_reach_edge_dist: float = 10.0
+
+    def __post_init__(self) -> None:
+        if self.hidden_dim % self.n_heads != 0:
+            raise ValueError(
+                f"hidden_dim {self.hidden_dim} not divisible by n_heads {self.n_heads}"
+            )
+        if self.hidden_dim % 2 != 0:
+            raise ValueError("hidden_dim must be even (PointNet halves it)")
+        if self.pose_dim >= self.hidden_dim:
+            raise ValueError("agent pose encoding must be narrower than hidden_dim")
+        if self.rpe_xy_dim % 2 or self.rpe_yaw_dim % 2 or self.pose_xy_dim % 2:
+            raise ValueError("encoding widths must be even")
+        if self.pose_yaw_dim % 2:
+            raise ValueError("pose_yaw_dim must be even")
+        for name in ("map_knn", "tl_knn", "tl_map_knn", "ag_knn", "ag_map_knn", "ag_tl_knn"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1")
+        if not 0.0 <= self.dropout < 1.0:
+            raise ValueError("dropout must be in [0, 1)")
+
+    @property
+    def rpe_dim(self) -> int:
+        """Width of the relative pose encoding (paper 128)."""
+        return 2 * self.rpe_xy_dim + self.rpe_yaw_dim
+
+    @property
+    def pose_dim(self) -> int:
+        """Width of the agent input pose encoding (paper 64)."""
+        return 2 * self.pose_xy_dim + self.pose_yaw_dim
+
+    @property
+    def n_posterior_steps(self) -> int:
+        """Steps seen by the posterior: 0, stride, ..., n_steps - 1 (19 for 91 / 5)."""
+        return (self.n_steps - 1) // self.posterior_stride + 1
+
+    @classmethod
+    def paper(cls) -> TrafficBotsConfig:
+        """The published V1.5 sizes (spec sections 2.4, 3)."""
+        return cls()
+
+    @classmethod
+    def small(cls) -> TrafficBotsConfig:
+        """A CPU-trainable variant: hidden 64, 2/1/1 layers, fewer neighbours."""
+        return cls(
+            hidden_dim=64,
+            rpe_xy_dim=16,
+            rpe_yaw_dim=32,
+            pose_xy_dim=8,
+            pose_yaw_dim=16,
+            map_layers=2,
+            tl_layers=1,
+            agent_layers=1,
+            map_knn=16,
+            tl_knn=8,
+            tl_map_knn=8,
+            ag_knn=12,
+            ag_map_knn=24,
+            ag_tl_knn=8,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict of every field (JSON-serialisable)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrafficBotsConfig:
+        """Inverse of ``to_dict``; unknown or missing keys raise ``ValueError``."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        missing = sorted(names - set(data))
+        if unknown or missing:
+            raise ValueError(f"config keys: unknown {unknown}, missing {missing}")
+        return cls(**data)

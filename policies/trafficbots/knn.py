@@ -1,0 +1,76 @@
+"""K-nearest-neighbour selection and gathering (spec 2.4)."""
+
+from __future__ import annotations
+
+import torch
+
+from policies.trafficbots.encodings import relative_pose
+
+
+@torch.no_grad()
+def knn_select(
+    query_xy: torch.Tensor,
+    target_xy: torch.Tensor,
+    target_valid: torch.Tensor,
+    k: int,
+    dist_limit: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rank valid targets by 2-D distance and keep the ``k`` nearest within ``dist_limit``.
+
+    For same-type attention the query itself is among the targets (distance 0), so it is
+    selected first. ``k`` is capped at the number of targets.
+
+    Args:
+        query_xy: [B, Q, 2] query positions.
+        target_xy: [B, T, 2] target positions.
+        target_valid: [B, T] bool.
+        k: neighbours per query.
+        dist_limit: neighbours farther than this are masked (metres).
+
+    Returns:
+        (idx [B, Q, K] int64 rows of the targets, mask [B, Q, K] bool valid neighbours).
+    """
+    k = min(k, target_xy.shape[1])
+    diff = query_xy[:, :, None, :] - target_xy[:, None, :, :]  # [B, Q, T, 2]
+    dist = torch.linalg.vector_norm(diff, dim=-1)
+    dist = dist.masked_fill(~target_valid[:, None, :], float("inf"))
+    dist, idx = torch.topk(dist, k, dim=-1, largest=False, sorted=True)
+    return idx, dist <= dist_limit
+
+
+def gather_tokens(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Gather rows of ``x`` per query.
+
+    Args:
+        x: [B, T, ...] token tensor.
+        idx: [B, Q, K] int64 rows.
+
+    Returns:
+        [B, Q, K, ...].
+    """
+    b = torch.arange(x.shape[0], device=x.device)[:, None, None]
+    return x[b, idx]
+
+
+def knn_relative(
+    query_pose: torch.Tensor,
+    target_pose: torch.Tensor,
+    target_valid: torch.Tensor,
+    k: int,
+    dist_limit: float,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """KNN selection plus the pose of each selected neighbour in the query frame.
+
+    Args:
+        query_pose: [B, Q, 3] (x, y, yaw).
+        target_pose: [B, T, 3].
+        target_valid: [B, T] bool.
+        k: neighbours per query.
+        dist_limit: range in metres.
+
+    Returns:
+        (idx [B, Q, K], mask [B, Q, K] bool, rel_pose [B, Q, K, 3]).
+    """
+    idx, mask = knn_select(query_pose[..., :2], target_pose[..., :2], target_valid, k, dist_limit)
+    rel = relative_pose(query_pose[:, :, None, :], gather_tokens(target_pose, idx))
+    return idx, mask, rel

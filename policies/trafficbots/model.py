@@ -1,0 +1,329 @@
+"""The TrafficBots V1.5 network and its explicit-state single-step API (spec sections 3, 5).
+
+``prepare`` runs everything that is computed once per scenario (map encoding, TL precompute,
+destination distribution, posterior) and draws the per-rollout samples (z, destinations);
+``step`` consumes the current simulator state of every agent, updates the 11-step history held
+in an explicit ``RolloutState`` and returns physical actions. Nothing is cached on the module,
+so one model can drive any number of rollouts.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Literal
+
+import torch
+from torch import nn
+
+from policies.trafficbots.action_head import ActionHead
+from policies.trafficbots.agent_encoder import AgentEncoder, agent_attributes
+from policies.trafficbots.batch import TokenBatch
+from policies.trafficbots.config import TrafficBotsConfig
+from policies.trafficbots.destination import (
+    DestinationEncoder,
+    DestinationPredictor,
+    destination_reached,
+)
+from policies.trafficbots.latent import AddNaviLatent, Posterior
+from policies.trafficbots.map_encoder import MapEncoder, MapTokens
+from policies.trafficbots.tl_encoder import TLContext, TLEncoder, TLStateHead, tl_context
+from tbsim_env import constants as C
+from tbsim_env.sim.dynamics import squash_action
+from tbsim_env.sim.geometry import wrap_angle
+
+
+def randn(shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device):
+    """Standard normal samples drawn on the generator's device, then moved (device-agnostic
+    seeding: a CPU generator gives the same numbers whatever device the model is on)."""
+    gen_device = generator.device if generator is not None else torch.device("cpu")
+    return torch.randn(shape, generator=generator, device=gen_device).to(device)
+
+
+def rand(shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device):
+    """Uniform [0, 1) samples, drawn like ``randn``."""
+    gen_device = generator.device if generator is not None else torch.device("cpu")
+    return torch.rand(shape, generator=generator, device=gen_device).to(device)
+
+
+@dataclass(frozen=True)
+class RolloutContext:
+    """Per-rollout constants, batch B' = B scenes * n_rollouts (scene-major).
+
+    Attributes:
+        mp: encoded map, repeated.
+        tl: static TL tensors, repeated.
+        ag_type: [B', N] ``ObjectType``.
+        ag_attr: [B', N, 6].
+        z: [B', N, Z] personality latent.
+        z_valid: [B', N] bool.
+        dest: [B', N] int64 destination map rows.
+        dest_valid: [B', N] bool.
+        n_rollouts: rollouts per scene.
+        dest_logits: [B, N, M] destination logits (per scene, not repeated).
+        dest_usable: [B, N] bool.
+        post_mean: [B, N, Z] posterior mean, or None if the posterior was not computed.
+        post_log_std: [B, N, Z] or None.
+        post_valid: [B, N] bool or None.
+    """
+
+    mp: MapTokens
+    tl: TLContext
+    ag_type: torch.Tensor
+    ag_attr: torch.Tensor
+    z: torch.Tensor
+    z_valid: torch.Tensor
+    dest: torch.Tensor
+    dest_valid: torch.Tensor
+    n_rollouts: int
+    dest_logits: torch.Tensor
+    dest_usable: torch.Tensor
+    post_mean: torch.Tensor | None = None
+    post_log_std: torch.Tensor | None = None
+    post_valid: torch.Tensor | None = None
+
+
+@dataclass(frozen=True)
+class RolloutState:
+    """Everything the policy remembers between steps (the history windows), batch B'.
+
+    The windows are right-aligned: slot W-1 is the newest step; slots never filled are invalid.
+
+    Attributes:
+        step: number of simulator states consumed so far.
+        hist_valid: [B', N, W] bool.
+        hist_pose: [B', N, W, 3] (x, y, yaw).
+        hist_motion: [B', N, W, 3] (speed, acceleration, yaw rate).
+        hist_tl_state: [B', L, W] int64 ``TLState``.
+        hist_tl_present: [B', L, W] bool, the window slot holds a step.
+        dest_reached: [B', N] bool, destination conditioning switched off.
+    """
+
+    step: int
+    hist_valid: torch.Tensor
+    hist_pose: torch.Tensor
+    hist_motion: torch.Tensor
+    hist_tl_state: torch.Tensor
+    hist_tl_present: torch.Tensor
+    dest_reached: torch.Tensor
+
+    def replace(self, **changes) -> RolloutState:
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class StepOutput:
+    """Outputs of one policy step.
+
+    Attributes:
+        action: [B', N, 2] physical (acceleration m/s^2, yaw rate rad/s), 0 for invalid agents.
+        raw_action: [B', N, 2] unbounded action mean before ``squash_action``.
+        tl_logits: [B', L, 5] clamped logits of the TL state at the next step.
+    """
+
+    action: torch.Tensor
+    raw_action: torch.Tensor
+    tl_logits: torch.Tensor
+
+
+def _push(window: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
+    """Drop the oldest slot of ``window`` [B, X, W, ...] and append ``new`` [B, X, ...]."""
+    return torch.cat([window[:, :, 1:], new[:, :, None]], dim=2)
+
+
+class TrafficBots(nn.Module):
+    """TrafficBots V1.5 (spec section 3), prior encoders and action log-sigma not built.
+
+    Args:
+        cfg: network configuration.
+    """
+
+    def __init__(self, cfg: TrafficBotsConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        d = cfg.hidden_dim
+        self.map_encoder = MapEncoder(cfg)
+        self.tl_encoder = TLEncoder(cfg, cfg.n_history)
+        self.tl_head = TLStateHead(cfg)
+        self.agent_encoder = AgentEncoder(cfg, cfg.n_history)
+        self.dest_predictor = DestinationPredictor(cfg)
+        self.dest_encoder = DestinationEncoder(cfg)
+        self.posterior = Posterior(cfg)
+        self.add_navi = AddNaviLatent(d, d, cfg.mlp_layers, cfg.dropout)
+        self.add_latent = AddNaviLatent(cfg.latent_dim, d, cfg.mlp_layers, cfg.dropout)
+        self.action_head = ActionHead(cfg)
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.parameters()).device
+
+    def num_parameters(self) -> int:
+        """Parameter count (every parameter of this module is used)."""
+        return sum(p.numel() for p in self.parameters())
+
+    # ------------------------------------------------------------------ once per scenario
+    def prepare(
+        self,
+        batch: TokenBatch,
+        n_rollouts: int = 1,
+        generator: torch.Generator | None = None,
+        *,
+        latent: Literal["prior", "posterior", "posterior_mean"] = "prior",
+        dest: Literal["sample", "gt"] = "sample",
+        tl_valid_from: Literal["history", "full"] = "history",
+        with_posterior: bool = False,
+    ) -> RolloutContext:
+        """Per-scenario precomputation and per-rollout sampling (spec 5.1, 6.1, 7.1).
+
+        Args:
+            batch: B scenes.
+            n_rollouts: rollouts per scene; map/TL tensors are repeated (scene-major).
+            generator: random source for z and destination samples.
+            latent: z from the N(0, I) prior, a posterior sample or the posterior mean.
+            dest: sample destinations from the predictor or use the ground truth labels.
+            tl_valid_from: TL token validity from history steps (inference) or all steps.
+            with_posterior: compute the posterior even when z comes from the prior (for KL).
+
+        Returns:
+            ``RolloutContext`` with batch B * n_rollouts.
+        """
+        cfg, dev = self.cfg, batch.device
+        n_hist = cfg.n_history
+        mp = self.map_encoder(batch.mp_pose, batch.mp_valid, batch.mp_cls)
+        tl_src = batch.tl_valid if tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
+        tl = tl_context(cfg, batch.tl_piece, tl_src.any(-1), mp)
+        attr = agent_attributes(batch.ag_type, batch.ag_size)
+        h_valid = batch.ag_valid[..., :n_hist]
+        dest_logits, dest_usable = self.dest_predictor(
+            h_valid,
+            batch.ag_pose[..., :n_hist, :],
+            batch.ag_motion[..., :n_hist, :],
+            attr,
+            batch.ag_type,
+            mp,
+        )
+        post_mean = post_log_std = post_valid = None
+        if latent != "prior" or with_posterior:
+            post_mean, post_log_std, post_valid = self.posterior(
+                batch.ag_valid, batch.ag_pose, batch.ag_motion, attr, batch.tl_state, mp, tl
+            )
+
+        n = n_rollouts
+        n_sc, n_ag = batch.ag_type.shape
+        shape = (n_sc * n, n_ag, cfg.latent_dim)
+        if latent == "prior":
+            z = randn(shape, generator, dev)
+            z_valid = h_valid.any(-1).repeat_interleave(n, 0)
+        else:
+            z = post_mean.repeat_interleave(n, 0)
+            if latent == "posterior":
+                z = z + post_log_std.exp().repeat_interleave(n, 0) * randn(shape, generator, dev)
+            z_valid = post_valid.repeat_interleave(n, 0)
+        if dest == "gt":
+            dest_idx = batch.ag_dest.repeat_interleave(n, 0)
+            dest_valid = (batch.ag_valid.any(-1) & (batch.ag_dest >= 0)).repeat_interleave(n, 0)
+        else:
+            # Categorical sample by Gumbel-max (reproducible from the generator alone).
+            logits = dest_logits.detach().repeat_interleave(n, 0)
+            u = rand(logits.shape, generator, dev).clamp(1e-12, 1.0 - 1e-7)
+            dest_idx = (logits - torch.log(-torch.log(u))).argmax(-1)
+            dest_valid = dest_usable.repeat_interleave(n, 0)
+        return RolloutContext(
+            mp=mp.repeat(n),
+            tl=tl.repeat(n),
+            ag_type=batch.ag_type.repeat_interleave(n, 0),
+            ag_attr=attr.repeat_interleave(n, 0),
+            z=z,
+            z_valid=z_valid,
+            dest=dest_idx,
+            dest_valid=dest_valid,
+            n_rollouts=n,
+            dest_logits=dest_logits,
+            dest_usable=dest_usable,
+            post_mean=post_mean,
+            post_log_std=post_log_std,
+            post_valid=post_valid,
+        )
+
+    def initial_state(self, ctx: RolloutContext) -> RolloutState:
+        """Empty history windows for the rollouts of ``ctx``."""
+        n_b, n_ag = ctx.ag_type.shape
+        n_tl = ctx.tl.valid.shape[1]
+        w, dev = self.cfg.n_history, ctx.ag_type.device
+        return RolloutState(
+            step=0,
+            hist_valid=torch.zeros(n_b, n_ag, w, dtype=torch.bool, device=dev),
+            hist_pose=torch.zeros(n_b, n_ag, w, 3, device=dev),
+            hist_motion=torch.zeros(n_b, n_ag, w, 3, device=dev),
+            hist_tl_state=torch.zeros(n_b, n_tl, w, dtype=torch.long, device=dev),
+            hist_tl_present=torch.zeros(n_b, n_tl, w, dtype=torch.bool, device=dev),
+            dest_reached=torch.zeros(n_b, n_ag, dtype=torch.bool, device=dev),
+        )
+
+    # ------------------------------------------------------------------ every step
+    def step(
+        self,
+        ctx: RolloutContext,
+        state: RolloutState,
+        ag_pose: torch.Tensor,
+        ag_speed: torch.Tensor,
+        ag_valid: torch.Tensor,
+        tl_state: torch.Tensor,
+    ) -> tuple[StepOutput, RolloutState]:
+        """Append the current simulator state to the history and act (spec 5.2 steps 1-4).
+
+        Externally controlled agents simply report their real states here, so the policy
+        sees them exactly as it sees its own agents. Acceleration and yaw rate of the history
+        are finite differences of consecutive valid states (what the unicycle produces, and
+        how the ground-truth motion is defined in spec 1.4).
+
+        Args:
+            ctx: from ``prepare``.
+            state: from ``initial_state`` or the previous ``step``.
+            ag_pose: [B', N, 3] current (x, y, yaw); detached here (spec 6.4).
+            ag_speed: [B', N] current signed speed m/s.
+            ag_valid: [B', N] bool, agent present now.
+            tl_state: [B', L] int64 current ``TLState``.
+
+        Returns:
+            (``StepOutput``, next ``RolloutState``).
+        """
+        cfg = self.cfg
+        ag_pose, ag_speed = ag_pose.detach(), ag_speed.detach()
+        prev_ok = state.hist_valid[..., -1] & ag_valid
+        prev_pose, prev_speed = state.hist_pose[..., -1, :], state.hist_motion[..., -1, 0]
+        acc = torch.where(prev_ok, (ag_speed - prev_speed) / C.DT, 0.0)
+        yaw_rate = torch.where(prev_ok, wrap_angle(ag_pose[..., 2] - prev_pose[..., 2]) / C.DT, 0.0)
+        vmask = ag_valid[..., None].to(ag_pose.dtype)
+        motion = torch.stack([ag_speed, acc, yaw_rate], dim=-1) * vmask
+        state = state.replace(
+            step=state.step + 1,
+            hist_valid=_push(state.hist_valid, ag_valid),
+            hist_pose=_push(state.hist_pose, ag_pose * vmask),
+            hist_motion=_push(state.hist_motion, motion),
+            hist_tl_state=_push(state.hist_tl_state, tl_state.long()),
+            hist_tl_present=_push(
+                state.hist_tl_present, torch.ones_like(tl_state, dtype=torch.bool)
+            ),
+        )
+        tl_feat = self.tl_encoder(state.hist_tl_state, state.hist_tl_present, ctx.tl)
+        tl_logits = self.tl_head(tl_feat)
+        feat, tok_pose, tok_valid = self.agent_encoder(
+            state.hist_valid,
+            state.hist_pose,
+            state.hist_motion,
+            ctx.ag_attr,
+            ctx.mp,
+            tl_feat,
+            ctx.tl.pose,
+            ctx.tl.valid,
+        )
+        reached = state.dest_reached | (
+            destination_reached(ag_pose, ctx.dest, ctx.mp, cfg) & ctx.dest_valid & ag_valid
+        )
+        navi_valid = ctx.dest_valid & ~reached & tok_valid
+        x = self.add_navi(feat, self.dest_encoder(tok_pose, ctx.dest, ctx.mp), navi_valid)
+        x = self.add_latent(x, ctx.z, ctx.z_valid & tok_valid)
+        raw = self.action_head(x, ctx.ag_type)
+        action = squash_action(raw, ctx.ag_type) * vmask
+        return StepOutput(action, raw, tl_logits), state.replace(dest_reached=reached)

@@ -1,0 +1,170 @@
+"""Traffic-light encoder and TL-state head (spec 3.2).
+
+TL tokens sit on the map piece of their controlled lane (``tl_mode: lane``): pose = node 0 of
+that piece. Everything that depends only on the static poses (KNN, RPE, gathered map features)
+is precomputed once per scenario in a ``TLContext``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from policies.trafficbots.attention import DecoderLayer
+from policies.trafficbots.config import TrafficBotsConfig
+from policies.trafficbots.encodings import rpe
+from policies.trafficbots.knn import gather_tokens, knn_relative
+from policies.trafficbots.map_encoder import MapTokens
+from policies.trafficbots.mlp import MLP
+from policies.trafficbots.pointnet import PointNet
+from tbsim_env.constants import NUM_TL_STATES
+
+
+def _rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """x [B, M, ...] at rows idx [B, L] -> [B, L, ...]."""
+    b = torch.arange(x.shape[0], device=x.device)[:, None]
+    return x[b, idx]
+
+
+@dataclass(frozen=True)
+class TLContext:
+    """Static per-scenario TL tensors.
+
+    Attributes:
+        pose: [B, L, 3] token pose (node 0 of the controlled lane piece).
+        valid: [B, L] bool token validity.
+        lane_feat: [B, L, d] map feature of the lane piece, detached (spec 3.2 step 3).
+        self_idx, self_mask, self_rpe: TL -> TL neighbours [B, L, Ks], [B, L, Ks],
+            [B, L, Ks, rpe_dim].
+        map_feat, map_mask, map_rpe: TL -> map neighbours [B, L, Km, d] (not detached),
+            [B, L, Km], [B, L, Km, rpe_dim].
+    """
+
+    pose: torch.Tensor
+    valid: torch.Tensor
+    lane_feat: torch.Tensor
+    self_idx: torch.Tensor
+    self_mask: torch.Tensor
+    self_rpe: torch.Tensor
+    map_feat: torch.Tensor
+    map_mask: torch.Tensor
+    map_rpe: torch.Tensor
+
+    def repeat(self, n: int) -> TLContext:
+        """Repeat every field ``n`` times along the batch."""
+        if n == 1:
+            return self
+        return TLContext(
+            **{
+                f.name: getattr(self, f.name).repeat_interleave(n, dim=0)
+                for f in dataclasses.fields(self)
+            }
+        )
+
+
+def tl_context(
+    cfg: TrafficBotsConfig, tl_piece: torch.Tensor, tl_valid: torch.Tensor, mp: MapTokens
+) -> TLContext:
+    """Precompute the static TL tensors.
+
+    Args:
+        cfg: network configuration.
+        tl_piece: [B, L] int64 map row of the controlled lane piece (-1 padding).
+        tl_valid: [B, L] bool token validity (any valid step of the source used).
+        mp: the encoded map.
+
+    Returns:
+        ``TLContext``.
+    """
+    rows = tl_piece.clamp(min=0)
+    valid = tl_valid & (tl_piece >= 0) & _rows(mp.valid, rows)
+    pose = _rows(mp.pose, rows) * valid[..., None]
+    lane_feat = _rows(mp.feat, rows).detach() * valid[..., None]
+    s_idx, s_mask, s_rel = knn_relative(pose, pose, valid, cfg.tl_knn, cfg.tl_dist)
+    m_idx, m_mask, m_rel = knn_relative(pose, mp.pose, mp.valid, cfg.tl_map_knn, cfg.tl_map_dist)
+    return TLContext(
+        pose=pose,
+        valid=valid,
+        lane_feat=lane_feat,
+        self_idx=s_idx,
+        self_mask=s_mask,
+        self_rpe=rpe(s_rel, cfg),
+        map_feat=gather_tokens(mp.feat, m_idx),
+        map_mask=m_mask,
+        map_rpe=rpe(m_rel, cfg),
+    )
+
+
+class TLEncoder(nn.Module):
+    """Encode a window of TL states: MLP, PointNet over time, decoder layers (TL self, TL->map).
+
+    Args:
+        cfg: network configuration.
+        n_time: length of the time one-hot (11 in the policy, 19 in the posterior).
+    """
+
+    def __init__(self, cfg: TrafficBotsConfig, n_time: int) -> None:
+        super().__init__()
+        d = cfg.hidden_dim
+        self.n_time = n_time
+        self.input_mlp = MLP([NUM_TL_STATES + n_time] + [d] * cfg.mlp_layers)
+        self.pointnet = PointNet(d, cfg.pointnet_layers, cfg.dropout)
+        self.layers = nn.ModuleList(
+            DecoderLayer(d, cfg.n_heads, cfg.ff_mult * d, cfg.rpe_dim, cfg.dropout)
+            for _ in range(cfg.tl_layers)
+        )
+
+    def forward(
+        self, state: torch.Tensor, step_valid: torch.Tensor, ctx: TLContext
+    ) -> torch.Tensor:
+        """Encode.
+
+        Args:
+            state: [B, L, W] int64 ``TLState`` per window step (W <= n_time, newest last).
+            step_valid: [B, L, W] bool, the window step exists.
+            ctx: static TL tensors.
+
+        Returns:
+            [B, L, d] TL token features (0 for invalid tokens).
+        """
+        n_win = state.shape[-1]
+        time_1h = torch.eye(self.n_time, device=state.device)[self.n_time - n_win :]  # [W, n_time]
+        x = torch.cat(
+            [
+                F.one_hot(state.clamp(0, NUM_TL_STATES - 1), NUM_TL_STATES).float(),
+                time_1h.expand(*state.shape, -1),
+            ],
+            dim=-1,
+        )  # [B, L, W, 5 + n_time]
+        x = self.input_mlp(x) + ctx.lane_feat[:, :, None]
+        x = self.pointnet(x, step_valid & ctx.valid[..., None]) * ctx.valid[..., None]
+        for layer in self.layers:
+            x = layer(
+                x,
+                ctx.valid,
+                ctx.self_idx,
+                ctx.self_mask,
+                ctx.self_rpe,
+                ctx.map_feat,
+                ctx.map_mask,
+                ctx.map_rpe,
+            )
+        return x
+
+
+class TLStateHead(nn.Module):
+    """Next-TL-state logits from the detached TL token feature, clamped to [-3, 3]."""
+
+    def __init__(self, cfg: TrafficBotsConfig) -> None:
+        super().__init__()
+        d = cfg.hidden_dim
+        self.mlp = MLP([d] * cfg.mlp_layers + [NUM_TL_STATES])
+        self.clamp = cfg.tl_logit_clamp
+
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        """[B, L, d] -> [B, L, 5] logits."""
+        return self.mlp(feat.detach()).clamp(-self.clamp, self.clamp)
