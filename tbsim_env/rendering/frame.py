@@ -191,9 +191,11 @@ def render_frame(
             tv &= _as("trail_valid", trail_valid, (n, k), bool)
         tuv = view.to_pixels(np.where(tv[..., None], tr, 0.0)) - 0.5
         width = max(P.TRAIL_MIN_PX, int(round(P.TRAIL_WIDTH_M / mpp)))
-        for i in np.flatnonzero(valid):
+        whole = tv.all(axis=1)  # the common case: one run over the whole trail
+        for i in np.flatnonzero(valid & tv.any(axis=1)):
             color = tuple(_TRAIL_RGB[group[i]].tolist())
-            for a, b in _valid_runs(tv[i]):
+            runs = [(0, k)] if whole[i] else _valid_runs(tv[i])
+            for a, b in runs:
                 if b - a >= 2:
                     draw.line(tuv[i, a:b].reshape(-1).tolist(), fill=color, width=width)
 
