@@ -302,7 +302,8 @@ def simulate(
                 continue
             v_new = fleet.desired_speed[want] * 0.9
             if j >= 0:
-                v_new = min(v_new, v[j] + 1.0)
+                room = rear[j] - 0.5 * length[want] - fleet.min_gap[want]
+                v_new = min(v_new, v[j] + 1.0, max(room, 0.0) / fleet.time_headway[want])
             choices = np.flatnonzero(routes.source == src)
             w = route_weights[choices]
             r[want] = choices[rng.choice(choices.size, p=w / w.sum())]
@@ -322,7 +323,9 @@ def simulate(
         front = s + 0.5 * length
         committed = merge_ok | (front >= st.conflict_s[r])
         v_off = st.merge_virtual[r[:, None], lane_c[None, :]] + sig_c[None, :]
-        engaged = np.isfinite(st.conflict_s[r]) & (front > st.conflict_s[r] - 60.0)
+        # A merging vehicle follows priority-lane vehicles only once it has accepted a gap;
+        # before that it is held by its conflict-point stop line (see merge gaps below).
+        engaged = np.isfinite(st.conflict_s[r]) & committed
         pos = np.where(np.isnan(pos) & engaged[:, None], v_off, pos)
         p_off = st.merge_prio[r[:, None], lane_c[None, :]] + sig_c[None, :]
         pos = np.where(np.isnan(pos) & committed[None, :], p_off, pos)

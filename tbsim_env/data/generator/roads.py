@@ -278,9 +278,9 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
         lane_ids=inbound_ids,
         phase=tuple(k for k in range(4) for _ in range(n_lanes)),
         num_phases=4,
-        green_s=10.0,
-        yellow_s=4.0,
-        all_red_s=3.0,
+        green_s=9.0,
+        yellow_s=3.5,
+        all_red_s=2.5,
     )
     return RoadNetwork(
         layout="intersection",

@@ -50,8 +50,8 @@ TRAFFIC = {
         pedestrians=4,
     ),
     "merge": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(15.0, 20.0), inflow=0.15),
-        initial_vehicles=(10, 14),
+        driver=DriverConfig(desired_speed=(15.0, 20.0), inflow=0.25, warmup_s=6.0),
+        initial_vehicles=(14, 18),
         pedestrians=0,
     ),
 }
