@@ -45,6 +45,7 @@ from tbsim_env.observation import (
 )
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
+from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.state import SimState
 
 ControlledSpec = str | Sequence[int]
@@ -413,18 +414,28 @@ class TrafficEnv(ParallelEnv, EzPickle):
         }
 
     def expert_actions(self) -> dict[str, np.ndarray]:
-        """Inverse-dynamics actions that follow the log from the current step, per live agent."""
-        from tbsim_env.sim.dynamics import inverse_unicycle
+        """Actions that steer each live agent from its current state back onto its log.
 
+        One closed-loop inverse-dynamics step (``inverse_step``) towards the logged state of
+        the next step; zero where the log has no next state. Following them from the start
+        reproduces the log within centimetres where the log is feasible.
+        """
         s = self.sim_state
-        log = s.log
-        act, valid = inverse_unicycle(log.pose, log.speed, log.valid, s.agents.object_type)
-        t = min(int(s.step[0]), act.shape[2] - 1)
-        out = {}
-        for name in self.agents:
-            slot = int(self._ext_slots[0, self._slot_of[name]])
-            out[name] = act[0, slot, t].cpu().numpy().astype(np.float32) * bool(valid[0, slot, t])
-        return out
+        n_t = s.log.valid.shape[-1]
+        t1 = min(int(s.step[0]) + 1, n_t - 1)
+        slots = self._ext_slots[0]
+        max_acc, max_yaw = action_limits(s.agents.object_type[0, slots])
+        act = inverse_step(
+            s.pose[0, slots],
+            s.speed[0, slots],
+            s.log.pose[0, slots, t1],
+            s.log.speed[0, slots, t1],
+            max_acc,
+            max_yaw,
+        )
+        act = act * s.log.valid[0, slots, t1, None]
+        act = act.cpu().numpy().astype(np.float32)
+        return {name: act[self._slot_of[name]] for name in self.agents}
 
     def render(self) -> np.ndarray | None:
         """Bird's-eye RGB frame of the current state (``render_mode="rgb_array"``)."""

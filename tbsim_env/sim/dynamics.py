@@ -107,6 +107,44 @@ def signed_speed(velocity: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
     return sign * torch.linalg.vector_norm(velocity, dim=-1)
 
 
+def inverse_step(
+    pose: torch.Tensor,
+    speed: torch.Tensor,
+    target_pose: torch.Tensor,
+    target_speed: torch.Tensor,
+    max_accel: torch.Tensor,
+    max_yaw_rate: torch.Tensor,
+    dt: float = C.DT,
+    position_gain: float = 0.5,
+) -> torch.Tensor:
+    """One step of inverse dynamics: the action that moves a state towards a target state.
+
+    The yaw rate closes the yaw gap; the acceleration reaches the target speed plus
+    ``position_gain`` times the along-track position error of that feed-forward step.
+
+    Args:
+        pose: [..., 3] current (x, y, yaw); speed: [...] current signed speed m/s.
+        target_pose: [..., 3] pose to reach after ``dt``; target_speed: [...] m/s.
+        max_accel: [...] m/s^2; max_yaw_rate: [...] rad/s (limits, see ``action_limits``).
+        dt: step in seconds.
+        position_gain: fraction of the along-track position error corrected.
+
+    Returns:
+        [..., 2] (acceleration, yaw rate), within the limits.
+    """
+    yaw_rate = (wrap_angle(target_pose[..., 2] - pose[..., 2]) / dt).clamp(
+        -max_yaw_rate, max_yaw_rate
+    )
+    yaw_mid = pose[..., 2] + 0.5 * dt * yaw_rate
+    heading = torch.stack([torch.cos(yaw_mid), torch.sin(yaw_mid)], dim=-1)
+    acc = (target_speed - speed) / dt
+    v_mid = speed + 0.5 * dt * acc
+    pred_xy = pose[..., :2] + dt * v_mid[..., None] * heading
+    err = ((target_pose[..., :2] - pred_xy) * heading).sum(-1)
+    acc = (acc + position_gain * 2.0 * err / dt**2).clamp(-max_accel, max_accel)
+    return torch.stack([acc, yaw_rate], dim=-1)
+
+
 def inverse_unicycle(
     pose: torch.Tensor,
     speed: torch.Tensor,
@@ -147,18 +185,18 @@ def inverse_unicycle(
         restart = valid[..., t] & ~(valid[..., t - 1] if t > 0 else torch.zeros_like(valid[..., 0]))
         cur_pose = torch.where(restart[..., None], pose[..., t, :], cur_pose)
         cur_speed = torch.where(restart, speed[..., t], cur_speed)
-        nxt = pose[..., t + 1, :]
-        yaw_rate = (wrap_angle(nxt[..., 2] - cur_pose[..., 2]) / dt).clamp(-max_yaw, max_yaw)
-        yaw_mid = cur_pose[..., 2] + 0.5 * dt * yaw_rate
-        heading = torch.stack([torch.cos(yaw_mid), torch.sin(yaw_mid)], dim=-1)
-        acc = (speed[..., t + 1] - cur_speed) / dt
-        # Along-track error of the feed-forward prediction, corrected partially.
-        v_mid = cur_speed + 0.5 * dt * acc
-        pred_xy = cur_pose[..., :2] + dt * v_mid[..., None] * heading
-        err = ((nxt[..., :2] - pred_xy) * heading).sum(-1)
-        acc = (acc + position_gain * 2.0 * err / dt**2).clamp(-max_acc, max_acc)
+        action = inverse_step(
+            cur_pose,
+            cur_speed,
+            pose[..., t + 1, :],
+            speed[..., t + 1],
+            max_acc,
+            max_yaw,
+            dt,
+            position_gain,
+        )
         step_valid = valid[..., t] & valid[..., t + 1]
-        action = torch.stack([acc, yaw_rate], dim=-1) * step_valid[..., None]
+        action = action * step_valid[..., None]
         actions.append(action)
         cur_pose, cur_speed = unicycle_step(cur_pose, cur_speed, action, dt)
     return torch.stack(actions, dim=-2), valid[..., :-1] & valid[..., 1:]
