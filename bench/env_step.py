@@ -1,0 +1,94 @@
+"""Environment and simulation-core throughput.
+
+Prints (a) PettingZoo ``TrafficEnv`` steps/s on a real WOMD scenario with one controlled agent,
+log-replayed NPCs and full observations, and (b) batched-core agent steps/s (dynamics + log
+replay merge) at batch 1, 16 and 64, all in one run on the current machine.
+
+Targets on the 2-core CI machine: (a) >= 1,000 env steps/s, (b) >= 500,000 agent steps/s at
+batch 64.
+
+    python bench/env_step.py [--data DIR] [--threads N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from tbsim_env.data import load_scenarios
+from tbsim_env.env import TrafficEnv
+from tbsim_env.sim import core
+from tbsim_env.sim.build import build_sim_state
+
+DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
+
+
+def bench_env(scenarios, episodes: int) -> tuple[float, float]:
+    env = TrafficEnv(scenarios, controlled="sdc", npc_policy="log_replay")
+    env.reset(seed=0)
+    n_agents = int(env.sim_state.agents.mask.sum())
+    steps = 0
+    start = time.perf_counter()
+    for _ in range(episodes):
+        env.reset()
+        zero = {a: np.zeros(2, np.float32) for a in env.agents}
+        while env.agents:
+            env.step({a: zero[a] for a in env.agents})
+            steps += 1
+    dt = time.perf_counter() - start
+    return steps / dt, steps * n_agents / dt
+
+
+def bench_core(scenarios, batch: int, steps: int) -> float:
+    batch_sc = [scenarios[i % len(scenarios)] for i in range(batch)]
+    state0 = build_sim_state(batch_sc)
+    # Every agent integrates actions (the expensive path); none is replayed.
+    state0 = state0.replace(controlled=state0.agents.mask.clone())
+    action = torch.zeros(*state0.pose.shape[:2], 2)
+    n_agents = int(state0.agents.mask.sum())
+    done = 0
+    start = time.perf_counter()
+    while done < steps:
+        state = state0
+        for _ in range(min(80, steps - done)):
+            state = core.step(state, action)
+            done += 1
+    dt = time.perf_counter() - start
+    return done * n_agents / dt
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", DEFAULT_DATA))
+    p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument("--episodes", type=int, default=5)
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    path = Path(args.data) / "waymo-open-dataset" / "motion_data_one_scenario.tfrecord"
+    if path.exists():
+        scenarios, label = load_scenarios(path), f"real WOMD {path.name}"
+    else:
+        from tbsim_env.data.generator import default_scenarios
+
+        scenarios, label = default_scenarios(2), "generated scenes (no WOMD data found)"
+    print(f"torch {torch.__version__}, {args.threads} threads, scenario: {label}")
+    env_sps, env_asps = bench_env(scenarios, args.episodes)
+    print(
+        f"(a) TrafficEnv, 1 controlled + log replay, obs: {env_sps:8.0f} env steps/s "
+        f"({env_asps:,.0f} agent steps/s)   target >= 1,000 env steps/s"
+    )
+    for b in (1, 16, 64):
+        asps = bench_core(scenarios, b, 400)
+        print(
+            f"(b) batched core, batch {b:3d}: {asps:14,.0f} agent steps/s"
+            + ("   target >= 500,000" if b == 64 else "")
+        )
+
+
+if __name__ == "__main__":
+    main()
