@@ -114,12 +114,49 @@ def _rollout_chunk(traj: ObjectTrajectories) -> int:
     return max(1, _PAIRS_PER_CHUNK // max(1, e * n * t))
 
 
+def _separation(
+    d: torch.Tensor,
+    cos_a: torch.Tensor,
+    sin_a: torch.Tensor,
+    half_a: torch.Tensor,
+    cos_b: torch.Tensor,
+    sin_b: torch.Tensor,
+    half_b: torch.Tensor,
+) -> torch.Tensor:
+    """Largest separating-axis gap of two rectangles (the four box axes), elementwise.
+
+    Equal to the signed distance when the boxes overlap (minus the penetration depth), and a
+    lower bound of the distance when they are apart.
+
+    Args:
+        d: [..., 2] centre of b minus centre of a (m).
+        cos_a, sin_a, cos_b, sin_b: [...] of the yaws.
+        half_a, half_b: [..., 2] half (length, width) (m).
+    """
+    cos_d = (cos_a * cos_b + sin_a * sin_b).abs()  # |cos(h_b - h_a)|
+    sin_d = (sin_b * cos_a - cos_b * sin_a).abs()
+    la, wa = half_a[..., 0], half_a[..., 1]
+    lb, wb = half_b[..., 0], half_b[..., 1]
+    dx, dy = d[..., 0], d[..., 1]
+    gaps = (
+        (dx * cos_a + dy * sin_a).abs() - la - (lb * cos_d + wb * sin_d),
+        (dy * cos_a - dx * sin_a).abs() - wa - (lb * sin_d + wb * cos_d),
+        (dx * cos_b + dy * sin_b).abs() - lb - (la * cos_d + wa * sin_d),
+        (dy * cos_b - dx * sin_b).abs() - wb - (la * sin_d + wa * cos_d),
+    )
+    return torch.maximum(torch.maximum(gaps[0], gaps[1]), torch.maximum(gaps[2], gaps[3]))
+
+
 def distance_to_nearest_object(traj: ObjectTrajectories) -> torch.Tensor:
     """Signed distance of each evaluated object to its nearest other valid object.
 
     Objects are rounded rectangles (corner radius r = 0.7 * min(L, W) / 2): the distance is the
     signed distance of the cores minus both radii. Pairs where either object is invalid are
     skipped; with no valid partner the value is 1e10.
+
+    Exact, computed cheaply: overlapping pairs get their separating-axis depth; the vertex-to-edge
+    distance of separated pairs is only evaluated where the pair can be the nearest one (its
+    separating-axis lower bound is not above the smallest centre-distance upper bound).
 
     Args:
         traj: [R, N, T] trajectories, evaluated first.
@@ -129,27 +166,46 @@ def distance_to_nearest_object(traj: ObjectTrajectories) -> torch.Tensor:
     """
     e = traj.num_eval
     n = traj.x.shape[1]
+    dev = traj.x.device
     radius = BOX_ROUNDING_FACTOR * torch.minimum(traj.length, traj.width) / 2.0  # [N]
     core_half = torch.stack([traj.length / 2.0 - radius, traj.width / 2.0 - radius], -1)  # [N, 2]
-    not_self = torch.ones(e, n, dtype=torch.bool, device=traj.x.device)
-    not_self[:, :e] &= ~torch.eye(e, dtype=torch.bool, device=traj.x.device)
+    radii = radius[:e, None, None] + radius[None, :, None]  # [E, N, 1]
+    not_self = torch.ones(e, n, dtype=torch.bool, device=dev)
+    not_self[:, :e] &= ~torch.eye(e, dtype=torch.bool, device=dev)
     out = []
     step = _rollout_chunk(traj)
     for r0 in range(0, traj.num_rollouts, step):
         sl = slice(r0, r0 + step)
         center = torch.stack([traj.x[sl], traj.y[sl]], -1)  # [r, N, T, 2]
         head = traj.heading[sl]
-        valid = traj.valid[sl]
-        sd = rectangle_signed_distance(
-            center[:, :e, None],
-            head[:, :e, None],
+        cos, sin = torch.cos(head), torch.sin(head)
+        d = center[:, None] - center[:, :e, None]  # [r, E, N, T, 2]
+        sep = _separation(
+            d,
+            cos[:, :e, None],
+            sin[:, :e, None],
             core_half[:e, None, None, :],
-            center[:, None],
-            head[:, None],
+            cos[:, None],
+            sin[:, None],
             core_half[None, :, None, :],
         )  # [r, E, N, T]
-        dist = sd - radius[:e, None, None] - radius[None, :, None]
-        ok = valid[:, :e, None] & valid[:, None] & not_self[None, :, :, None]
+        ok = traj.valid[sl][:, :e, None] & traj.valid[sl][:, None] & not_self[None, :, :, None]
+        upper = torch.linalg.vector_norm(d, dim=-1) - radii
+        upper_min = torch.where(ok, upper, NO_PARTNER_DISTANCE).amin(2, keepdim=True)
+        dist = sep - radii  # exact where sep <= 0, a lower bound elsewhere
+        need = ok & (sep > 0.0) & (dist <= upper_min)
+        ri, ei, oi, ti = need.nonzero(as_tuple=True)
+        if ri.numel():
+            ra = ri + r0
+            exact = rectangle_signed_distance(
+                center[ri, ei, ti],
+                traj.heading[ra, ei, ti],
+                core_half[ei],
+                center[ri, oi, ti],
+                traj.heading[ra, oi, ti],
+                core_half[oi],
+            )
+            dist = dist.index_put((ri, ei, oi, ti), exact - radius[ei] - radius[oi])
         out.append(torch.where(ok, dist, NO_PARTNER_DISTANCE).amin(dim=2))
     return torch.cat(out, dim=0)
 

@@ -3,10 +3,9 @@
 * signed distance of a box to the road edge (positive = some corner off-road), and off-road,
 * traffic-light (red light) violation.
 
-The nearest-segment searches are exact but pruned: query points are grouped (one evaluated
-object over a few steps, all rollouts), and a group only looks at the segments whose bounding box
-can hold the nearest one (lower bound <= the group's best upper bound), so ties resolve as in a
-full search (lowest segment index).
+The road-edge search is exact but pruned (see ``segment_search``): the box corners are grouped
+per (evaluated object, step, corner) over all rollouts. The lane search of the red-light feature
+only runs where a red stop line was crossed.
 """
 
 from __future__ import annotations
@@ -24,11 +23,15 @@ from tbsim_env.metrics.wosac.config import (
     NO_PARTNER_DISTANCE,
     ROAD_EDGE_Z_STRETCH,
 )
+from tbsim_env.metrics.wosac.segment_search import (
+    SegmentIndex,
+    build_segment_index,
+    nearest_segment,
+)
 from tbsim_env.metrics.wosac.trajectories import ObjectTrajectories
 
-_STEPS_PER_GROUP = 8
-"""Steps of one evaluated object (all rollouts) that share one candidate-segment search."""
-_QUERY_SEGMENT_PAIRS_PER_CHUNK = 1 << 22
+_STEPS_PER_GROUP = 1
+"""Steps of one corner of one evaluated object (all rollouts) searched as one group."""
 
 
 class MapFeatureError(TbsimError, ValueError):
@@ -47,12 +50,14 @@ class RoadEdgeSegments:
         prev, next: [S] int64 index of the neighbouring segment used by the sign rules; a
             segment is its own neighbour where there is none (open polyline ends, and the
             wrap-around of cyclic polylines shorter than the longest road edge).
+        index: bounding boxes for the nearest-segment search.
     """
 
     start: torch.Tensor
     end: torch.Tensor
     prev: torch.Tensor
     next: torch.Tensor
+    index: SegmentIndex
 
     @property
     def num_segments(self) -> int:
@@ -96,11 +101,13 @@ def road_edge_segments(scenario: Scenario, device: torch.device | str = "cpu") -
     def cat(parts: list[np.ndarray], dtype: torch.dtype) -> torch.Tensor:
         return torch.as_tensor(np.concatenate(parts), dtype=dtype, device=device)
 
+    start, end = cat(starts, torch.float32), cat(ends, torch.float32)
     return RoadEdgeSegments(
-        start=cat(starts, torch.float32),
-        end=cat(ends, torch.float32),
+        start=start,
+        end=end,
         prev=cat(prevs, torch.int64),
         next=cat(nexts, torch.int64),
+        index=build_segment_index(start, end),
     )
 
 
@@ -125,70 +132,27 @@ def box_bottom_corners(traj: ObjectTrajectories) -> torch.Tensor:
 
 
 def _group_queries(points: torch.Tensor, steps_per_group: int) -> tuple[torch.Tensor, int]:
-    """[R, E, T, K, D] -> [G, M, D] with G = E * ceil(T / steps), padding T by repetition."""
+    """[R, E, T, K, D] -> [G, M, D]: one group per (object, step chunk, corner), all rollouts.
+
+    T is padded to a multiple of ``steps_per_group`` by repeating the last step.
+    """
     r, e, t, k, d = points.shape
     pad = (-t) % steps_per_group
     if pad:
         points = torch.cat([points, points[:, :, -1:].expand(r, e, pad, k, d)], dim=2)
     tg = (t + pad) // steps_per_group
-    grouped = points.reshape(r, e, tg, steps_per_group, k, d).permute(1, 2, 0, 3, 4, 5)
-    return grouped.reshape(e * tg, r * steps_per_group * k, d), pad
+    grouped = points.reshape(r, e, tg, steps_per_group, k, d).permute(1, 2, 4, 0, 3, 5)
+    return grouped.reshape(e * tg * k, r * steps_per_group, d), pad
 
 
-def _ungroup(values: torch.Tensor, shape: tuple[int, ...], steps_per_group: int, pad: int):
+def _ungroup(
+    values: torch.Tensor, shape: tuple[int, int, int, int], steps_per_group: int, pad: int
+) -> torch.Tensor:
     """Inverse of ``_group_queries`` for [G, M] values -> [R, E, T, K]."""
     r, e, t, k = shape
     tg = (t + pad) // steps_per_group
-    v = values.reshape(e, tg, r, steps_per_group, k).permute(2, 0, 1, 3, 4)
+    v = values.reshape(e, tg, k, r, steps_per_group).permute(3, 0, 1, 4, 2)
     return v.reshape(r, e, tg * steps_per_group, k)[:, :, :t]
-
-
-def _candidate_segments(
-    points: torch.Tensor,
-    finite: torch.Tensor,
-    seg_lo: torch.Tensor,
-    seg_hi: torch.Tensor,
-    seg_anchor: torch.Tensor,
-    stretch: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Segments that may be nearest to some point of each group, padded.
-
-    A segment can be the arg-min for a point of a group only if a lower bound of its distance
-    to the group's bounding box (box-to-box xy distance) does not exceed the smallest upper bound
-    (the farthest bounding-box corner from a segment end point, with z stretched).
-
-    Args:
-        points: [G, M, D] query points (D = 2 or 3, z last).
-        finite: [G, M] bool, points that define the group's bounding box.
-        seg_lo, seg_hi: [S, D] segment bounding boxes.
-        seg_anchor: [S, D] one end point per segment.
-        stretch: [D] axis scales of the distance that chooses the segment.
-
-    Returns:
-        (index [G, C] int64 sorted candidate indices, mask [G, C] bool).
-    """
-    big = torch.finfo(points.dtype).max
-    lo = torch.where(finite.unsqueeze(-1), points, big).amin(1)  # [G, D]
-    hi = torch.where(finite.unsqueeze(-1), points, -big).amax(1)
-    empty = ~finite.any(1)
-    lo = torch.where(empty.unsqueeze(-1), 0.0, lo)
-    hi = torch.where(empty.unsqueeze(-1), 0.0, hi)
-    # Lower bound: xy distance between the group box and each segment box.
-    gap = torch.maximum(
-        seg_lo[None, :, :2] - hi[:, None, :2], lo[:, None, :2] - seg_hi[None, :, :2]
-    )
-    lower = torch.linalg.vector_norm(gap.clamp_min(0.0), dim=-1)  # [G, S]
-    # Upper bound: farthest group-box corner from the segment anchor (stretched).
-    far = torch.maximum(
-        (seg_anchor[None] - lo[:, None]).abs(), (hi[:, None] - seg_anchor[None]).abs()
-    )
-    upper = torch.linalg.vector_norm(far * stretch, dim=-1).amin(1, keepdim=True)  # [G, 1]
-    keep = lower <= upper * (1.0 + 1e-5) + 1e-3
-    count = keep.sum(1)
-    c = int(count.max())
-    order = torch.argsort((~keep).to(torch.int8), dim=1, stable=True)[:, :c]
-    mask = torch.arange(c, device=points.device)[None, :] < count[:, None]
-    return order, mask
 
 
 def _cross2(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -196,7 +160,7 @@ def _cross2(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def signed_distance_to_road_edge_points(
-    points: torch.Tensor, finite: torch.Tensor, segs: RoadEdgeSegments
+    points: torch.Tensor, include: torch.Tensor, segs: RoadEdgeSegments
 ) -> torch.Tensor:
     """Signed 2-D distance of grouped points to the road edge (positive = off-road side).
 
@@ -205,35 +169,15 @@ def signed_distance_to_road_edge_points(
     the convex/concave junction rules at segment ends (docs/wosac.md 4.4).
 
     Args:
-        points: [G, M, 3] query points (m).
-        finite: [G, M] bool points to include in the candidate search (others still get a value).
+        points: [G, M, 3] query points (m), grouped by proximity.
+        include: [G, M] bool points that bound their group (see ``nearest_segment``).
         segs: the road edges.
 
     Returns:
         [G, M] signed distance (m).
     """
-    a_all, b_all = segs.start, segs.end
-    stretch = torch.tensor([1.0, 1.0, ROAD_EDGE_Z_STRETCH], device=points.device)
-    cand, cmask = _candidate_segments(
-        points, finite, torch.minimum(a_all, b_all), torch.maximum(a_all, b_all), a_all, stretch
-    )
-    g, m, _ = points.shape
-    chunk = max(1, _QUERY_SEGMENT_PAIRS_PER_CHUNK // max(1, g * cand.shape[1]))
-    best = []
-    for m0 in range(0, m, chunk):
-        q = points[:, m0 : m0 + chunk, None, :]  # [G, m, 1, 3]
-        a = a_all[cand][:, None]  # [G, 1, C, 3]
-        ab = b_all[cand][:, None] - a
-        aq = q - a
-        len2 = (ab[..., :2] * ab[..., :2]).sum(-1)
-        t = (aq[..., :2] * ab[..., :2]).sum(-1) / torch.where(len2 > 0, len2, 1.0)
-        t = torch.where(len2 > 0, t, 0.0)
-        diff = aq - t.clamp(0.0, 1.0).unsqueeze(-1) * ab
-        d3 = ((diff * stretch) ** 2).sum(-1)
-        d3 = torch.where(cmask[:, None, :], d3, float("inf"))
-        best.append(d3.argmin(-1))  # [G, m] position in the candidate list
-    pos = torch.cat(best, dim=1)
-    seg = cand.gather(1, pos)  # [G, M] segment index
+    scale = torch.tensor([1.0, 1.0, ROAD_EDGE_Z_STRETCH], device=points.device)
+    seg = nearest_segment(points, include, segs.index, scale)
     return _signed_distance_to_segment(points, seg, segs)
 
 

@@ -1,0 +1,159 @@
+"""Exact nearest-segment search for groups of query points, pruned with bounding boxes.
+
+The metric is the one the road-edge feature uses to choose a segment: the point of the segment
+is found by a 2-D (x, y) projection clipped to the segment, and the distance to it is measured
+with the axes scaled (z stretched). The arg-min is over all segments, ties going to the lowest
+segment index, exactly as a brute-force search would give; the pruning only skips segments that
+provably cannot win.
+
+Pruning: the query points come in groups (close together in space). For a group with bounding
+box B, a segment s is kept only if a lower bound of the distance from any point of B to s (the
+x/y distance between B and the segment's bounding box) is at most the smallest upper bound over
+segments (the chosen point lies on the segment, so its scaled distance is at most the farthest
+pair of points of B and the segment's bounding box). The bound pass runs first on chunks of
+consecutive segments, then on the segments of the kept chunks.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+_CHUNK = 16
+"""Consecutive segments per chunk of the first pruning pass."""
+_REL_TOL = 1e-5
+_ABS_TOL = 1e-3
+"""Slack (relative, metres) on the bound comparisons against float32 rounding."""
+
+
+@dataclass(frozen=True)
+class SegmentIndex:
+    """Segments with the bounding boxes used for pruning (all float32, one device).
+
+    Attributes:
+        start, end: [S, 3] end points (m).
+        lo, hi: [S, 3] bounding box of each segment.
+        chunk_lo, chunk_hi: [K, 3] bounding box of each chunk of ``_CHUNK`` consecutive segments.
+    """
+
+    start: torch.Tensor
+    end: torch.Tensor
+    lo: torch.Tensor
+    hi: torch.Tensor
+    chunk_lo: torch.Tensor
+    chunk_hi: torch.Tensor
+
+    @property
+    def num_segments(self) -> int:
+        return int(self.start.shape[0])
+
+
+def build_segment_index(start: torch.Tensor, end: torch.Tensor) -> SegmentIndex:
+    """Index segments [S, 3] (S >= 1) for ``nearest_segment``."""
+    lo, hi = torch.minimum(start, end), torch.maximum(start, end)
+    s = start.shape[0]
+    pad = (-s) % _CHUNK
+    lo_p = torch.cat([lo, lo[-1:].expand(pad, 3)]).reshape(-1, _CHUNK, 3)
+    hi_p = torch.cat([hi, hi[-1:].expand(pad, 3)]).reshape(-1, _CHUNK, 3)
+    return SegmentIndex(
+        start=start,
+        end=end,
+        lo=lo,
+        hi=hi,
+        chunk_lo=lo_p.amin(1),
+        chunk_hi=hi_p.amax(1),
+    )
+
+
+def _box_gap_xy(lo_a: torch.Tensor, hi_a: torch.Tensor, lo_b: torch.Tensor, hi_b: torch.Tensor):
+    """x/y distance between boxes (0 when they overlap), broadcast over leading dims."""
+    gap = torch.maximum(lo_b[..., :2] - hi_a[..., :2], lo_a[..., :2] - hi_b[..., :2])
+    return torch.linalg.vector_norm(gap.clamp_min(0.0), dim=-1)
+
+
+def _box_far(
+    lo_a: torch.Tensor, hi_a: torch.Tensor, lo_b: torch.Tensor, hi_b: torch.Tensor, scale
+) -> torch.Tensor:
+    """Largest scaled distance between a point of box a and a point of box b."""
+    far = torch.maximum((hi_b - lo_a).abs(), (hi_a - lo_b).abs())
+    return torch.linalg.vector_norm(far * scale, dim=-1)
+
+
+def _candidates(
+    lo: torch.Tensor, hi: torch.Tensor, index: SegmentIndex, scale: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Candidate (group, segment) pairs, sorted by group then segment.
+
+    Args:
+        lo, hi: [G, 3] group bounding boxes.
+
+    Returns:
+        (group [C] int64, segment [C] int64).
+    """
+    # Pass 1: chunks.
+    lower = _box_gap_xy(lo[:, None], hi[:, None], index.chunk_lo[None], index.chunk_hi[None])
+    upper = _box_far(lo[:, None], hi[:, None], index.chunk_lo[None], index.chunk_hi[None], scale)
+    bound = upper.amin(1)  # [G]
+    keep = lower <= bound[:, None] * (1.0 + _REL_TOL) + _ABS_TOL
+    grp, chunk = keep.nonzero(as_tuple=True)
+    # Pass 2: the segments of the kept chunks.
+    offs = torch.arange(_CHUNK, device=lo.device)
+    seg = (chunk[:, None] * _CHUNK + offs).reshape(-1)
+    grp = grp.repeat_interleave(_CHUNK)
+    real = seg < index.num_segments
+    seg, grp = seg[real], grp[real]
+    lower = _box_gap_xy(lo[grp], hi[grp], index.lo[seg], index.hi[seg])
+    upper = _box_far(lo[grp], hi[grp], index.lo[seg], index.hi[seg], scale)
+    bound = bound.scatter_reduce(0, grp, upper, "amin")
+    keep = lower <= bound[grp] * (1.0 + _REL_TOL) + _ABS_TOL
+    return grp[keep], seg[keep]
+
+
+def nearest_segment(
+    points: torch.Tensor, include: torch.Tensor, index: SegmentIndex, scale: torch.Tensor
+) -> torch.Tensor:
+    """Index of the nearest segment of every query point.
+
+    Args:
+        points: [G, M, 3] query points (m), grouped (points of a group should be close).
+        include: [G, M] bool, points that define their group's bounding box; the others (e.g.
+            placeholders of invalid steps) still get an answer, but not necessarily the nearest.
+        index: the segments.
+        scale: [3] axis scales of the distance (e.g. (1, 1, 3)).
+
+    Returns:
+        [G, M] int64 segment index.
+    """
+    g, m, _ = points.shape
+    dev = points.device
+    big = torch.finfo(points.dtype).max
+    lo = torch.where(include.unsqueeze(-1), points, big).amin(1)
+    hi = torch.where(include.unsqueeze(-1), points, -big).amax(1)
+    empty = ~include.any(1, keepdim=True)
+    lo, hi = torch.where(empty, 0.0, lo), torch.where(empty, 0.0, hi)
+    cand_grp, cand_seg = _candidates(lo, hi, index, scale)
+    count = torch.bincount(cand_grp, minlength=g)  # [G]
+    first_cand = torch.cumsum(count, 0) - count
+    # Every point of group g meets each of its count[g] candidates.
+    per_point = count.repeat_interleave(m)  # [G * M]
+    point = torch.repeat_interleave(torch.arange(g * m, device=dev), per_point)
+    first_pair = torch.cumsum(per_point, 0) - per_point
+    rank = torch.arange(point.numel(), device=dev) - first_pair[point]
+    seg = cand_seg[first_cand[point // m] + rank]  # [P]
+    q = points.reshape(g * m, 3)[point]
+    a = index.start[seg]
+    ab = index.end[seg] - a
+    aq = q - a
+    len2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
+    t = (aq[:, 0] * ab[:, 0] + aq[:, 1] * ab[:, 1]) / torch.where(len2 > 0, len2, 1.0)
+    t = torch.where(len2 > 0, t, 0.0).clamp_(0.0, 1.0)
+    diff = (aq - t.unsqueeze(-1) * ab) * scale
+    dist2 = (diff * diff).sum(-1)
+    best = torch.full((g * m,), float("inf"), device=dev).scatter_reduce(0, point, dist2, "amin")
+    s = index.num_segments
+    tie = torch.where(dist2 == best[point], seg, s)
+    out = torch.full((g * m,), s, device=dev, dtype=torch.int64).scatter_reduce(
+        0, point, tie, "amin"
+    )
+    return out.clamp_(max=s - 1).reshape(g, m)
