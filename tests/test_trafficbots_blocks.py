@@ -1,0 +1,191 @@
+"""TrafficBots building blocks: encodings, KNN, KNARPE attention, PointNet, collision check."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import tbsim_env  # noqa: F401  (first: avoids the policies <-> tbsim_env.env import cycle)
+
+# isort: split
+
+from policies.trafficbots.attention import KnarpeAttention, SelfAttentionLayer
+from policies.trafficbots.collision import rounded_box_collision
+from policies.trafficbots.config import TrafficBotsConfig
+from policies.trafficbots.encodings import (
+    angle_pe,
+    map_node_geometry,
+    pose_encoding,
+    relative_pose,
+    rpe,
+    sinusoid_pe,
+)
+from policies.trafficbots.knn import gather_tokens, knn_relative, knn_select
+from policies.trafficbots.pointnet import PointNet
+
+
+def test_sinusoid_and_angle_encoding_layout() -> None:
+    u = torch.tensor([0.0, 2.5])
+    pe = sinusoid_pe(u, 32, 1000.0)
+    assert pe.shape == (2, 32)
+    assert torch.allclose(pe[0, :16], torch.ones(16)) and torch.allclose(
+        pe[0, 16:], torch.zeros(16)
+    )
+    w3 = 1000.0 ** (-2 * 3 / 32)
+    assert pe[1, 3].item() == pytest.approx(math.cos(w3 * 2.5), abs=1e-6)
+    assert pe[1, 16 + 3].item() == pytest.approx(math.sin(w3 * 2.5), abs=1e-6)
+    a = angle_pe(torch.tensor([0.3]), 64)
+    assert a[0, 4].item() == pytest.approx(math.cos(5 * 0.3), abs=1e-6)
+    assert a[0, 32 + 4].item() == pytest.approx(math.sin(5 * 0.3), abs=1e-6)
+    # Periodic in the angle: no wrapping needed.
+    p1 = pose_encoding(torch.tensor([1.0, -2.0, 0.4]), 16, 32, 1000.0)
+    p2 = pose_encoding(torch.tensor([1.0, -2.0, 0.4 + 2 * math.pi]), 16, 32, 1000.0)
+    assert p1.shape == (64,) and torch.allclose(p1, p2, atol=1e-5)
+    cfg = TrafficBotsConfig.paper()
+    assert rpe(torch.zeros(3), cfg).shape == (128,)
+
+
+def test_relative_pose_and_map_node_geometry() -> None:
+    rel = relative_pose(torch.tensor([1.0, 1.0, math.pi / 2]), torch.tensor([1.0, 3.0, 0.0]))
+    assert torch.allclose(rel, torch.tensor([2.0, 0.0, -math.pi / 2]), atol=1e-6)
+    # Node at (0, 2) pointing along +x: closest point (0, 2), r = 2, far end |(1,2)-(0,2)| = 1.
+    g = map_node_geometry(torch.tensor([0.0, 2.0, 0.0]))
+    assert torch.allclose(g, torch.tensor([2.0, 0.0, 1.0, 1.0, 0.0, 1.0, 1.0]), atol=1e-6)
+    # Node at (-0.5, 1) along +x: closest point (0, 1) in the middle of the segment.
+    g = map_node_geometry(torch.tensor([-0.5, 1.0, 0.0]))
+    assert g[0].item() == pytest.approx(1.0) and g[6].item() == pytest.approx(0.5)
+
+
+def test_knn_ranks_valid_targets_includes_self_and_limits_range() -> None:
+    xy = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [3.0, 0.0], [0.5, 0.0], [100.0, 0.0]]])
+    valid = torch.tensor([[True, True, True, False, True]])
+    idx, mask = knn_select(xy, xy, valid, k=4, dist_limit=50.0)
+    assert idx[0, 0].tolist() == [0, 1, 2, 4]  # self first, invalid target 3 skipped
+    assert mask[0, 0].tolist() == [True, True, True, False]  # 100 m > limit
+    idx2, _ = knn_select(xy, xy, valid, k=99, dist_limit=50.0)
+    assert idx2.shape[-1] == 5  # capped at the number of targets
+    pose = torch.cat([xy, torch.zeros(1, 5, 1)], -1)
+    _, _, rel = knn_relative(pose, pose, valid, 2, 50.0)
+    assert torch.allclose(rel[0, 2, 1], torch.tensor([-2.0, 0.0, 0.0]))
+
+
+def _dense_reference(attn: KnarpeAttention, x, pose, valid, cfg) -> torch.Tensor:
+    """Plain dense multi-head attention of every token over all valid tokens, with RPE."""
+    n_sc, n, d = x.shape
+    h, c = attn.n_heads, attn.head_dim
+    w_q, w_k, w_v = attn.in_proj_weight.chunk(3)
+    b_q, b_k, b_v = attn.in_proj_bias.chunk(3)
+    out = torch.zeros_like(x)
+    for b in range(n_sc):
+        for i in range(n):
+            q = (x[b, i] @ w_q.T + b_q).view(h, c)
+            rel = relative_pose(pose[b, i][None], pose[b])  # [n, 3]
+            r = attn.rpe_proj(rpe(rel, cfg))
+            k = (x[b] @ w_k.T + b_k + r[:, :d]).view(n, h, c)
+            v = (x[b] @ w_v.T + b_v + r[:, d:]).view(n, h, c)
+            logits = torch.einsum("hc,nhc->hn", q, k) / math.sqrt(c)
+            logits[:, ~valid[b]] = float("-inf")
+            p = torch.softmax(logits, dim=-1)
+            o = torch.einsum("hn,nhc->hc", p, v).reshape(d)
+            out[b, i] = o @ attn.out_proj.weight.T + attn.out_proj.bias
+    return out
+
+
+def test_knarpe_equals_dense_attention_when_k_covers_all_tokens() -> None:
+    torch.manual_seed(0)
+    cfg = TrafficBotsConfig.small()
+    d = cfg.hidden_dim
+    attn = KnarpeAttention(d, cfg.n_heads, cfg.rpe_dim, dropout=0.1).eval()
+    n_sc, n = 2, 7
+    x = torch.randn(n_sc, n, d)
+    pose = torch.cat([torch.randn(n_sc, n, 2) * 20, torch.randn(n_sc, n, 1) * 3], -1)
+    valid = torch.rand(n_sc, n) > 0.3
+    valid[:, 0] = True
+    idx, mask, rel = knn_relative(pose, pose, valid, k=n, dist_limit=1e9)
+    with torch.no_grad():
+        got = attn(x, gather_tokens(x, idx), rpe(rel, cfg), mask)
+        ref = _dense_reference(attn, x, pose, valid, cfg)
+    assert torch.allclose(got, ref, atol=1e-5)
+    # A query whose neighbours are all invalid outputs zeros.
+    with torch.no_grad():
+        none = attn(x, gather_tokens(x, idx), rpe(rel, cfg), torch.zeros_like(mask))
+    assert torch.count_nonzero(none) == 0
+
+
+def test_self_layer_zeroes_invalid_tokens_and_ignores_their_features() -> None:
+    torch.manual_seed(1)
+    cfg = TrafficBotsConfig.small()
+    layer = SelfAttentionLayer(cfg.hidden_dim, cfg.n_heads, 128, cfg.rpe_dim, 0.1).eval()
+    x = torch.randn(1, 6, cfg.hidden_dim)
+    pose = torch.randn(1, 6, 3)
+    valid = torch.tensor([[True, True, False, True, False, True]])
+    idx, mask, rel = knn_relative(pose, pose, valid, 6, 1e9)
+    with torch.no_grad():
+        y1 = layer(x, valid, idx, mask, rpe(rel, cfg))
+        x2 = x.clone()
+        x2[0, 2] += 5.0
+        y2 = layer(x2, valid, idx, mask, rpe(rel, cfg))
+    assert torch.count_nonzero(y1[0, ~valid[0]]) == 0
+    assert torch.allclose(y1, y2)
+
+
+def test_pointnet_masks_invalid_nodes() -> None:
+    torch.manual_seed(2)
+    net = PointNet(32, 3, dropout=0.1).eval()
+    x = torch.randn(2, 5, 32)
+    valid = torch.tensor([[True, False, True, True, False], [False] * 5])
+    with torch.no_grad():
+        y1 = net(x, valid)
+        x2 = x.clone()
+        x2[0, 1] = 100.0
+        y2 = net(x2, valid)
+    assert y1.shape == (2, 32)
+    assert torch.allclose(y1, y2)
+    assert torch.count_nonzero(y1[1]) == 0
+
+
+def test_rounded_box_collision_cases() -> None:
+    size = torch.tensor([4.0, 2.0])
+    origin = torch.zeros(3)
+    scaled = 4.0 * 1.1, 2.0 * 1.1
+
+    def hit(x: float, y: float, yaw: float = 0.0) -> bool:
+        return bool(rounded_box_collision(origin, size, torch.tensor([x, y, yaw]), size))
+
+    assert hit(0.0, 0.0)
+    assert hit(scaled[0] - 0.05, 0.0)  # bumper overlap
+    assert not hit(scaled[0] + 0.05, 0.0)
+    assert hit(0.0, scaled[1] - 0.05) and not hit(0.0, scaled[1] + 0.05)
+    # Sharp corners would overlap diagonally, the rounded corners do not.
+    assert not hit(scaled[0] - 0.1, scaled[1] - 0.1)
+    assert hit(1.0, 1.0, 0.7)
+
+
+def test_rounded_box_collision_matches_shapely() -> None:
+    shapely = pytest.importorskip("shapely")
+    from shapely.geometry import Polygon
+
+    from policies.trafficbots.collision import box_corners
+
+    gen = torch.Generator().manual_seed(3)
+    n = 300
+    pose_a = torch.cat([torch.zeros(n, 2), torch.rand(n, 1, generator=gen) * 6.3], -1)
+    pose_b = torch.cat(
+        [torch.rand(n, 2, generator=gen) * 12 - 6, torch.rand(n, 1, generator=gen) * 6.3], -1
+    )
+    size_a = torch.rand(n, 2, generator=gen) * 4 + 0.5
+    size_b = torch.rand(n, 2, generator=gen) * 4 + 0.5
+    got = rounded_box_collision(pose_a, size_a, pose_b, size_b)
+
+    def shape(pose, size):
+        lw = size * 1.1
+        s = 0.7 * lw.min() / 2
+        corners = box_corners(pose, lw[0] / 2 - s, lw[1] / 2 - s)
+        return Polygon(corners.tolist()).buffer(float(s), quad_segs=64)
+
+    ref = [shape(pose_a[i], size_a[i]).intersects(shape(pose_b[i], size_b[i])) for i in range(n)]
+    agree = (got == torch.tensor(ref)).float().mean().item()
+    assert shapely is not None and agree > 0.99, agree
+    assert 0 < sum(ref) < n
