@@ -50,8 +50,10 @@ def make_synthetic_tokens(
     k = np.arange(PIECE_LEN + 1)
     bend = rng.normal(0.0, 0.002, size=(n_map, 1)) * k**2
     along = np.where(heading[:, None] == 0.0, k[None], PIECE_LEN - k[None])
-    px = x_start + cols[:, None] * PIECE_LEN + along
-    py = row_y[rows][:, None] + bend
+    # Jitter the piece starts so that no two distances tie exactly (KNN ties are arbitrary).
+    jitter = rng.uniform(-0.3, 0.3, size=(n_map, 2))
+    px = x_start + cols[:, None] * PIECE_LEN + along + jitter[:, :1]
+    py = row_y[rows][:, None] + bend + jitter[:, 1:]
     pts = np.stack([px, py, np.zeros_like(px)], axis=-1)  # [M, 21, 3]
     map_pos = pts[:, :-1].astype(np.float32)
     map_dir = (pts[:, 1:] - pts[:, :-1]).astype(np.float32)
