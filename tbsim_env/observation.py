@@ -218,8 +218,8 @@ def _history_features(pose: torch.Tensor, speed: torch.Tensor, frame: torch.Tens
     )
 
 
-def _attributes(state: SimState, speed: torch.Tensor) -> torch.Tensor:
-    """[B, N, 7] length, width, type one-hot (vehicle, pedestrian, cyclist, other), speed."""
+def agent_static_features(state: SimState) -> torch.Tensor:
+    """[B, N, 6] length, width, type one-hot (vehicle, pedestrian, cyclist, other)."""
     t = state.agents.object_type
     onehot = torch.stack(
         [
@@ -230,7 +230,7 @@ def _attributes(state: SimState, speed: torch.Tensor) -> torch.Tensor:
         ],
         dim=-1,
     ).float()
-    return torch.cat([state.agents.size[..., :2], onehot, speed[..., None]], dim=-1)
+    return torch.cat([state.agents.size[..., :2], onehot], dim=-1)
 
 
 def _nearest(
@@ -239,24 +239,14 @@ def _nearest(
     """Indices [B, Q, k] of the k nearest valid targets and their mask (within radius).
 
     Args:
-        dist: [B, Q, M] distances; valid: [B, Q, M] bool.
+        dist: [B, Q, M] distances; valid: [B, Q, M] bool (broadcastable).
     """
     m = dist.shape[-1]
-    d = torch.where(valid, dist, torch.full_like(dist, float("inf")))
+    d = dist.masked_fill(~valid, float("inf"))
     if m < k:
         d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
     top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
-    mask = top <= radius
-    return idx.clamp(max=m - 1), mask
-
-
-def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """x: [B, M, ...], idx: [B, Q, K] -> [B, Q, K, ...]."""
-    b, q, k = idx.shape
-    flat = idx.reshape(b, q * k)
-    extra = x.shape[2:]
-    g = x.gather(1, flat.view(b, q * k, *([1] * len(extra))).expand(b, q * k, *extra))
-    return g.view(b, q, k, *extra)
+    return idx.clamp(max=m - 1), top <= radius
 
 
 def observe(
@@ -265,6 +255,7 @@ def observe(
     ctx: MapContext,
     observers: torch.Tensor,
     cfg: ObsConfig,
+    agent_static: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Observations of the ``observers`` agents.
 
@@ -274,71 +265,68 @@ def observe(
         ctx: static map context of the batch.
         observers: [B, Q] int64 agent-slot indices.
         cfg: observation sizes.
+        agent_static: optional precomputed ``agent_static_features(state)`` (it does not
+            change within an episode).
 
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
     """
-    b_idx = torch.arange(state.batch_size, device=state.device)[:, None]
-    me = state.pose[b_idx, observers]  # [B, Q, 3]
-    hist_pose, hist_speed, hist_valid = history.pose, history.speed, history.valid
-    attrs = _attributes(state, state.speed)
-    own_hist = _history_features(hist_pose, hist_speed, state.pose)  # [B, N, H, 5]
-    own_hist = own_hist * hist_valid[..., None]
+    bq = torch.arange(state.batch_size, device=state.device)[:, None]  # [B, 1]
+    bk = bq[..., None]  # [B, 1, 1]
+    me = state.pose[bq, observers]  # [B, Q, 3]
+    static = agent_static_features(state) if agent_static is None else agent_static
+    attrs = torch.cat([static, state.speed[..., None]], dim=-1)  # [B, N, 7]
+    own_hist = _history_features(history.pose, history.speed, state.pose)
+    own_hist = own_hist * history.valid[..., None]  # [B, N, H, 5]
 
     # Agents.
-    diff = state.pose[:, None, :, :2] - me[:, :, None, :2]  # [B, Q, N, 2]
-    dist = torch.linalg.vector_norm(diff, dim=-1)
-    other = state.valid[:, None, :] & (
-        torch.arange(state.num_agents, device=state.device) != observers[..., None]
-    )
+    dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
+    other = state.valid[:, None, :].clone().expand_as(dist).clone()
+    other[bq, torch.arange(observers.shape[1], device=state.device), observers] = False
     a_idx, a_mask = _nearest(dist, other, cfg.num_agents, cfg.agent_radius)
-    a_pose = relative_pose(me[:, :, None], _gather(state.pose, a_idx))
+    a_f = a_mask.float()
+    a_pose = relative_pose(me[:, :, None], state.pose[bk, a_idx]) * a_f[..., None]
 
     # Map pieces.
     m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
-    m_idx, m_mask = _nearest(
-        m_dist, ctx.valid[:, None].expand_as(m_dist), cfg.num_map, cfg.map_radius
-    )
-    m_pose = relative_pose(me[:, :, None], _gather(ctx.pose, m_idx))
-    m_class = torch.nn.functional.one_hot(_gather(ctx.map_class, m_idx), C.NUM_MAP_CLASSES)
+    m_idx, m_mask = _nearest(m_dist, ctx.valid[:, None], cfg.num_map, cfg.map_radius)
+    m_f = m_mask.float()
+    m_pose = relative_pose(me[:, :, None], ctx.pose[bk, m_idx]) * m_f[..., None]
 
     # Traffic lights at the current step.
-    n_t = ctx.tl_state.shape[-1]
-    t_now = state.step.clamp(max=n_t - 1)[:, None, None].expand(-1, ctx.tl_state.shape[1], 1)
-    tl_state = ctx.tl_state.gather(2, t_now)[..., 0]
-    tl_valid = ctx.tl_valid.gather(2, t_now)[..., 0]
+    t_now = state.step.clamp(max=ctx.tl_state.shape[-1] - 1)[:, None]  # [B, 1]
+    tl_state = ctx.tl_state[bq, :, t_now][:, 0]  # [B, L]
+    tl_valid = ctx.tl_valid[bq, :, t_now][:, 0]
     t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
     t_idx, t_mask = _nearest(
-        t_dist,
-        tl_valid[:, None].expand_as(t_dist),
-        cfg.num_traffic_lights,
-        cfg.traffic_light_radius,
+        t_dist, tl_valid[:, None], cfg.num_traffic_lights, cfg.traffic_light_radius
     )
-    t_pose = relative_pose(me[:, :, None], _gather(ctx.tl_pose, t_idx))
-    t_state = torch.nn.functional.one_hot(_gather(tl_state, t_idx), C.NUM_TL_STATES)
+    t_f = t_mask.float()
+    t_pose = relative_pose(me[:, :, None], ctx.tl_pose[bk, t_idx]) * t_f[..., None]
+    t_state = _TL_EYE.to(state.device)[tl_state[bk, t_idx]] * t_f[..., None]
 
-    def masked(x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        return x * mask.view(*mask.shape, *([1] * (x.dim() - mask.dim()))).to(x.dtype)
-
-    a_hist_valid = _gather(hist_valid, a_idx) & a_mask[..., None]
     return {
-        "ego_history": own_hist[b_idx, observers],
-        "ego_history_mask": hist_valid[b_idx, observers].float(),
-        "ego_attributes": attrs[b_idx, observers],
-        "agents": masked(_gather(own_hist, a_idx), a_mask),
-        "agents_history_mask": a_hist_valid.float(),
-        "agents_attributes": masked(_gather(attrs, a_idx), a_mask),
-        "agents_pose": masked(a_pose, a_mask),
-        "agents_mask": a_mask.float(),
-        "map": masked(_gather(ctx.nodes, m_idx), m_mask),
-        "map_nodes_mask": masked(_gather(ctx.nodes_valid, m_idx), m_mask).float(),
-        "map_class": masked(m_class, m_mask).float(),
-        "map_pose": masked(m_pose, m_mask),
-        "map_mask": m_mask.float(),
-        "traffic_lights": masked(t_state, t_mask).float(),
-        "traffic_lights_pose": masked(t_pose, t_mask),
-        "traffic_lights_mask": t_mask.float(),
+        "ego_history": own_hist[bq, observers],
+        "ego_history_mask": history.valid[bq, observers].float(),
+        "ego_attributes": attrs[bq, observers],
+        "agents": own_hist[bk, a_idx] * a_f[..., None, None],
+        "agents_history_mask": history.valid[bk, a_idx] * a_f[..., None],
+        "agents_attributes": attrs[bk, a_idx] * a_f[..., None],
+        "agents_pose": a_pose,
+        "agents_mask": a_f,
+        "map": ctx.nodes[bk, m_idx] * m_f[..., None, None],
+        "map_nodes_mask": ctx.nodes_valid[bk, m_idx] * m_f[..., None],
+        "map_class": _MAP_EYE.to(state.device)[ctx.map_class[bk, m_idx]] * m_f[..., None],
+        "map_pose": m_pose,
+        "map_mask": m_f,
+        "traffic_lights": t_state,
+        "traffic_lights_pose": t_pose,
+        "traffic_lights_mask": t_f,
     }
+
+
+_MAP_EYE = torch.eye(C.NUM_MAP_CLASSES)
+_TL_EYE = torch.eye(C.NUM_TL_STATES)
 
 
 def observation_shapes(cfg: ObsConfig) -> dict[str, tuple[int, ...]]:

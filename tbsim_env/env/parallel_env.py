@@ -37,6 +37,7 @@ from tbsim_env.observation import (
     History,
     MapContext,
     ObsConfig,
+    agent_static_features,
     build_map_context,
     init_history,
     observation_space,
@@ -243,6 +244,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self._cache[k] = (state, ctx)
         return self._cache[k]
 
+    @torch.inference_mode()
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, dict]]:
@@ -292,6 +294,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             else None
         )
         self._history: History = init_history(self.state_, self.obs_config.history)
+        self._agent_static = agent_static_features(self.state_)
         self._route: Route = build_route(self.state_, self._ext_slots)
         self._end = sc.num_steps - 1 if self.config.end_step is None else self.config.end_step
         self._end = min(self._end, sc.num_steps - 1)
@@ -303,7 +306,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
         metrics, self._edge_cache = step_metrics(self.state_, self._ext_slots, self._route)
         self._progress = metrics.progress[0].clone()
         obs = self._observations(self.agents)
-        infos = {a: self._info(metrics, self._slot_of[a]) for a in self.agents}
+        columns = self._info_columns(metrics)
+        infos = {a: {k: v[self._slot_of[a]] for k, v in columns.items()} for a in self.agents}
         return obs, infos
 
     # ------------------------------------------------------------------ step
@@ -329,6 +333,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             out[0, int(self._ext_slots[0, self._slot_of[name]]), :] = torch.from_numpy(arr)
         return out.to(self.device)
 
+    @torch.inference_mode()
     def step(self, actions: dict[str, Any]):
         """Advance one step (0.1 s). See the module docstring for the action format."""
         if self.state_ is None:
@@ -348,40 +353,37 @@ class TrafficEnv(ParallelEnv, EzPickle):
             state, self._ext_slots, self._route, self._edge_cache
         )
         live_before = list(self.agents)
-        rewards, terms, truncs, infos = {}, {}, {}, {}
         rc, tc = self.config.reward, self.config.termination
-        progress = metrics.progress[0]
-        gained = progress - self._progress
+        m = metrics
+        progress = m.progress[0]
+        gained = (progress - self._progress).clamp_min(0.0)
         self._progress = torch.maximum(self._progress, progress)
-        goal_now = (
-            (metrics.goal_distance[0] <= rc.goal_radius) & self._has_goal & ~self._goal_reached
-        )
+        goal_now = (m.goal_distance[0] <= rc.goal_radius) & self._has_goal & ~self._goal_reached
         self._goal_reached |= goal_now
+        coll, off = m.collision[0], m.offroad[0]
+        reward = (
+            rc.collision * coll
+            + rc.offroad * off
+            + rc.progress * gained
+            + rc.goal * goal_now
+            + rc.log_divergence * m.log_divergence[0]
+            + rc.alive
+        )
+        term = (coll & tc.collision) | (off & tc.offroad) | (goal_now & tc.goal)
         truncated_all = int(state.step[0]) >= self._end
         self.state_ = state
-        remove = torch.zeros_like(state.valid)
+        columns = self._info_columns(m)
+        reward_l, term_l = reward.tolist(), term.tolist()
+        rewards, terms, truncs, infos = {}, {}, {}, {}
         for name in live_before:
             j = self._slot_of[name]
-            coll = bool(metrics.collision[0, j])
-            off = bool(metrics.offroad[0, j])
-            r = (
-                rc.collision * coll
-                + rc.offroad * off
-                + rc.progress * float(gained[j].clamp_min(0.0))
-                + rc.goal * bool(goal_now[j])
-                + rc.log_divergence * float(metrics.log_divergence[0, j])
-                + rc.alive
-            )
-            term = (
-                (tc.collision and coll) or (tc.offroad and off) or (tc.goal and bool(goal_now[j]))
-            )
-            rewards[name] = float(r)
-            terms[name] = bool(term)
-            truncs[name] = bool(truncated_all and not term)
-            infos[name] = self._info(metrics, j)
-            if term and self.config.remove_terminated:
-                remove[0, int(self._ext_slots[0, j])] = True
-        if bool(remove.any()):
+            rewards[name] = float(reward_l[j])
+            terms[name] = bool(term_l[j])
+            truncs[name] = truncated_all and not term_l[j]
+            infos[name] = {k: v[j] for k, v in columns.items()}
+        if self.config.remove_terminated and any(terms.values()):
+            remove = torch.zeros_like(state.valid)
+            remove[0, self._ext_slots[0][term]] = True
             state = state.replace(valid=state.valid & ~remove)
         self.state_ = state
         self._history = push_history(self._history, state)
@@ -393,26 +395,36 @@ class TrafficEnv(ParallelEnv, EzPickle):
     def _observations(self, names: list[str]) -> dict[str, dict[str, np.ndarray]]:
         if not names:
             return {}
-        o = observe(self.state_, self._history, self._ctx, self._ext_slots, self.obs_config)
+        o = observe(
+            self.state_,
+            self._history,
+            self._ctx,
+            self._ext_slots,
+            self.obs_config,
+            agent_static=self._agent_static,
+        )
         o = {k: v[0].detach().cpu().numpy() for k, v in o.items()}
         return {n: {k: v[self._slot_of[n]] for k, v in o.items()} for n in names}
 
-    def _info(self, m: StepMetrics, j: int) -> dict[str, Any]:
-        slot = int(self._ext_slots[0, j])
+    def _info_columns(self, m: StepMetrics) -> dict[str, list]:
+        """Per-agent info values as lists indexed like ``self._ext_slots``."""
+        q = self._ext_slots.shape[1]
+        slots = self._ext_slots[0]
         return {
-            "scenario_id": self.scenario.scenario_id,
-            "track_id": int(self.state_.agents.track_id[0, slot]),
-            "step": int(self.state_.step[0]),
-            "collision": bool(m.collision[0, j]),
-            "offroad": bool(m.offroad[0, j]),
-            "offroad_distance": float(m.offroad_distance[0, j]),
-            "progress": float(m.progress[0, j]),
-            "goal_distance": float(m.goal_distance[0, j]),
-            "goal_reached": bool(self._goal_reached[j]),
-            "log_divergence": float(m.log_divergence[0, j]),
-            "speed": float(self.state_.speed[0, slot]),
+            "scenario_id": [self.scenario.scenario_id] * q,
+            "track_id": self.state_.agents.track_id[0, slots].tolist(),
+            "step": [int(self.state_.step[0])] * q,
+            "collision": m.collision[0].tolist(),
+            "offroad": m.offroad[0].tolist(),
+            "offroad_distance": m.offroad_distance[0].tolist(),
+            "progress": m.progress[0].tolist(),
+            "goal_distance": m.goal_distance[0].tolist(),
+            "goal_reached": self._goal_reached.tolist(),
+            "log_divergence": m.log_divergence[0].tolist(),
+            "speed": self.state_.speed[0, slots].tolist(),
         }
 
+    @torch.inference_mode()
     def expert_actions(self) -> dict[str, np.ndarray]:
         """Actions that steer each live agent from its current state back onto its log.
 

@@ -77,10 +77,16 @@ def collided(
     if not bool(q.any()):
         return out
     b_idx, n_idx = torch.nonzero(q, as_tuple=True)
+    # Bounding circles first: without a close pair no box test is needed.
+    radius = 0.5 * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
+    gap = torch.linalg.vector_norm(pose[b_idx, :, :2] - pose[b_idx, n_idx, None, :2], dim=-1)
+    near = (gap <= radius[b_idx] + radius[b_idx, n_idx, None]) & valid[b_idx]
+    near[torch.arange(len(n_idx)), n_idx] = False
+    if not bool(near.any()):
+        return out
     overlap = pairwise_overlap(
         pose[b_idx, n_idx][:, None], size[b_idx, n_idx][:, None], pose[b_idx], size[b_idx]
     )[:, 0]  # [K, N]
-    overlap &= valid[b_idx]
-    overlap[torch.arange(len(n_idx)), n_idx] = False
+    overlap &= near
     out[b_idx, n_idx] = overlap.any(-1)
     return out

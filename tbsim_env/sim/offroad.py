@@ -110,6 +110,13 @@ def signed_distance_to_edges(
     Returns:
         [B, K] m; positive off-road, negative on-road, ``NO_EDGE_DISTANCE`` without edges.
     """
+    return _signed_and_unsigned(points, edges, segment_index)[0]
+
+
+def _signed_and_unsigned(
+    points: torch.Tensor, edges: RoadEdges, segment_index: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(signed distance [B, K], unsigned distance to the nearest candidate [B, K])."""
     dist, t = point_segment_distance(points, edges, segment_index)
     local = dist.argmin(-1, keepdim=True)  # [B, K, 1]
     d = dist.gather(2, local)[..., 0]
@@ -134,7 +141,7 @@ def signed_distance_to_edges(
     sign = torch.where((t_best > 1) & (nxt != best), with_next, sign)
     out = sign * d
     has_edge = edges.valid.any(-1, keepdim=True)
-    return torch.where(has_edge, out, torch.full_like(out, NO_EDGE_DISTANCE))
+    return torch.where(has_edge, out, torch.full_like(out, NO_EDGE_DISTANCE)), d
 
 
 def box_offroad_distance(
@@ -162,17 +169,15 @@ def box_offroad_distance(
     half_diag = 0.5 * torch.linalg.vector_norm(size, dim=-1)
     stale = torch.linalg.vector_norm(pose[..., :2] - candidates.center, dim=-1) + half_diag
     idx = candidates.index.repeat_interleave(4, dim=1)  # [B, K*4, C]
-    dist_c, _ = point_segment_distance(flat, edges, idx)
-    nearest = dist_c.amin(-1).view(bsz, k, 4).amax(-1)
+    signed, nearest = _signed_and_unsigned(flat, edges, idx)
     # Exact while every segment that could be nearest to a corner is in the candidate set.
-    if bool((nearest + stale > candidates.reach).any()):
+    if bool((nearest.view(bsz, k, 4).amax(-1) + stale > candidates.reach).any()):
         candidates = EdgeCandidates.build(pose, edges, candidates.index.shape[-1])
         idx = candidates.index.repeat_interleave(4, dim=1)
-        dist_c, _ = point_segment_distance(flat, edges, idx)
-        nearest = dist_c.amin(-1).view(bsz, k, 4).amax(-1)
-        if bool((nearest + half_diag > candidates.reach).any()):
+        signed, nearest = _signed_and_unsigned(flat, edges, idx)
+        if bool((nearest.view(bsz, k, 4).amax(-1) + half_diag > candidates.reach).any()):
             # The cache cannot vouch for these boxes (e.g. far from every edge): use all.
             full = signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1)
             return full, candidates
-    dist = signed_distance_to_edges(flat, edges, idx).view(bsz, k, 4).amax(-1)
+    dist = signed.view(bsz, k, 4).amax(-1)
     return dist, candidates
