@@ -40,6 +40,15 @@ from tbsim_env.metrics.wosac.trajectories import (
 )
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _single_thread():
+    """One intra-op thread: on the shared 2-core machine this is several times faster."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 def make_traj(
     x, y, heading=None, length=4.0, width=2.0, valid=None, z=None, height=1.5, num_eval=1
 ):
