@@ -150,3 +150,34 @@ def test_real_submission_validates(womd_dir, one_scenario_path):
     validate_scenario_rollouts(sub.scenario_rollouts[0], scenario)
     rollouts = rollouts_from_proto(sub.scenario_rollouts[0])
     assert tuple(rollouts.x.shape) == (32, 50, 80)
+
+
+def test_submission_proto_coexists_with_the_scenario_proto():
+    # Both declare package waymo.open_dataset in the default descriptor pool: no name clash.
+    from tbsim_env.data.protos import scenario_pb2
+
+    assert pb.SimulatedTrajectory.DESCRIPTOR.full_name == "waymo.open_dataset.SimulatedTrajectory"
+    assert scenario_pb2.Scenario.DESCRIPTOR.full_name == "waymo.open_dataset.Scenario"
+    fields = {f.name: f.number for f in pb.SimulatedTrajectory.DESCRIPTOR.fields}
+    assert fields == {
+        "center_x": 2,
+        "center_y": 3,
+        "center_z": 4,
+        "heading": 5,
+        "object_id": 6,
+        "width": 7,
+        "length": 8,
+        "height": 9,
+        "object_type": 10,
+        "valid": 11,
+    }
+    sub_fields = {f.name: f.number for f in pb.SimAgentsChallengeSubmission.DESCRIPTOR.fields}
+    assert sub_fields["acknowledge_complies_with_closed_loop_requirement"] == 14
+    assert sub_fields["public_model_names"] == 13 and sub_fields["num_model_parameters"] == 12
+
+
+def test_package_exports():
+    import tbsim_env.metrics.wosac as wosac
+
+    for name in wosac.__all__:
+        assert hasattr(wosac, name), name

@@ -36,6 +36,7 @@ from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_lig
 from tbsim_env.metrics.wosac.rollouts import Rollouts
 from tbsim_env.metrics.wosac.trajectories import (
     ObjectTrajectories,
+    concat_rollouts,
     log_trajectories,
     select_objects,
     simulated_trajectories,
@@ -137,6 +138,14 @@ def _weighted(config: WosacConfig, likelihoods: dict[str, float]) -> dict[str, f
         total = config.bucket_weight(bucket)
         out[f"{bucket}_metrics"] = math.fsum(w[n] * likelihoods[n] for n in names) / total
     return out
+
+
+def _split_first_rollout(features: MetricFeatures) -> tuple[MetricFeatures, MetricFeatures]:
+    """(features of rollout 0, features of the others), every field [R, E, F]."""
+    fields = {f.name: getattr(features, f.name) for f in dataclasses.fields(MetricFeatures)}
+    head = MetricFeatures(**{k: v[:1] for k, v in fields.items()})
+    tail = MetricFeatures(**{k: v[1:] for k, v in fields.items()})
+    return head, tail
 
 
 def _indication(per_step: torch.Tensor, log_valid: torch.Tensor) -> torch.Tensor:
@@ -242,8 +251,8 @@ def score_scenario(
     sim = simulated_trajectories(log, objects, rollouts.to(device), scenario.current_index)
     edges = road_edge_segments(scenario, device)
     lights = traffic_light_map(scenario, device)
-    log_feat = compute_metric_features(log, edges, lights, first)
-    sim_feat = compute_metric_features(sim, edges, lights, first)
+    both = compute_metric_features(concat_rollouts(log, sim), edges, lights, first)
+    log_feat, sim_feat = _split_first_rollout(both)
     log_valid = log.valid[0, : objects.num_eval, first:]
     is_vehicle = log.evaluated(log.object_type) == int(ObjectType.VEHICLE)
     lik = _likelihoods(config, log_feat, sim_feat, log_valid, is_vehicle)

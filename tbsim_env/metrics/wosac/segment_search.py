@@ -139,11 +139,13 @@ def nearest_segment(
     per_point = count.repeat_interleave(m)  # [G * M]
     point = torch.repeat_interleave(torch.arange(g * m, device=dev), per_point)
     first_pair = torch.cumsum(per_point, 0) - per_point
-    rank = torch.arange(point.numel(), device=dev) - first_pair[point]
-    seg = cand_seg[first_cand[point // m] + rank]  # [P]
-    q = points.reshape(g * m, 3)[point]
-    a = index.start[seg]
-    ab = index.end[seg] - a
+    rank = torch.arange(point.numel(), device=dev) - first_pair.index_select(0, point)
+    group_first = first_cand.repeat_interleave(m).index_select(0, point)
+    seg = cand_seg.index_select(0, group_first + rank)  # [P]
+    q = points.reshape(g * m, 3).index_select(0, point)
+    ends = torch.cat([index.start, index.end], dim=1).index_select(0, seg)  # [P, 6]
+    a = ends[:, :3]
+    ab = ends[:, 3:] - a
     aq = q - a
     len2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
     t = (aq[:, 0] * ab[:, 0] + aq[:, 1] * ab[:, 1]) / torch.where(len2 > 0, len2, 1.0)
@@ -152,7 +154,7 @@ def nearest_segment(
     dist2 = (diff * diff).sum(-1)
     best = torch.full((g * m,), float("inf"), device=dev).scatter_reduce(0, point, dist2, "amin")
     s = index.num_segments
-    tie = torch.where(dist2 == best[point], seg, s)
+    tie = torch.where(dist2 == best.index_select(0, point), seg, s)
     out = torch.full((g * m,), s, device=dev, dtype=torch.int64).scatter_reduce(
         0, point, tie, "amin"
     )

@@ -156,3 +156,29 @@ def simulated_trajectories(
         object_type=log.object_type,
         num_eval=log.num_eval,
     )
+
+
+def concat_rollouts(first: ObjectTrajectories, second: ObjectTrajectories) -> ObjectTrajectories:
+    """Stack two sets of trajectories of the same objects along the rollout axis.
+
+    Lets the log (R = 1, logged validity) and the simulations go through the feature code in
+    one batch; per-rollout validity keeps them independent.
+    """
+    if first.num_eval != second.num_eval or first.x.shape[1:] != second.x.shape[1:]:
+        raise ValueError("concat_rollouts needs trajectories of the same objects and steps")
+
+    def cat(name: str) -> torch.Tensor:
+        return torch.cat([getattr(first, name), getattr(second, name)], dim=0)
+
+    return ObjectTrajectories(
+        x=cat("x"),
+        y=cat("y"),
+        z=cat("z"),
+        heading=cat("heading"),
+        valid=cat("valid"),
+        length=first.length,
+        width=first.width,
+        height=first.height,
+        object_type=first.object_type,
+        num_eval=first.num_eval,
+    )
