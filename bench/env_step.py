@@ -65,7 +65,9 @@ def bench_core(scenarios, batch: int, steps: int) -> float:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", DEFAULT_DATA))
-    p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument(
+        "--threads", type=int, default=1, help="torch intra-op threads (1 is fastest here)"
+    )
     p.add_argument("--episodes", type=int, default=5)
     args = p.parse_args()
     torch.set_num_threads(args.threads)

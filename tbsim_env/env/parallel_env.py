@@ -48,6 +48,7 @@ from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import torch_threads
 
 ControlledSpec = str | Sequence[int]
 
@@ -138,6 +139,9 @@ class TrafficEnv(ParallelEnv, EzPickle):
         device: torch device of the simulation.
         scenario_order: ``"cycle"`` through the scenarios in order on each reset, or
             ``"random"`` (drawn with the env's seeded generator).
+        torch_threads: intra-op threads used inside ``reset`` / ``step`` (the caller's setting
+            is restored afterwards); 1 is fastest for one scenario on CPU; None leaves torch's
+            setting alone.
     """
 
     metadata = {
@@ -158,6 +162,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         render_mode: str | None = None,
         device: str | torch.device = "cpu",
         scenario_order: str = "cycle",
+        torch_threads: int | None = 1,
     ) -> None:
         EzPickle.__init__(
             self,
@@ -169,6 +174,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             render_mode=render_mode,
             device=device,
             scenario_order=scenario_order,
+            torch_threads=torch_threads,
         )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode={render_mode!r}; supported: None, 'rgb_array'")
@@ -179,6 +185,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.render_mode = render_mode
         self.device = torch.device(device)
         self.scenario_order = scenario_order
+        self.torch_threads = torch_threads
         self.scenarios = resolve_scenarios(scenarios)
         self.controlled_spec = controlled
         self.npc_policy = make_policy(npc_policy)
@@ -244,7 +251,6 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self._cache[k] = (state, ctx)
         return self._cache[k]
 
-    @torch.inference_mode()
     def reset(
         self, seed: int | None = None, options: dict | None = None
     ) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, dict]]:
@@ -254,6 +260,12 @@ class TrafficEnv(ParallelEnv, EzPickle):
             seed: reseeds the env's generators (scenario choice, stochastic policies).
             options: ``{"scenario_index": k}`` or ``{"scenario_id": s}`` picks the scenario.
         """
+        with torch_threads(self.torch_threads), torch.inference_mode():
+            return self._reset(seed, options)
+
+    def _reset(
+        self, seed: int | None, options: dict | None
+    ) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, dict]]:
         if seed is not None:
             self.np_random, _ = gym.utils.seeding.np_random(seed)
             self._generator.manual_seed(int(seed))
@@ -333,9 +345,12 @@ class TrafficEnv(ParallelEnv, EzPickle):
             out[0, int(self._ext_slots[0, self._slot_of[name]]), :] = torch.from_numpy(arr)
         return out.to(self.device)
 
-    @torch.inference_mode()
     def step(self, actions: dict[str, Any]):
         """Advance one step (0.1 s). See the module docstring for the action format."""
+        with torch_threads(self.torch_threads), torch.inference_mode():
+            return self._step(actions)
+
+    def _step(self, actions: dict[str, Any]):
         if self.state_ is None:
             raise RuntimeError("call reset() before step()")
         if not self.agents:

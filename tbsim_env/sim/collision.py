@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import torch
 
+from tbsim_env.sim.geometry import cos_sin
+
 
 def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
     """Corners of oriented boxes, counter-clockwise from front-left.
@@ -16,7 +18,7 @@ def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -
     Returns:
         [..., 4, 2].
     """
-    c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
+    c, s = cos_sin(pose[..., 2])
     hl, hw = 0.5 * length, 0.5 * width
     signs = torch.tensor([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]], device=pose.device)
     lx = signs[:, 0] * hl[..., None]
@@ -46,9 +48,10 @@ def pairwise_overlap(
     yb = pose_b[..., None, :, 2]
     la, wa = 0.5 * size_a[..., :, None, 0], 0.5 * size_a[..., :, None, 1]
     lb, wb = 0.5 * size_b[..., None, :, 0], 0.5 * size_b[..., None, :, 1]
-    cd, sd = torch.cos(yb - ya).abs(), torch.sin(yb - ya).abs()
-    ca, sa = torch.cos(ya), torch.sin(ya)
-    cb, sb = torch.cos(yb), torch.sin(yb)
+    cd, sd = cos_sin(yb - ya)
+    cd, sd = cd.abs(), sd.abs()
+    ca, sa = cos_sin(ya)
+    cb, sb = cos_sin(yb)
     # Axes of a: (ca, sa) and (-sa, ca); axes of b likewise.
     sep = (d[..., 0] * ca + d[..., 1] * sa).abs() > la + lb * cd + wb * sd
     sep |= (-d[..., 0] * sa + d[..., 1] * ca).abs() > wa + lb * sd + wb * cd

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.sim.geometry import wrap_angle
+from tbsim_env.sim.geometry import cos_sin, wrap_angle
 
 
 def action_limits(object_type: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -86,8 +86,9 @@ def unicycle_step(
     acc, yaw_rate = action[..., 0], action[..., 1]
     v_mid = speed + 0.5 * dt * acc
     yaw_mid = pose[..., 2] + 0.5 * dt * yaw_rate
-    x = pose[..., 0] + dt * v_mid * torch.cos(yaw_mid)
-    y = pose[..., 1] + dt * v_mid * torch.sin(yaw_mid)
+    c, s = cos_sin(yaw_mid)
+    x = pose[..., 0] + dt * v_mid * c
+    y = pose[..., 1] + dt * v_mid * s
     yaw = wrap_angle(pose[..., 2] + dt * yaw_rate)
     return torch.stack([x, y, yaw], dim=-1), speed + dt * acc
 
@@ -102,7 +103,8 @@ def signed_speed(velocity: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
     Returns:
         [...] m/s, negative when moving backwards.
     """
-    along = torch.cos(yaw) * velocity[..., 0] + torch.sin(yaw) * velocity[..., 1]
+    c, s = cos_sin(yaw)
+    along = c * velocity[..., 0] + s * velocity[..., 1]
     sign = torch.where(along < 0, -1.0, 1.0).to(velocity.dtype)
     return sign * torch.linalg.vector_norm(velocity, dim=-1)
 
@@ -136,7 +138,7 @@ def inverse_step(
         -max_yaw_rate, max_yaw_rate
     )
     yaw_mid = pose[..., 2] + 0.5 * dt * yaw_rate
-    heading = torch.stack([torch.cos(yaw_mid), torch.sin(yaw_mid)], dim=-1)
+    heading = torch.stack(cos_sin(yaw_mid), dim=-1)
     acc = (target_speed - speed) / dt
     v_mid = speed + 0.5 * dt * acc
     pred_xy = pose[..., :2] + dt * v_mid[..., None] * heading
