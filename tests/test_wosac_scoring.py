@@ -7,6 +7,7 @@ import dataclasses
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -235,3 +236,35 @@ def test_score_scenario_input_errors(synthetic):
         score_scenario(synthetic, short)
     with pytest.raises(ValueError, match="unknown WOSAC metric version"):
         score_scenario(synthetic, replay, version="wosac2023")
+
+
+def test_evaluated_objects_are_sdc_and_valid_tracks_to_predict_sorted_by_id(synthetic):
+    from tbsim_env.metrics.wosac.trajectories import select_objects
+
+    objects = select_objects(synthetic)
+    assert objects.eval_ids.tolist() == [1000, 1001, 1002, 1011]  # tracks to predict + SDC
+    assert objects.num_objects == 12
+    valid = synthetic.tracks.valid.copy()
+    valid[1, synthetic.current_index] = False  # not a sim agent any more: not evaluated
+    tracks = type(synthetic.tracks)(**{**synthetic.tracks.__dict__, "valid": valid})
+    changed = synthetic.replace(tracks=tracks, tracks_to_predict=np.array([2, 1, 0]))
+    objects = select_objects(changed)
+    assert objects.eval_ids.tolist() == [1000, 1002, 1011]
+    assert 1001 not in objects.object_id.tolist()
+    scores = score_scenario(changed, log_replay_rollouts(changed))
+    assert (scores.num_sim_agents, scores.num_evaluated) == (11, 3)
+
+
+def test_float64_rollouts_and_explicit_device(synthetic):
+    replay = log_replay_rollouts(synthetic)
+    as64 = Rollouts(
+        scenario_id=replay.scenario_id,
+        object_id=replay.object_id,
+        x=replay.x.double(),
+        y=replay.y.double(),
+        z=replay.z.double(),
+        heading=replay.heading.double(),
+    )
+    a = score_scenario(synthetic, replay, "wosac2024")
+    b = score_scenario(synthetic, as64, "wosac2024", device="cpu")
+    assert dataclasses.asdict(a) == dataclasses.asdict(b)
