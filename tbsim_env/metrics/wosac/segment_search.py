@@ -142,16 +142,23 @@ def nearest_segment(
     rank = torch.arange(point.numel(), device=dev) - first_pair.index_select(0, point)
     group_first = first_cand.repeat_interleave(m).index_select(0, point)
     seg = cand_seg.index_select(0, group_first + rank)  # [P]
-    q = points.reshape(g * m, 3).index_select(0, point)
-    ends = torch.cat([index.start, index.end], dim=1).index_select(0, seg)  # [P, 6]
-    a = ends[:, :3]
-    ab = ends[:, 3:] - a
-    aq = q - a
+    # Component-wise on contiguous 1-D tensors (faster than strided [P, 3] columns).
+    flat = points.reshape(g * m, 3)
+    a = index.start
+    ab = index.end - index.start
     len2 = ab[:, 0] ** 2 + ab[:, 1] ** 2
-    t = (aq[:, 0] * ab[:, 0] + aq[:, 1] * ab[:, 1]) / torch.where(len2 > 0, len2, 1.0)
-    t = torch.where(len2 > 0, t, 0.0).clamp_(0.0, 1.0)
-    diff = (aq - t.unsqueeze(-1) * ab) * scale
-    dist2 = (diff * diff).sum(-1)
+    inv_len2 = torch.where(len2 > 0, 1.0 / torch.where(len2 > 0, len2, 1.0), 0.0)
+
+    def take(values: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+        return values.contiguous().index_select(0, idx)
+
+    px = take(flat[:, 0], point) - take(a[:, 0], seg)
+    py = take(flat[:, 1], point) - take(a[:, 1], seg)
+    pz = take(flat[:, 2], point) - take(a[:, 2], seg)
+    dx, dy, dz = take(ab[:, 0], seg), take(ab[:, 1], seg), take(ab[:, 2], seg)
+    t = ((px * dx + py * dy) * take(inv_len2, seg)).clamp_(0.0, 1.0)
+    sx, sy, sz = (float(v) for v in scale)
+    dist2 = (sx * (px - t * dx)) ** 2 + (sy * (py - t * dy)) ** 2 + (sz * (pz - t * dz)) ** 2
     best = torch.full((g * m,), float("inf"), device=dev).scatter_reduce(0, point, dist2, "amin")
     s = index.num_segments
     tie = torch.where(dist2 == best.index_select(0, point), seg, s)
