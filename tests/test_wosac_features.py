@@ -343,7 +343,7 @@ def test_nearest_segment_search_matches_brute_force():
     centres = torch.rand(30, 1, 3, generator=gen) * 40 - 20
     q = centres + torch.randn(30, 16, 3, generator=gen) * 2.0
     scale = torch.tensor([1.0, 1.0, 3.0])
-    got = nearest_segment(q, torch.ones(30, 16, dtype=torch.bool), index, scale)
+    got = nearest_segment(q, torch.ones(30, 16, dtype=torch.bool), index, (1.0, 1.0, 3.0))
     ab = end - start
     aq = q[..., None, :] - start
     len2 = (ab[:, :2] ** 2).sum(-1)

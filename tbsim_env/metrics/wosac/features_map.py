@@ -176,8 +176,7 @@ def signed_distance_to_road_edge_points(
     Returns:
         [G, M] signed distance (m).
     """
-    scale = torch.tensor([1.0, 1.0, ROAD_EDGE_Z_STRETCH], device=points.device)
-    seg = nearest_segment(points, include, segs.index, scale)
+    seg = nearest_segment(points, include, segs.index, (1.0, 1.0, ROAD_EDGE_Z_STRETCH))
     return _signed_distance_to_segment(points, seg, segs)
 
 

@@ -111,7 +111,10 @@ def _candidates(
 
 
 def nearest_segment(
-    points: torch.Tensor, include: torch.Tensor, index: SegmentIndex, scale: torch.Tensor
+    points: torch.Tensor,
+    include: torch.Tensor,
+    index: SegmentIndex,
+    scale: tuple[float, float, float],
 ) -> torch.Tensor:
     """Index of the nearest segment of every query point.
 
@@ -120,7 +123,7 @@ def nearest_segment(
         include: [G, M] bool, points that define their group's bounding box; the others (e.g.
             placeholders of invalid steps) still get an answer, but not necessarily the nearest.
         index: the segments.
-        scale: [3] axis scales of the distance (e.g. (1, 1, 3)).
+        scale: axis scales of the distance, e.g. (1, 1, 3) to stretch z.
 
     Returns:
         [G, M] int64 segment index.
@@ -132,7 +135,8 @@ def nearest_segment(
     hi = torch.where(include.unsqueeze(-1), points, -big).amax(1)
     empty = ~include.any(1, keepdim=True)
     lo, hi = torch.where(empty, 0.0, lo), torch.where(empty, 0.0, hi)
-    cand_grp, cand_seg = _candidates(lo, hi, index, scale)
+    scale_t = torch.tensor(scale, dtype=points.dtype, device=dev)
+    cand_grp, cand_seg = _candidates(lo, hi, index, scale_t)
     count = torch.bincount(cand_grp, minlength=g)  # [G]
     first_cand = torch.cumsum(count, 0) - count
     # Every point of group g meets each of its count[g] candidates.
@@ -157,7 +161,7 @@ def nearest_segment(
     pz = take(flat[:, 2], point) - take(a[:, 2], seg)
     dx, dy, dz = take(ab[:, 0], seg), take(ab[:, 1], seg), take(ab[:, 2], seg)
     t = ((px * dx + py * dy) * take(inv_len2, seg)).clamp_(0.0, 1.0)
-    sx, sy, sz = (float(v) for v in scale)
+    sx, sy, sz = scale
     dist2 = (sx * (px - t * dx)) ** 2 + (sy * (py - t * dy)) ** 2 + (sz * (pz - t * dz)) ** 2
     best = torch.full((g * m,), float("inf"), device=dev).scatter_reduce(0, point, dist2, "amin")
     s = index.num_segments
