@@ -4,6 +4,7 @@ Uses the real pair (``motion_data_one_scenario.tfrecord`` + ``test_submission.bi
 sim agents, 4 evaluated) when the WOMD sample data is present, else a synthetic 60-agent
 scenario. Prints the time of ``score_scenario`` (best and median of the repeats) for each thread
 count, plus the submission parse + validation time. Target: < 1 s per scenario on 2 cores.
+On a loaded shared machine 1 thread can beat 2 (each parallel op then waits for a busy core).
 
     python bench/wosac_metrics.py [--data DIR] [--repeats N] [--threads 2 1] [--version V]
 """
