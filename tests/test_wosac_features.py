@@ -335,7 +335,11 @@ def test_no_road_edge_is_an_error():
         road_edge_segments(scenario)
 
 
-def test_nearest_segment_search_matches_brute_force():
+@pytest.mark.parametrize("pairs_per_run", [1 << 22, 500])
+def test_nearest_segment_search_matches_brute_force(monkeypatch, pairs_per_run):
+    from tbsim_env.metrics.wosac import segment_search
+
+    monkeypatch.setattr(segment_search, "_PAIRS_PER_RUN", pairs_per_run)
     gen = torch.Generator().manual_seed(3)
     pts = torch.cumsum(torch.rand(400, 3, generator=gen) - 0.5, 0) * torch.tensor([3.0, 3.0, 0.5])
     start, end = pts[:-1].contiguous(), pts[1:].contiguous()
@@ -357,7 +361,11 @@ def test_nearest_segment_search_matches_brute_force():
 # --------------------------------------------------------------------------- red lights
 
 
-def test_red_light_violation_needs_lane_red_and_crossing():
+@pytest.mark.parametrize("lane_pairs", [1 << 22, 1])
+def test_red_light_violation_needs_lane_red_and_crossing(monkeypatch, lane_pairs):
+    from tbsim_env.metrics.wosac import features_map
+
+    monkeypatch.setattr(features_map, "_LANE_PAIRS_PER_CHUNK", lane_pairs)
     lanes = [_line(-50, 0, 100, 0), _line(-50, 4, 100, 4)]
     road = _map_with_edges([_line(-50, -2, 100, -2)], extra_lanes=lanes)
     scenario = synthetic_scenario(num_agents=2, stop_x=10.0).replace(road_map=road)

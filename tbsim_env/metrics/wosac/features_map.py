@@ -32,6 +32,8 @@ from tbsim_env.metrics.wosac.trajectories import ObjectTrajectories
 
 _STEPS_PER_GROUP = 1
 """Steps of one corner of one evaluated object (all rollouts) searched as one group."""
+_LANE_PAIRS_PER_CHUNK = 1 << 22
+"""(query, lane segment) pairs of one chunk of the red-light lane search (memory bound)."""
 
 
 class MapFeatureError(TbsimError, ValueError):
@@ -342,8 +344,14 @@ def traffic_light_violation(traj: ObjectTrajectories, tl: TrafficLightMap) -> to
         return out
     r_i, e_i, t_i = hit.nonzero(as_tuple=True)
     q = pos[r_i, e_i, t_i]  # [Q, 2]
-    dist = _quirk_lane_distance(q[:, None], tl.lane_start[None], tl.lane_end[None])  # [Q, L]
-    lane = tl.lane_of_segment[dist.argmin(-1)]  # [Q]
+    step = max(1, _LANE_PAIRS_PER_CHUNK // max(1, tl.lane_start.shape[0]))
+    nearest = [
+        _quirk_lane_distance(q[i : i + step, None], tl.lane_start[None], tl.lane_end[None]).argmin(
+            -1
+        )
+        for i in range(0, q.shape[0], step)
+    ]
+    lane = tl.lane_of_segment[torch.cat(nearest)]  # [Q]
     match = cand[r_i, e_i, t_i] & (tl.signal_lane[None, :] == lane[:, None])
     out[r_i, e_i, t_i] = match.any(-1)
     return out

@@ -22,6 +22,8 @@ import torch
 
 _CHUNK = 16
 """Consecutive segments per chunk of the first pruning pass."""
+_PAIRS_PER_RUN = 1 << 22
+"""About this many (point, segment) pairs are evaluated at once (memory bound)."""
 _REL_TOL = 1e-5
 _ABS_TOL = 1e-3
 """Slack (relative, metres) on the bound comparisons against float32 rounding."""
@@ -139,6 +141,30 @@ def nearest_segment(
     cand_grp, cand_seg = _candidates(lo, hi, index, scale_t)
     count = torch.bincount(cand_grp, minlength=g)  # [G]
     first_cand = torch.cumsum(count, 0) - count
+    # Bound memory: groups are processed in runs of about _PAIRS_PER_RUN (point, segment) pairs.
+    run_of_group = torch.cumsum(count * m, 0).div(_PAIRS_PER_RUN, rounding_mode="floor")
+    runs = torch.unique_consecutive(run_of_group, return_counts=True)[1].tolist()
+    out, g0 = [], 0
+    for size in runs:
+        sl = slice(g0, g0 + size)
+        out.append(
+            _nearest_in_groups(points[sl], count[sl], first_cand[sl], cand_seg, index, scale)
+        )
+        g0 += size
+    return torch.cat(out).reshape(g, m)
+
+
+def _nearest_in_groups(
+    points: torch.Tensor,
+    count: torch.Tensor,
+    first_cand: torch.Tensor,
+    cand_seg: torch.Tensor,
+    index: SegmentIndex,
+    scale: tuple[float, float, float],
+) -> torch.Tensor:
+    """Exact arg-min over the candidates of each group, for [G, M, 3] points -> [G * M]."""
+    g, m, _ = points.shape
+    dev = points.device
     # Every point of group g meets each of its count[g] candidates.
     per_point = count.repeat_interleave(m)  # [G * M]
     point = torch.repeat_interleave(torch.arange(g * m, device=dev), per_point)
@@ -169,4 +195,4 @@ def nearest_segment(
     out = torch.full((g * m,), s, device=dev, dtype=torch.int64).scatter_reduce(
         0, point, tie, "amin"
     )
-    return out.clamp_(max=s - 1).reshape(g, m)
+    return out.clamp_(max=s - 1)
