@@ -64,6 +64,7 @@ from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.geometry import to_local
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import torch_threads
 
 ROUTE_KEY = "route"
 """Optional extra observation key: upcoming points of the logged route in the ego frame."""
@@ -247,6 +248,9 @@ class BatchedTrafficEnv:
         route_points: if > 0, adds the observation key ``"route"`` [B, Q, R, 2]: the next R
             points of the agent's logged route in its frame (not in ``TrafficEnv``).
         route_spacing: m between route points.
+        torch_threads: intra-op threads inside ``reset`` / ``step`` (restored afterwards);
+            1 (default) is fastest on a shared CPU (a step is many small tensor operations);
+            None leaves torch's setting alone (e.g. on a GPU or large idle CPUs).
 
     Attributes:
         num_agents: Q, controlled-agent slots per scenario slot.
@@ -267,6 +271,7 @@ class BatchedTrafficEnv:
         seed: int | None = None,
         route_points: int = 0,
         route_spacing: float = 5.0,
+        torch_threads: int | None = 1,
     ) -> None:
         if batch_size < 1:
             raise ValueError(f"batch_size must be >= 1, got {batch_size}")
@@ -279,6 +284,7 @@ class BatchedTrafficEnv:
         self.npc_policy = make_policy(npc_policy)
         self.route_points = int(route_points)
         self.route_spacing = float(route_spacing)
+        self.torch_threads = torch_threads
         all_scenarios = resolve_scenarios(scenarios)
         start = self.config.start_step
         kept, ext_lists = [], []
@@ -378,7 +384,6 @@ class BatchedTrafficEnv:
         ks = [int(self.np_random.integers(len(self.scenarios))) for _ in range(count)]
         return torch.tensor(ks, dtype=torch.int64, device=self.device)
 
-    @torch.no_grad()
     def reset(
         self, seed: int | None = None, scenario_indices: Sequence[int] | None = None
     ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
@@ -391,6 +396,12 @@ class BatchedTrafficEnv:
         Returns:
             (observations dict of [B, Q, ...] float32, infos; see ``step``).
         """
+        with torch_threads(self.torch_threads), torch.no_grad():
+            return self._reset(seed, scenario_indices)
+
+    def _reset(
+        self, seed: int | None, scenario_indices: Sequence[int] | None
+    ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
         if seed is None and self._pending_seed is not None and not self._ready:
             seed = self._pending_seed
         if seed is not None:
@@ -491,7 +502,6 @@ class BatchedTrafficEnv:
             raise ActionError(f"actions of active agents [slot, agent] {where} are not finite")
         return actions
 
-    @torch.no_grad()
     def step(
         self, actions: torch.Tensor
     ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
@@ -517,6 +527,13 @@ class BatchedTrafficEnv:
               ``episode_return`` [B, Q] and ``episode_length`` [B] (valid where ``done``),
               ``final_obs`` (dict like obs, valid where ``done``), ``scenario_index`` [B].
         """
+        with torch_threads(self.torch_threads), torch.no_grad():
+            return self._step(actions)
+
+    def _step(
+        self, actions: torch.Tensor
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor, torch.Tensor, torch.Tensor, dict[str, Any]]:
+        """``step`` without the thread / grad context."""
         if not self._ready:
             raise RuntimeError("call reset() before step()")
         act = self._check_actions(actions)
