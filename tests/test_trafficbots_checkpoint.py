@@ -25,6 +25,15 @@ from policies.trafficbots.synthetic import make_synthetic_tokens
 from tbsim_env.errors import CheckpointError
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Many small ops: one thread avoids oversubscribing the shared CPU (much faster here)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
     torch.manual_seed(0)

@@ -20,6 +20,15 @@ def _grad_norm(module: torch.nn.Module) -> float:
     return sum(float(p.grad.norm()) for p in module.parameters() if p.grad is not None)
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _one_torch_thread():
+    """Many small ops: one thread avoids oversubscribing the shared CPU (much faster here)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 @pytest.fixture(scope="module")
 def batch() -> TokenBatch:
     return TokenBatch.from_tokens(make_synthetic_tokens(n_agents=10, n_map=64, n_tl=6, seed=2))
@@ -97,22 +106,16 @@ def test_overfit_one_real_scene(one_scenario_path) -> None:
             )  # fmt: skip
         return logs["imitation"]
 
-    # Many tiny ops: one thread avoids oversubscription on a shared 2-core machine (10x faster).
-    n_threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        before = evaluate()
-        gen = torch.Generator().manual_seed(0)
-        t0 = time.perf_counter()
-        model.train()
-        for _ in range(80):
-            loss, _ = training_step(model, real, prior_prob=0.0, generator=gen, n_steps=n_steps)
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
-            opt.step()
-        after = evaluate()
-    finally:
-        torch.set_num_threads(n_threads)
+    before = evaluate()
+    gen = torch.Generator().manual_seed(0)
+    t0 = time.perf_counter()
+    model.train()
+    for _ in range(80):
+        loss, _ = training_step(model, real, prior_prob=0.0, generator=gen, n_steps=n_steps)
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 5.0)
+        opt.step()
+    after = evaluate()
     print(f"overfit: imitation {before:.4f} -> {after:.4f} in {time.perf_counter() - t0:.1f} s")
     assert after <= 0.5 * before

@@ -142,6 +142,7 @@ def training_step(
     teacher_forcing_p: float = 0.0,
     generator: torch.Generator | None = None,
     n_steps: int | None = None,
+    input_dropout_p: float = 0.1,
     loss_cfg: LossConfig = LossConfig(),
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """One training forward pass (spec 6.1): posterior or prior latent (chosen once per batch),
@@ -154,6 +155,7 @@ def training_step(
         teacher_forcing_p: per-agent probability of full teacher forcing (0.3 - 0.1 * epoch).
         generator: random source (latent choice, z, forcing draws).
         n_steps: roll out only steps 0 .. n_steps-1 (default all; shorter for cheap tests).
+        input_dropout_p: map-node / history input dropout (spec 1.9), train mode only.
         loss_cfg: loss weights.
 
     Returns:
@@ -169,6 +171,7 @@ def training_step(
         dest="gt",
         tl_valid_from="full",
         with_posterior=True,
+        input_dropout_p=input_dropout_p,
     )
     force = rand(tuple(batch.ag_type.shape), generator, dev) < teacher_forcing_p
     traj = rollout(model, ctx, batch, gt_steps=batch.n_steps, teacher_force=force, n_steps=n_steps)

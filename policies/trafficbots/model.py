@@ -172,6 +172,7 @@ class TrafficBots(nn.Module):
         dest: Literal["sample", "gt"] = "sample",
         tl_valid_from: Literal["history", "full"] = "history",
         with_posterior: bool = False,
+        input_dropout_p: float = 0.0,
     ) -> RolloutContext:
         """Per-scenario precomputation and per-rollout sampling (spec 5.1, 6.1, 7.1).
 
@@ -183,19 +184,31 @@ class TrafficBots(nn.Module):
             dest: sample destinations from the predictor or use the ground truth labels.
             tl_valid_from: TL token validity from history steps (inference) or all steps.
             with_posterior: compute the posterior even when z comes from the prior (for KL).
+            input_dropout_p: training-mode input dropout of spec 1.9 (``dropout_p_history``):
+                map nodes 1..P-1 are hidden from the map encoder and history steps 0..9 from
+                the destination predictor, each with this probability. Ignored in eval mode.
 
         Returns:
             ``RolloutContext`` with batch B * n_rollouts.
         """
         cfg, dev = self.cfg, batch.device
         n_hist = cfg.n_history
-        mp = self.map_encoder(batch.mp_pose, batch.mp_valid, batch.mp_cls)
+        enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
+        if self.training and input_dropout_p > 0.0:
+            keep = rand(tuple(batch.mp_valid.shape), generator, dev) >= input_dropout_p
+            keep[..., 0] = True  # node 0 (the token pose) is never dropped
+            enc_node_valid = batch.mp_valid & keep
+            keep = rand(tuple(dest_hist_valid.shape), generator, dev) >= input_dropout_p
+            keep[..., -1] = True  # the current step is never dropped
+            dest_hist_valid = dest_hist_valid & keep
+        mp = self.map_encoder(batch.mp_pose, enc_node_valid, batch.mp_cls)
+        mp = dataclasses.replace(mp, node_valid=batch.mp_valid)  # true nodes for the rules
         tl_src = batch.tl_valid if tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
         tl = tl_context(cfg, batch.tl_piece, tl_src.any(-1), mp)
         attr = agent_attributes(batch.ag_type, batch.ag_size)
         h_valid = batch.ag_valid[..., :n_hist]
         dest_logits, dest_usable = self.dest_predictor(
-            h_valid,
+            dest_hist_valid,
             batch.ag_pose[..., :n_hist, :],
             batch.ag_motion[..., :n_hist, :],
             attr,
