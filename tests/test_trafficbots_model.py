@@ -193,3 +193,21 @@ def test_paper_config_size_and_full_scale_step() -> None:
     assert out.action.shape == (1, 64, 2) and out.tl_logits.shape == (1, 128, 5)
     assert torch.isfinite(out.action).all() and (out.action[valid] != 0).any()
     assert (out.action[~valid] == 0).all()
+
+
+def test_sampling_on_the_real_scenario(one_scenario_path, small_model) -> None:
+    from tbsim_env.data import load_scenarios
+    from tbsim_env.data.preprocess import preprocess_scenario
+
+    tok = preprocess_scenario(load_scenarios(one_scenario_path)[0])
+    out = sample_rollouts(small_model, tok, n=2, k=1, generator=torch.Generator().manual_seed(0))
+    gt = TokenBatch.from_tokens(tok)
+    n_ag = gt.ag_type.shape[1]
+    assert out.pose.shape == (1, 1, n_ag, 91, 3) and torch.isfinite(out.pose).all()
+    hist = gt.ag_valid[0, :, :11]
+    assert torch.allclose(out.pose[0, 0, :, :11][hist], gt.ag_pose[0, :, :11][hist], atol=1e-5)
+    # Every agent present at the current step is simulated to the end unless it left the map.
+    alive = out.valid[0, 0, :, -1]
+    assert alive.sum() > 0 and not alive[~hist.any(-1)].any()
+    moved = (out.pose[0, 0, :, -1, :2] - out.pose[0, 0, :, 10, :2]).norm(dim=-1)
+    assert torch.isfinite(moved[alive]).all()
