@@ -42,6 +42,8 @@ class SingleAgentTrafficEnv(gym.Env, EzPickle):
         npc_policy: policy of all other agents (``"log_replay"``, ``"constant_velocity"``, a
             registered name or a ``Policy``).
         flatten: flattened ``Box`` observation (default) or the ``Dict`` of ``TrafficEnv``.
+        normalize_actions: the action space is [-1, 1]^2, scaled by the SDC type's limits
+            (what SB3 recommends); otherwise physical units.
         render_mode: None or ``"rgb_array"``.
         env_kwargs: further ``TrafficEnv`` keyword arguments (config, obs_config,
             scenario_order, device, torch_threads).
@@ -57,10 +59,13 @@ class SingleAgentTrafficEnv(gym.Env, EzPickle):
         scenarios: Any = None,
         npc_policy: Any = "log_replay",
         flatten: bool = True,
+        normalize_actions: bool = False,
         render_mode: str | None = None,
         **env_kwargs: Any,
     ) -> None:
-        EzPickle.__init__(self, scenarios, npc_policy, flatten, render_mode, **env_kwargs)
+        EzPickle.__init__(
+            self, scenarios, npc_policy, flatten, normalize_actions, render_mode, **env_kwargs
+        )
         self.env = TrafficEnv(
             scenarios,
             controlled="sdc",
@@ -74,7 +79,11 @@ class SingleAgentTrafficEnv(gym.Env, EzPickle):
         self.observation_space = (
             gym.spaces.flatten_space(self._dict_space) if flatten else self._dict_space
         )
-        self.action_space = action_box(self.env)
+        self._physical = action_box(self.env)
+        self.normalize_actions = normalize_actions
+        self.action_space = (
+            gym.spaces.Box(-1.0, 1.0, (2,), np.float32) if normalize_actions else self._physical
+        )
         self._agent: str | None = None
         self._last_obs: Any = None
 
@@ -99,16 +108,20 @@ class SingleAgentTrafficEnv(gym.Env, EzPickle):
             raise RuntimeError("call reset() before step()")
         if self._agent not in self.env.agents:
             raise RuntimeError("the episode is over: call reset()")
-        obs, rew, term, trunc, infos = self.env.step(
-            {self._agent: np.asarray(action, dtype=np.float32)}
-        )
+        act = np.asarray(action, dtype=np.float32)
+        if self.normalize_actions and act.shape == (2,):
+            act = np.clip(act, -1.0, 1.0) * self._physical.high
+        obs, rew, term, trunc, infos = self.env.step({self._agent: act})
         a = self._agent
         self._last_obs = self._convert(obs[a])
         return self._last_obs, float(rew[a]), bool(term[a]), bool(trunc[a]), dict(infos[a])
 
     def expert_action(self) -> np.ndarray:
-        """The SDC's inverse-dynamics action that follows its log (``TrafficEnv``)."""
-        return self.env.expert_actions()[self._agent]
+        """The SDC's inverse-dynamics action that follows its log, in this env's action units."""
+        act = self.env.expert_actions()[self._agent]
+        if self.normalize_actions:
+            act = (act / self._physical.high).astype(np.float32)
+        return act
 
     def render(self) -> np.ndarray | None:
         return self.env.render()
