@@ -1,0 +1,241 @@
+"""BatchedTrafficEnv: equality with TrafficEnv, batching, autoreset, determinism, bad actions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tbsim_env.data.generator import default_scenarios
+from tbsim_env.env import TrafficEnv
+from tbsim_env.env.agent_metrics import Route
+from tbsim_env.env.vector_env import (
+    ROUTE_KEY,
+    BatchedTrafficEnv,
+    put_rows,
+    route_features,
+    take_rows,
+)
+from tbsim_env.errors import ActionError
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    return default_scenarios(3)
+
+
+def _compare_with_trafficenv(scenarios, controlled, npc, seed, episodes, expert=False):
+    """Step TrafficEnv (random scenario order) and a B=1 batched env side by side."""
+    env = TrafficEnv(scenarios, controlled=controlled, npc_policy=npc, scenario_order="random")
+    venv = BatchedTrafficEnv(scenarios, 1, controlled=controlled, npc_policy=npc, seed=seed)
+    obs, _ = env.reset(seed=seed)
+    vobs, _ = venv.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    done_episodes, steps, checked = 0, 0, 0
+    while done_episodes < episodes:
+        assert env.scenario is venv.scenarios[int(venv.scenario_index[0])]
+        names = venv.agent_names[int(venv.scenario_index[0])]
+        assert [n for n in names if n in env.agents] == env.agents
+        for q, name in enumerate(names):
+            if name in env.agents:
+                for key in obs[name]:
+                    np.testing.assert_array_equal(obs[name][key], vobs[key][0, q].numpy(), key)
+                    checked += 1
+        if expert:
+            a = venv.expert_actions()
+            ref = env.expert_actions()
+            for q, name in enumerate(names):
+                if name in ref:
+                    np.testing.assert_allclose(ref[name], a[0, q].numpy(), atol=1e-6)
+            a = a.numpy()
+        else:
+            a = rng.uniform(-3, 3, (1, venv.num_agents, 2)).astype(np.float32)
+        acts = {n: a[0, q] for q, n in enumerate(names) if n in env.agents}
+        obs, rew, term, trunc, _ = env.step(acts)
+        vobs, vrew, vterm, vtrunc, vinfo = venv.step(torch.from_numpy(a))
+        for q, name in enumerate(names):
+            if name in rew:
+                assert rew[name] == pytest.approx(float(vrew[0, q]), abs=1e-6)
+                assert term[name] == bool(vterm[0, q]) and trunc[name] == bool(vtrunc[0, q])
+                for key in obs[name]:
+                    np.testing.assert_array_equal(
+                        obs[name][key], vinfo["final_obs"][key][0, q].numpy(), key
+                    )
+            else:
+                assert float(vrew[0, q]) == 0.0 and not bool(vterm[0, q] | vtrunc[0, q])
+        steps += 1
+        assert bool(vinfo["done"][0]) == (not env.agents)
+        if not env.agents:
+            done_episodes += 1
+            obs, _ = env.reset()
+    assert checked > 0
+    return steps
+
+
+@pytest.mark.parametrize(
+    ("controlled", "npc"),
+    [("sdc", "constant_velocity"), ("tracks_to_predict", "log_replay")],
+)
+def test_batch_of_one_equals_trafficenv(scenes, controlled, npc):
+    steps = _compare_with_trafficenv(scenes, controlled, npc, seed=5, episodes=3)
+    assert steps >= 3
+
+
+def test_batch_of_one_equals_trafficenv_full_expert_episode(scenes):
+    # Following the expert, episodes run to the goal or the end of the log.
+    steps = _compare_with_trafficenv(scenes, "sdc", "log_replay", seed=2, episodes=1, expert=True)
+    assert steps > 40
+
+
+def test_batch_of_one_equals_trafficenv_on_real_womd(one_scenario_path):
+    from tbsim_env.data import load_scenarios
+
+    real = load_scenarios(one_scenario_path)
+    _compare_with_trafficenv(real, "tracks_to_predict", "log_replay", seed=0, episodes=1)
+
+
+def test_slots_of_a_batch_match_single_runs(scenes):
+    """Padding to the largest scenario and batching do not change any slot's results."""
+    ks = [2, 0, 1]
+    venv = BatchedTrafficEnv(scenes, 3, controlled="all", npc_policy="constant_velocity", seed=0)
+    singles = [
+        BatchedTrafficEnv([scenes[k]], 1, controlled="all", npc_policy="constant_velocity")
+        for k in ks
+    ]
+    assert venv.num_agents == max(s.num_agents for s in singles)
+    obs, _ = venv.reset(scenario_indices=ks)
+    for s in singles:
+        s.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(15):
+        a = torch.from_numpy(rng.uniform(-1, 1, (3, venv.num_agents, 2)).astype(np.float32))
+        obs, rew, term, trunc, info = venv.step(a)
+        for b, s in enumerate(singles):
+            q = s.num_agents
+            so, sr, st, su, si = s.step(a[b : b + 1, :q])
+            assert not bool(info["done"][b])
+            torch.testing.assert_close(rew[b, :q], sr[0], rtol=0, atol=1e-6)
+            assert torch.equal(term[b, :q], st[0]) and torch.equal(trunc[b, :q], su[0])
+            assert torch.equal(info["agent_mask"][b, :q], si["agent_mask"][0])
+            assert not info["agent_mask"][b, q:].any()
+            for key in obs:
+                torch.testing.assert_close(obs[key][b, :q], so[key][0], rtol=0, atol=1e-5)
+                assert not obs[key][b, q:].any()
+
+
+def test_autoreset_restarts_finished_slots(scenes):
+    venv = BatchedTrafficEnv(scenes, 2, controlled="sdc", npc_policy="log_replay", seed=1)
+    obs, _ = venv.reset()
+    # Slot 0 drives into trouble at full throttle, slot 1 follows the log.
+    returns = torch.zeros(2)
+    draws = []
+    restarted = 0
+    for _ in range(200):
+        a = venv.expert_actions()
+        a[0] = torch.tensor([5.0, 1.0])
+        before = venv.scenario_index.clone()
+        obs, rew, term, trunc, info = venv.step(a)
+        returns += rew[:, 0]
+        for b in info["done"].nonzero(as_tuple=True)[0].tolist():
+            restarted += 1
+            assert bool(term[b, 0] | trunc[b, 0])
+            assert float(info["episode_return"][b, 0]) == pytest.approx(float(returns[b]), 1e-5)
+            returns[b] = 0.0
+            draws.append(int(venv.scenario_index[b]))
+            assert bool(venv.agent_mask[b, 0]) and bool(info["agent_mask"][b, 0])
+            # The returned observation is the fresh start of the new episode.
+            fresh = BatchedTrafficEnv(scenes, 1, controlled="sdc", npc_policy="log_replay")
+            fobs, _ = fresh.reset(scenario_indices=[int(venv.scenario_index[b])])
+            for key in obs:
+                torch.testing.assert_close(obs[key][b], fobs[key][0], rtol=0, atol=0)
+            assert not torch.equal(info["final_obs"]["ego_history"][b], obs["ego_history"][b])
+        assert torch.equal(venv.scenario_index[~info["done"]], before[~info["done"]])
+    assert restarted >= 3
+    # Scenarios are drawn from the env's seeded generator, one draw per restart.
+    rng = np.random.default_rng(1)
+    expected = [int(rng.integers(len(scenes))) for _ in range(2 + len(draws))][2:]
+    assert draws == expected
+
+
+def test_determinism_and_seed_dependence(scenes):
+    def run(seed):
+        venv = BatchedTrafficEnv(
+            scenes, 3, controlled="tracks_to_predict", npc_policy="constant_velocity", seed=seed
+        )
+        obs, _ = venv.reset()
+        rng = np.random.default_rng(0)
+        trace = []
+        for _ in range(100):
+            a = torch.from_numpy(rng.uniform(-2, 2, (3, venv.num_agents, 2)).astype(np.float32))
+            obs, rew, term, trunc, info = venv.step(a)
+            trace.append((obs["agents"].clone(), rew, term, trunc, info["scenario_index"]))
+        return trace
+
+    a, b, c = run(3), run(3), run(4)
+    for x, y in zip(a, b):
+        for u, v in zip(x, y):
+            assert torch.equal(u, v)
+    assert any(not torch.equal(x[4], y[4]) for x, y in zip(a, c))
+
+
+def test_bad_actions(scenes):
+    venv = BatchedTrafficEnv(scenes, 2, controlled="sdc", seed=0)
+    with pytest.raises(RuntimeError):
+        venv.step(torch.zeros(2, 1, 2))
+    venv.reset()
+    with pytest.raises(ActionError, match="shape"):
+        venv.step(torch.zeros(2, 2))
+    bad = torch.zeros(2, 1, 2)
+    bad[1, 0, 0] = float("nan")
+    with pytest.raises(ActionError, match="not finite"):
+        venv.step(bad)
+    bad[1, 0, 0] = float("inf")
+    with pytest.raises(ActionError):
+        venv.step(bad)
+    # NaN is fine where no agent is active (padding slots).
+    venv = BatchedTrafficEnv(scenes, 2, controlled="tracks_to_predict", seed=0)
+    venv.reset(scenario_indices=[0, 1])
+    a = torch.zeros(2, venv.num_agents, 2)
+    a[~venv.agent_mask] = float("nan")
+    if (~venv.agent_mask).any():
+        venv.step(a)
+    with pytest.raises(ValueError):
+        BatchedTrafficEnv(scenes, 0)
+
+
+def test_route_features_on_a_straight_route():
+    t = 11
+    x = torch.linspace(0.0, 50.0, t)
+    pts = torch.stack([x, torch.zeros(t)], -1)[None, None]
+    arc = x[None, None]
+    route = Route(points=pts, arc=arc, goal=pts[..., -1, :], valid=torch.ones(1, 1, dtype=bool))
+    pose = torch.tensor([[[10.0, 0.0, np.pi / 2]]])  # facing +y: forward is the route's left
+    out = route_features(route, torch.tensor([[10.0]]), pose, num_points=10, spacing=5.0)
+    assert out.shape == (1, 1, 10, 2)
+    ahead = torch.tensor([5.0, 10, 15, 20, 25, 30, 35, 40, 40, 40])  # clamped at the goal
+    torch.testing.assert_close(out[0, 0, :, 0], torch.zeros(10), atol=1e-5, rtol=0)
+    torch.testing.assert_close(out[0, 0, :, 1], -ahead, atol=1e-5, rtol=0)
+
+
+def test_route_observation_key(scenes):
+    venv = BatchedTrafficEnv(scenes, 2, route_points=4, seed=0)
+    obs, _ = venv.reset()
+    assert obs[ROUTE_KEY].shape == (2, 1, 4, 2)
+    assert venv.single_observation_space()[ROUTE_KEY].shape == (4, 2)
+    # Along a logged route the first point lies roughly ahead.
+    assert (obs[ROUTE_KEY][:, 0, 0, 0] > 0).all()
+
+
+def test_take_and_put_rows_round_trip(scenes):
+    venv = BatchedTrafficEnv(scenes, 3, seed=0)
+    venv.reset(scenario_indices=[0, 1, 2])
+    state = venv.sim_state
+    rows = torch.tensor([2, 0])
+    sub = take_rows(state, rows)
+    assert sub.batch_size == 2 and torch.equal(sub.pose[0], state.pose[2])
+    copy = take_rows(state, torch.arange(3))
+    put_rows(copy, torch.tensor([1]), take_rows(state, torch.tensor([0])))
+    assert torch.equal(copy.log.pose[1], state.log.pose[0])
+    assert torch.equal(copy.log.pose[2], state.log.pose[2])
+    with pytest.raises(TypeError):
+        take_rows(object(), rows)
