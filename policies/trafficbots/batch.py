@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,7 +64,7 @@ class TokenBatch:
     def device(self) -> torch.device:
         return self.ag_pose.device
 
-    def _map(self, fn) -> TokenBatch:  # noqa: ANN001
+    def _map(self, fn: Callable[[torch.Tensor], torch.Tensor]) -> TokenBatch:
         changes = {
             f.name: fn(getattr(self, f.name))
             for f in dataclasses.fields(self)

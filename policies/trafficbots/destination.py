@@ -27,7 +27,9 @@ def _allowed_classes() -> torch.Tensor:
 ALLOWED_DEST_CLASSES = _allowed_classes()
 
 
-def destination_mask(ag_type: torch.Tensor, mp_cls: torch.Tensor, mp_valid: torch.Tensor):
+def destination_mask(
+    ag_type: torch.Tensor, mp_cls: torch.Tensor, mp_valid: torch.Tensor
+) -> torch.Tensor:
     """Which map tokens each agent may choose.
 
     Args:

@@ -33,14 +33,18 @@ from tbsim_env.sim.dynamics import squash_action
 from tbsim_env.sim.geometry import wrap_angle
 
 
-def randn(shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device):
+def randn(
+    shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device
+) -> torch.Tensor:
     """Standard normal samples drawn on the generator's device, then moved (device-agnostic
     seeding: a CPU generator gives the same numbers whatever device the model is on)."""
     gen_device = generator.device if generator is not None else torch.device("cpu")
     return torch.randn(shape, generator=generator, device=gen_device).to(device)
 
 
-def rand(shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device):
+def rand(
+    shape: tuple[int, ...], generator: torch.Generator | None, device: torch.device
+) -> torch.Tensor:
     """Uniform [0, 1) samples, drawn like ``randn``."""
     gen_device = generator.device if generator is not None else torch.device("cpu")
     return torch.rand(shape, generator=generator, device=gen_device).to(device)
@@ -274,6 +278,52 @@ class TrafficBots(nn.Module):
         )
 
     # ------------------------------------------------------------------ every step
+    def observe(
+        self,
+        state: RolloutState,
+        ag_pose: torch.Tensor,
+        ag_speed: torch.Tensor,
+        ag_valid: torch.Tensor,
+        tl_state: torch.Tensor,
+        tl_present: torch.Tensor | None = None,
+    ) -> RolloutState:
+        """Append one simulator state to the history windows (no network call).
+
+        Acceleration and yaw rate of the history are finite differences of consecutive valid
+        states (what the unicycle produces, and how the ground-truth motion is defined in
+        spec 1.4). Inputs are detached (spec 6.4).
+
+        Args:
+            state: the rollout state.
+            ag_pose: [B', N, 3] current (x, y, yaw).
+            ag_speed: [B', N] current signed speed m/s.
+            ag_valid: [B', N] bool, agent present now.
+            tl_state: [B', L] int64 current ``TLState``.
+            tl_present: [B'] bool, this step exists for the scene (default all True); used
+                when warming up scenes that start at different steps.
+
+        Returns:
+            The next ``RolloutState`` (``step`` incremented).
+        """
+        ag_pose, ag_speed = ag_pose.detach(), ag_speed.detach()
+        prev_ok = state.hist_valid[..., -1] & ag_valid
+        prev_pose, prev_speed = state.hist_pose[..., -1, :], state.hist_motion[..., -1, 0]
+        acc = torch.where(prev_ok, (ag_speed - prev_speed) / C.DT, 0.0)
+        yaw_rate = torch.where(prev_ok, wrap_angle(ag_pose[..., 2] - prev_pose[..., 2]) / C.DT, 0.0)
+        vmask = ag_valid[..., None].to(ag_pose.dtype)
+        motion = torch.stack([ag_speed, acc, yaw_rate], dim=-1) * vmask
+        present = torch.ones_like(tl_state, dtype=torch.bool)
+        if tl_present is not None:
+            present = present & tl_present[:, None]
+        return state.replace(
+            step=state.step + 1,
+            hist_valid=_push(state.hist_valid, ag_valid),
+            hist_pose=_push(state.hist_pose, ag_pose * vmask),
+            hist_motion=_push(state.hist_motion, motion),
+            hist_tl_state=_push(state.hist_tl_state, tl_state.long()),
+            hist_tl_present=_push(state.hist_tl_present, present),
+        )
+
     def step(
         self,
         ctx: RolloutContext,
@@ -286,9 +336,7 @@ class TrafficBots(nn.Module):
         """Append the current simulator state to the history and act (spec 5.2 steps 1-4).
 
         Externally controlled agents simply report their real states here, so the policy
-        sees them exactly as it sees its own agents. Acceleration and yaw rate of the history
-        are finite differences of consecutive valid states (what the unicycle produces, and
-        how the ground-truth motion is defined in spec 1.4).
+        sees them exactly as it sees its own agents.
 
         Args:
             ctx: from ``prepare``.
@@ -302,23 +350,9 @@ class TrafficBots(nn.Module):
             (``StepOutput``, next ``RolloutState``).
         """
         cfg = self.cfg
-        ag_pose, ag_speed = ag_pose.detach(), ag_speed.detach()
-        prev_ok = state.hist_valid[..., -1] & ag_valid
-        prev_pose, prev_speed = state.hist_pose[..., -1, :], state.hist_motion[..., -1, 0]
-        acc = torch.where(prev_ok, (ag_speed - prev_speed) / C.DT, 0.0)
-        yaw_rate = torch.where(prev_ok, wrap_angle(ag_pose[..., 2] - prev_pose[..., 2]) / C.DT, 0.0)
+        state = self.observe(state, ag_pose, ag_speed, ag_valid, tl_state)
+        ag_pose = ag_pose.detach()
         vmask = ag_valid[..., None].to(ag_pose.dtype)
-        motion = torch.stack([ag_speed, acc, yaw_rate], dim=-1) * vmask
-        state = state.replace(
-            step=state.step + 1,
-            hist_valid=_push(state.hist_valid, ag_valid),
-            hist_pose=_push(state.hist_pose, ag_pose * vmask),
-            hist_motion=_push(state.hist_motion, motion),
-            hist_tl_state=_push(state.hist_tl_state, tl_state.long()),
-            hist_tl_present=_push(
-                state.hist_tl_present, torch.ones_like(tl_state, dtype=torch.bool)
-            ),
-        )
         tl_feat = self.tl_encoder(state.hist_tl_state, state.hist_tl_present, ctx.tl)
         tl_logits = self.tl_head(tl_feat)
         feat, tok_pose, tok_valid = self.agent_encoder(

@@ -1,0 +1,167 @@
+"""``TrafficBotsPolicy``: the network as a ``policies.base.Policy`` for the simulator/env.
+
+The policy drives the (at most 64) agents that preprocessing selects for each scenario
+(``SceneTokens.agent_track_index``); every other agent slot gets a zero action, i.e. keeps its
+speed and heading (the constant-velocity treatment of non-simulated agents, spec 7.4).
+Externally controlled agents are observed through the ``SimState`` like any other agent, so
+their real states feed back into the policy every step.
+
+All per-rollout memory lives in the returned ``TrafficBotsPolicyState`` (history windows, z,
+destinations, agent-slot and signal mappings); the policy object itself is stateless.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from policies.trafficbots.batch import TokenBatch
+from policies.trafficbots.checkpoint import load_checkpoint
+from policies.trafficbots.model import RolloutContext, RolloutState, TrafficBots
+from tbsim_env.config import TokenConfig
+from tbsim_env.data.preprocess import preprocess_scenario
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.sim.state import SimState
+
+
+@dataclass(frozen=True)
+class TrafficBotsPolicyState:
+    """Per-rollout memory of ``TrafficBotsPolicy``.
+
+    Attributes:
+        ctx: the model's per-rollout constants (map, TL, z, destinations).
+        rollout: the history windows.
+        slot: [B, K] int64 sim agent slot of each token agent (-1: none).
+        tl_signal: [B, L] int64 ``SimState.signals`` row of each TL token (-1: none).
+        offset: [B, 2] token frame = sim frame + offset (metres).
+        tl_pred: [B, L] int64 model prediction of the TL state at the current step, used
+            where the simulator has no logged signal state.
+    """
+
+    ctx: RolloutContext
+    rollout: RolloutState
+    slot: torch.Tensor
+    tl_signal: torch.Tensor
+    offset: torch.Tensor
+    tl_pred: torch.Tensor
+
+
+def _match(keys: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    """Row of ``table`` [B, S] equal to each of ``keys`` [B, K] (-1 when absent or key < 0)."""
+    eq = (keys[:, :, None] == table[:, None, :]) & (keys[:, :, None] >= 0)
+    return torch.where(eq.any(-1), eq.long().argmax(-1), -1)
+
+
+def _take(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+    """x [B, S, ...] at rows [B, K] (rows < 0 read row 0; mask them yourself)."""
+    b = torch.arange(x.shape[0], device=x.device)[:, None]
+    return x[b, rows.clamp(min=0)]
+
+
+class TrafficBotsPolicy:
+    """TrafficBots V1.5 NPC policy (prior z, sampled destinations, mean actions).
+
+    Args:
+        model: the network (put in eval mode here).
+        token_config: preprocessing limits (defaults: 64 agents, 1024 pieces, 128 TLs).
+    """
+
+    name = "trafficbots"
+    exact_replay = False
+
+    def __init__(self, model: TrafficBots, token_config: TokenConfig | None = None) -> None:
+        self.model = model.eval()
+        self.token_config = token_config or TokenConfig()
+
+    @classmethod
+    def from_checkpoint(
+        cls, path: str | Path, map_location: str | torch.device = "cpu"
+    ) -> TrafficBotsPolicy:
+        """Policy from a ``save_checkpoint`` file pair."""
+        return cls(load_checkpoint(path, map_location=map_location))
+
+    @torch.no_grad()
+    def initial_state(
+        self, state: SimState, scenarios: Sequence[Scenario], generator: torch.Generator
+    ) -> TrafficBotsPolicyState:
+        """Preprocess the scenarios, prepare the model and warm the history from the log.
+
+        The history windows are filled with the logged states of the (up to) 10 steps before
+        ``state.step``; the state at ``state.step`` itself is consumed by the first ``act``.
+        """
+        dev = state.device
+        if dev != self.model.device:
+            raise ValueError(f"simulator on {dev} but the TrafficBots model on {self.model.device}")
+        tokens = [preprocess_scenario(sc, self.token_config) for sc in scenarios]
+        batch = TokenBatch.from_tokens(tokens, device=self.model.device)
+        ctx = self.model.prepare(batch, 1, generator, latent="prior", dest="sample")
+        tok_track = torch.as_tensor(np.stack([t.agent_track_index for t in tokens]), device=dev)
+        slot = _match(tok_track, state.agents.track_index)
+        lane_ids = []
+        for t in tokens:
+            piece = np.asarray(t.tl_piece)
+            lane_ids.append(np.where(piece >= 0, t.map_feature_id[np.maximum(piece, 0)], -1))
+        tl_signal = _match(torch.as_tensor(np.stack(lane_ids), device=dev), state.signals.lane_id)
+        token_origin = torch.as_tensor(np.stack([t.origin for t in tokens]), device=dev)
+        offset = (state.origin.to(torch.float64) - token_origin).to(torch.float32)
+        rollout = self.model.initial_state(ctx)
+        n_warm = self.model.cfg.n_history - 1
+        for k in range(n_warm, 0, -1):
+            t = state.step - k  # [B]
+            ok = t >= 0
+            ti = t.clamp(min=0)
+            pose, speed, valid = self._log_agents(state, slot, offset, ti)
+            sig = self._log_signals(state, tl_signal, ti, torch.zeros_like(tl_signal))
+            rollout = self.model.observe(
+                rollout, pose, speed, valid & ok[:, None], sig, tl_present=ok
+            )
+        tl_pred = torch.zeros_like(tl_signal)
+        return TrafficBotsPolicyState(ctx, rollout, slot, tl_signal, offset, tl_pred)
+
+    @staticmethod
+    def _log_agents(state: SimState, slot: torch.Tensor, offset: torch.Tensor, t: torch.Tensor):
+        """Logged (pose, speed, valid) of the token agents at per-scene steps t [B]."""
+        b = torch.arange(slot.shape[0], device=slot.device)[:, None]
+        rows, tt = slot.clamp(min=0), t[:, None]
+        pose = state.log.pose[b, rows, tt].clone()
+        pose[..., :2] += offset[:, None]
+        valid = state.log.valid[b, rows, tt] & (slot >= 0)
+        return pose * valid[..., None], state.log.speed[b, rows, tt] * valid, valid
+
+    @staticmethod
+    def _log_signals(
+        state: SimState, tl_signal: torch.Tensor, t: torch.Tensor, fallback: torch.Tensor
+    ) -> torch.Tensor:
+        """Logged TL state per TL token at steps t [B], ``fallback`` where none is logged."""
+        b = torch.arange(tl_signal.shape[0], device=tl_signal.device)[:, None]
+        rows = tl_signal.clamp(min=0)
+        logged = state.signals.state[b, rows, t[:, None]]
+        ok = state.signals.valid[b, rows, t[:, None]] & (tl_signal >= 0)
+        return torch.where(ok, logged, fallback)
+
+    @torch.no_grad()
+    def act(
+        self, state: SimState, policy_state: TrafficBotsPolicyState, generator: torch.Generator
+    ) -> tuple[torch.Tensor, TrafficBotsPolicyState]:
+        """Actions [B, N, 2] for every agent slot (zero for slots the model does not drive)."""
+        del generator  # z and destinations were drawn in ``initial_state``.
+        ps = policy_state
+        pose = _take(state.pose, ps.slot).clone()
+        pose[..., :2] += ps.offset[:, None]
+        valid = _take(state.valid, ps.slot) & (ps.slot >= 0)
+        speed = _take(state.speed, ps.slot) * valid
+        tl = self._log_signals(state, ps.tl_signal, state.step, ps.tl_pred)
+        out, rollout = self.model.step(
+            ps.ctx, ps.rollout, pose * valid[..., None], speed, valid, tl
+        )
+        action = torch.zeros(*state.pose.shape[:2], 2, device=state.device)
+        b = torch.arange(action.shape[0], device=action.device)[:, None].expand_as(ps.slot)
+        driven = ps.slot >= 0
+        action[b[driven], ps.slot[driven]] = out.action[driven].to(action.dtype)
+        new = dataclasses.replace(ps, rollout=rollout, tl_pred=out.tl_logits.argmax(-1))
+        return action, new
