@@ -95,6 +95,124 @@ def _cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def _load(files: Sequence[str], skip_bad: bool = False):
+    from tbsim_env.data import load_scenarios
+
+    return load_scenarios(list(files), skip_bad=skip_bad)
+
+
+def _cmd_export_wosac(args: argparse.Namespace) -> int:
+    from tbsim_env.evaluation import export_submission
+
+    scenarios = _load(args.data, args.skip_bad)
+    out = Path(args.out)
+    if args.out.endswith("/") or out.is_dir():
+        # One submission file per input file (WOSAC shards), named after it.
+        out.mkdir(parents=True, exist_ok=True)
+        by_source: dict[str, list] = {}
+        for sc in scenarios:
+            by_source.setdefault(sc.source.split("#")[0], []).append(sc)
+        for k, (src, group) in enumerate(sorted(by_source.items())):
+            name = f"submission.binproto-{k:05d}-of-{len(by_source):05d}"
+            n = export_submission(
+                group,
+                args.policy,
+                out / name,
+                num_rollouts=args.rollouts,
+                seed=args.seed,
+                checkpoint=args.checkpoint,
+            )
+            print(f"wrote {out / name}: {n} scenarios from {src}")
+        return 0
+    n = export_submission(
+        scenarios,
+        args.policy,
+        out,
+        num_rollouts=args.rollouts,
+        seed=args.seed,
+        checkpoint=args.checkpoint,
+    )
+    print(f"wrote {out}: {n} scenarios, {args.rollouts} rollouts each, policy {args.policy}")
+    return 0
+
+
+def _report(scores, json_path: str | None) -> None:
+    import json
+
+    from tbsim_env.metrics.wosac import scores_table, scores_to_json
+
+    print(scores_table(scores))
+    if json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps(scores_to_json(scores), indent=1))
+        print(f"wrote {json_path}")
+
+
+def _cmd_wosac_score(args: argparse.Namespace) -> int:
+    from tbsim_env.metrics.wosac import score_submission_file
+
+    scenarios = _load(args.data, args.skip_bad)
+    paths = (
+        sorted(Path(args.submission).glob("*binproto*"))
+        if Path(args.submission).is_dir()
+        else [Path(args.submission)]
+    )
+    scores = []
+    for path in paths:
+        scores += score_submission_file(scenarios, path, args.version)
+    _report(scores, args.json)
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from tbsim_env.evaluation import evaluate_policy, feature_samples, plot_histograms
+
+    scenarios = _load(args.data, args.skip_bad)
+    scores, rollouts = evaluate_policy(
+        scenarios,
+        args.policy,
+        num_rollouts=args.rollouts,
+        seed=args.seed,
+        version=args.version,
+        checkpoint=args.checkpoint,
+        keep_rollouts=bool(args.plot),
+    )
+    _report(scores, args.json)
+    if args.plot:
+        samples: dict[str, list] = {}
+        for sc, r in zip(scenarios, rollouts):
+            for name, pair in feature_samples(sc, r).items():
+                samples.setdefault(name, []).append(pair)
+        plot_histograms(samples, args.plot, title=f"{args.policy}: log vs simulation")
+        print(f"wrote {args.plot}")
+    return 0
+
+
+def _cmd_preprocess(args: argparse.Namespace) -> int:
+    from tbsim_env.config import TokenConfig
+    from tbsim_env.data.cache import build_cache
+
+    cfg = TokenConfig(
+        max_map_pieces=args.max_map_pieces,
+        max_traffic_lights=args.max_traffic_lights,
+        max_agents=args.max_agents,
+        training=not args.eval_split,
+    )
+    m = build_cache(
+        args.sources,
+        args.out,
+        cfg=cfg,
+        workers=args.workers,
+        shard_size=args.shard_size,
+        exclude_ids=args.exclude or (),
+    )
+    print(
+        f"wrote {len(m['scenario_ids'])} scenarios in {len(m['shards'])} shards to {args.out}"
+        + (f"; skipped {len(m['skipped'])}" if m["skipped"] else "")
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="tbsim", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -119,12 +237,61 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--npc-policy", default="log_replay")
     r.add_argument("--fps", type=int, default=10)
     r.set_defaults(func=_cmd_render)
+    policies = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
+
+    def wosac_common(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--data", nargs="+", required=True, help="scenario files / globs / folders")
+        sp.add_argument("--skip-bad", action="store_true", help="warn and skip corrupt records")
+
+    def rollout_args(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--policy", required=True, choices=policies)
+        sp.add_argument("--checkpoint", default=None, help="TrafficBots checkpoint path")
+        sp.add_argument("--rollouts", type=int, default=32)
+        sp.add_argument("--seed", type=int, default=0)
+
+    e = sub.add_parser("export-wosac", help="write a WOSAC SimAgentsChallengeSubmission")
+    wosac_common(e)
+    rollout_args(e)
+    e.add_argument("--out", required=True, help="OUT.binproto, or DIR/ for one file per input")
+    e.set_defaults(func=_cmd_export_wosac)
+
+    w = sub.add_parser("wosac-score", help="score a submission against the logged scenarios")
+    wosac_common(w)
+    w.add_argument("--submission", required=True, help="a .binproto file or a folder of shards")
+    w.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
+    w.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
+    w.set_defaults(func=_cmd_wosac_score)
+
+    v = sub.add_parser("evaluate", help="roll out a policy and score it (no proto written)")
+    wosac_common(v)
+    rollout_args(v)
+    v.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
+    v.add_argument("--json", default=None)
+    v.add_argument("--plot", default=None, help="PNG of log vs simulated feature histograms")
+    v.set_defaults(func=_cmd_evaluate)
+
+    pp = sub.add_parser("preprocess", help="build a sharded token cache for training")
+    pp.add_argument("sources", nargs="+", help="files / globs / folders, or generated:LAYOUTS:A-B")
+    pp.add_argument("--out", required=True)
+    pp.add_argument("--workers", type=int, default=2)
+    pp.add_argument("--shard-size", type=int, default=64)
+    pp.add_argument("--max-map-pieces", type=int, default=C.DEFAULT_MAX_MAP_PIECES)
+    pp.add_argument("--max-traffic-lights", type=int, default=C.DEFAULT_MAX_TRAFFIC_LIGHTS)
+    pp.add_argument("--max-agents", type=int, default=C.DEFAULT_MAX_AGENTS)
+    pp.add_argument("--eval-split", action="store_true", help="validation/test agent filters")
+    pp.add_argument("--exclude", nargs="*", help="scenario ids to hold out")
+    pp.set_defaults(func=_cmd_preprocess)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     np.set_printoptions(precision=3)
+    if args.command != "train":
+        # Small tensor work: extra intra-op threads only add wake-up latency.
+        import torch
+
+        torch.set_num_threads(1)
     try:
         return int(args.func(args) or 0)
     except (TbsimError, FileNotFoundError, ValueError) as err:

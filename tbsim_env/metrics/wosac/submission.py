@@ -52,7 +52,7 @@ def write_submission(
 ) -> None:
     """Write a submission as raw serialized bytes (parent folders must exist)."""
     with open(path, "wb") as f:
-        f.write(submission.SerializeToString())
+        f.write(submission.SerializeToString(deterministic=True))
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,238 @@
+"""Sharded on-disk cache of preprocessed scenarios (``SceneTokens``) for training.
+
+Layout of a cache folder::
+
+    manifest.json        {"format": "tbsim-tokens-v1", "token_config": {...},
+                          "shards": [{"file": "shard-00000.safetensors", "count": 64}, ...],
+                          "scenario_ids": [...], "sources": [...]}
+    shard-00000.safetensors
+    ...
+
+Each shard is one safetensors file (no pickle): the arrays of scene i are stored under the keys
+``"{i}.{field}"``, the scenario ids in the file metadata. ``TokenCache`` is a
+``torch.utils.data.Dataset`` over the whole folder that keeps the last shard it read in memory,
+so a sequential or shard-grouped sampler reads each file once per epoch.
+
+``build_cache`` fills a folder from WOMD TFRecords, GPUDrive JSON or the procedural generator with
+several worker processes and a progress bar.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import multiprocessing as mp
+import re
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from safetensors import safe_open
+from safetensors.numpy import save_file
+from tqdm import tqdm
+
+from tbsim_env.config import TokenConfig
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.data.tokens import SceneTokens
+
+FORMAT = "tbsim-tokens-v1"
+_ARRAY_FIELDS = tuple(f.name for f in dataclasses.fields(SceneTokens) if f.name != "scenario_id")
+_GENERATED = re.compile(r"^generated:(?P<layouts>[a-z_,]+):(?P<start>\d+)-(?P<stop>\d+)$")
+
+
+class CacheError(ValueError):
+    """A cache folder or shard is missing, corrupt or of another format."""
+
+
+def write_shard(tokens: Sequence[SceneTokens], path: str | Path) -> None:
+    """Write scenes to one safetensors shard."""
+    arrays: dict[str, np.ndarray] = {}
+    for i, t in enumerate(tokens):
+        for name in _ARRAY_FIELDS:
+            arrays[f"{i}.{name}"] = np.ascontiguousarray(getattr(t, name))
+    meta = {"format": FORMAT, "count": str(len(tokens))}
+    meta["scenario_ids"] = json.dumps([t.scenario_id for t in tokens])
+    save_file(arrays, str(path), metadata=meta)
+
+
+def read_shard(path: str | Path) -> list[SceneTokens]:
+    """Read every scene of a shard (arrays are numpy, fields checked)."""
+    path = Path(path)
+    try:
+        with safe_open(str(path), framework="numpy") as f:
+            meta = f.metadata() or {}
+            if meta.get("format") != FORMAT:
+                raise CacheError(f"{path}: not a {FORMAT} shard (metadata {meta.get('format')!r})")
+            ids = json.loads(meta["scenario_ids"])
+            out = []
+            for i, sid in enumerate(ids):
+                fields = {name: f.get_tensor(f"{i}.{name}") for name in _ARRAY_FIELDS}
+                out.append(SceneTokens(scenario_id=sid, **fields))
+            return out
+    except CacheError:
+        raise
+    except Exception as err:  # safetensors raises several exception types on damaged files
+        raise CacheError(f"{path}: cannot read shard: {err}") from err
+
+
+def parse_generated(spec: str) -> list[tuple[str, int]]:
+    """``"generated:intersection,merge:0-99"`` -> [(layout, seed), ...], layouts alternating."""
+    m = _GENERATED.match(spec)
+    if not m:
+        raise ValueError(
+            f"bad generator source {spec!r}; use e.g. generated:intersection,merge:0-99"
+        )
+    layouts = m["layouts"].split(",")
+    return [(layouts[s % len(layouts)], s) for s in range(int(m["start"]), int(m["stop"]) + 1)]
+
+
+def _iter_sources(sources: Sequence[str]) -> Iterator[Scenario | tuple[str, int]]:
+    from tbsim_env.data.loader import iter_scenarios
+
+    for src in sources:
+        if str(src).startswith("generated:"):
+            yield from parse_generated(str(src))
+        else:
+            yield from iter_scenarios(src)
+
+
+def _work(item: Scenario | tuple[str, int], cfg: TokenConfig) -> SceneTokens | str:
+    from tbsim_env.data.preprocess import preprocess_scenario
+
+    try:
+        if isinstance(item, tuple):
+            from tbsim_env.data.generator import generate_scenario
+
+            item = generate_scenario(item[0], item[1])
+        return preprocess_scenario(item, cfg)
+    except ValueError as err:  # e.g. too many relevant agents for the limit
+        sid = item.scenario_id if isinstance(item, Scenario) else str(item)
+        return f"skipped {sid}: {err}"
+
+
+def _work_star(args):
+    return _work(*args)
+
+
+def build_cache(
+    sources: Sequence[str],
+    out: str | Path,
+    *,
+    cfg: TokenConfig | None = None,
+    workers: int = 2,
+    shard_size: int = 64,
+    exclude_ids: Sequence[str] = (),
+    progress: bool = True,
+) -> dict:
+    """Preprocess scenarios into a cache folder.
+
+    Args:
+        sources: TFRecord / JSON paths, globs or folders, or ``generated:LAYOUTS:A-B`` specs.
+        out: cache folder (created; an existing manifest is replaced).
+        cfg: token limits (stored in the manifest).
+        workers: worker processes (1 = in this process).
+        shard_size: scenes per shard.
+        exclude_ids: scenario ids to leave out (held-out sets).
+        progress: show a tqdm bar.
+
+    Returns:
+        The manifest (also written to ``out/manifest.json``).
+    """
+    cfg = cfg or TokenConfig(training=True)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    excluded = set(exclude_ids)
+    items = (
+        x
+        for x in _iter_sources(sources)
+        if not (isinstance(x, Scenario) and x.scenario_id in excluded)
+    )
+    shards, ids, buffer, skipped = [], [], [], []
+
+    def flush() -> None:
+        if not buffer:
+            return
+        name = f"shard-{len(shards):05d}.safetensors"
+        write_shard(buffer, out / name)
+        shards.append({"file": name, "count": len(buffer)})
+        buffer.clear()
+
+    bar = tqdm(desc="preprocess", unit="scenario", disable=not progress)
+    if workers > 1:
+        ctx = mp.get_context("spawn")
+        with ctx.Pool(workers) as pool:
+            results = pool.imap(_work_star, ((x, cfg) for x in items), chunksize=4)
+            for res in results:
+                _collect(res, buffer, ids, skipped, excluded)
+                bar.update(1)
+                if len(buffer) >= shard_size:
+                    flush()
+    else:
+        for x in items:
+            _collect(_work(x, cfg), buffer, ids, skipped, excluded)
+            bar.update(1)
+            if len(buffer) >= shard_size:
+                flush()
+    flush()
+    bar.close()
+    manifest = {
+        "format": FORMAT,
+        "token_config": dataclasses.asdict(cfg),
+        "shards": shards,
+        "scenario_ids": ids,
+        "sources": [str(s) for s in sources],
+        "excluded": sorted(excluded),
+        "skipped": skipped,
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    return manifest
+
+
+def _collect(res, buffer: list, ids: list, skipped: list, excluded: set) -> None:
+    if isinstance(res, str):
+        skipped.append(res)
+    elif res.scenario_id not in excluded:
+        buffer.append(res)
+        ids.append(res.scenario_id)
+
+
+@dataclass
+class TokenCache:
+    """Map-style dataset over a cache folder; item i is a ``SceneTokens``.
+
+    Attributes:
+        root: the folder.
+    """
+
+    root: Path
+
+    def __post_init__(self) -> None:
+        self.root = Path(self.root)
+        path = self.root / "manifest.json"
+        if not path.exists():
+            raise CacheError(f"{self.root}: no manifest.json (build it with `tbsim preprocess`)")
+        self.manifest = json.loads(path.read_text())
+        if self.manifest.get("format") != FORMAT:
+            raise CacheError(f"{path}: format {self.manifest.get('format')!r}, expected {FORMAT}")
+        counts = [s["count"] for s in self.manifest["shards"]]
+        self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        self._loaded: tuple[int, list[SceneTokens]] | None = None
+
+    def __len__(self) -> int:
+        return int(self._starts[-1])
+
+    @property
+    def scenario_ids(self) -> list[str]:
+        return list(self.manifest["scenario_ids"])
+
+    def shard_of(self, index: int) -> int:
+        return int(np.searchsorted(self._starts, index, side="right") - 1)
+
+    def __getitem__(self, index: int) -> SceneTokens:
+        if not 0 <= index < len(self):
+            raise IndexError(f"index {index} outside [0, {len(self)})")
+        k = self.shard_of(index)
+        if self._loaded is None or self._loaded[0] != k:
+            self._loaded = (k, read_shard(self.root / self.manifest["shards"][k]["file"]))
+        return self._loaded[1][index - int(self._starts[k])]

@@ -1,0 +1,226 @@
+"""Realism evaluation of policies: WOSAC rollouts, submissions, scores and histogram plots.
+
+The functions behind ``tbsim export-wosac``, ``tbsim wosac-score`` and ``tbsim evaluate``.
+Every policy is rolled out by the same closed-loop simulator (``tbsim_env.sim.rollout``),
+except the official linear-extrapolation baseline, which is a formula, and exact log replay.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.metrics.wosac import (
+    Rollouts,
+    ScenarioScores,
+    SubmissionMetadata,
+    build_submission,
+    rollouts_to_proto,
+    score_scenario,
+    write_submission,
+)
+from tbsim_env.sim.rollout import linear_extrapolation_rollouts, simulate_rollouts
+
+WOSAC_POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
+"""Policy names the evaluation commands accept."""
+
+
+def scenario_seed(seed: int, scenario_id: str) -> int:
+    """Per-scenario seed: the same whatever the order or subset of scenarios evaluated."""
+    return (int(seed) * 1_000_003 + zlib.crc32(scenario_id.encode())) % (2**31)
+
+
+def make_rollout_fn(
+    policy: str, *, checkpoint: str | None = None, device: str = "cpu"
+) -> Callable[[Scenario, int, int], Rollouts]:
+    """A function ``(scenario, num_rollouts, seed) -> Rollouts`` for a policy name."""
+    if policy == "linear_extrapolation":
+        return lambda sc, n, seed: linear_extrapolation_rollouts(sc, num_rollouts=n, seed=seed)
+    if policy == "trafficbots":
+        from policies.trafficbots.wosac import trafficbots_rollout_fn
+
+        return trafficbots_rollout_fn(checkpoint=checkpoint, device=device)
+    if policy not in WOSAC_POLICIES:
+        raise ValueError(f"unknown policy {policy!r}; choose from {', '.join(WOSAC_POLICIES)}")
+    from policies import make_policy
+
+    pol = make_policy(policy)
+    return lambda sc, n, seed: simulate_rollouts(sc, pol, num_rollouts=n, seed=seed, device=device)
+
+
+def iter_rollouts(
+    scenarios: Iterable[Scenario],
+    policy: str,
+    *,
+    num_rollouts: int = 32,
+    seed: int = 0,
+    checkpoint: str | None = None,
+    device: str = "cpu",
+    progress: bool = True,
+    total: int | None = None,
+):
+    """Yield ``(scenario, rollouts)`` for every scenario, with a progress bar."""
+    fn = make_rollout_fn(policy, checkpoint=checkpoint, device=device)
+    for sc in tqdm(
+        scenarios, desc=f"rollouts {policy}", unit="scenario", disable=not progress, total=total
+    ):
+        yield sc, fn(sc, num_rollouts, scenario_seed(seed, sc.scenario_id))
+
+
+def export_submission(
+    scenarios: Sequence[Scenario],
+    policy: str,
+    out: str | Path,
+    *,
+    num_rollouts: int = 32,
+    seed: int = 0,
+    checkpoint: str | None = None,
+    metadata: SubmissionMetadata | None = None,
+    device: str = "cpu",
+) -> int:
+    """Write a ``SimAgentsChallengeSubmission`` of the scenarios' rollouts; returns their count."""
+    metadata = metadata or SubmissionMetadata(
+        account_name="tbsim",
+        unique_method_name=f"tbsim-{policy}",
+        description=f"tbsim {policy} closed-loop rollouts",
+        num_model_parameters="0",
+        acknowledge_complies_with_closed_loop_requirement=True,
+    )
+    protos = [
+        rollouts_to_proto(r)
+        for _, r in iter_rollouts(
+            scenarios,
+            policy,
+            num_rollouts=num_rollouts,
+            seed=seed,
+            checkpoint=checkpoint,
+            device=device,
+            total=len(scenarios),
+        )
+    ]
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    write_submission(out, build_submission(protos, metadata))
+    return len(protos)
+
+
+def evaluate_policy(
+    scenarios: Sequence[Scenario],
+    policy: str,
+    *,
+    num_rollouts: int = 32,
+    seed: int = 0,
+    version: str = "wosac2025",
+    checkpoint: str | None = None,
+    device: str = "cpu",
+    keep_rollouts: bool = False,
+) -> tuple[list[ScenarioScores], list[Rollouts]]:
+    """Roll out and score every scenario (no proto written)."""
+    scores, kept = [], []
+    for sc, r in iter_rollouts(
+        scenarios,
+        policy,
+        num_rollouts=num_rollouts,
+        seed=seed,
+        checkpoint=checkpoint,
+        device=device,
+        total=len(scenarios),
+    ):
+        scores.append(score_scenario(sc, r, version))
+        if keep_rollouts:
+            kept.append(r)
+    return scores, kept
+
+
+# ----------------------------------------------------------------------------- histograms
+HISTOGRAM_FEATURES = (
+    ("linear_speed", "linear speed (m/s)"),
+    ("linear_acceleration", "linear acceleration (m/s^2)"),
+    ("angular_speed", "angular speed (rad/s)"),
+    ("angular_acceleration", "angular acceleration (rad/s^2)"),
+    ("distance_to_nearest_object", "distance to nearest object (m)"),
+    ("time_to_collision", "time to collision (s)"),
+    ("distance_to_road_edge", "distance to road edge (m)"),
+)
+
+
+def feature_samples(scenario: Scenario, rollouts: Rollouts) -> dict[str, tuple[np.ndarray, ...]]:
+    """Log and simulated values of every histogram feature over the log-valid future steps.
+
+    Returns:
+        {feature: (log values [k], simulated values [R * k])}, NaNs removed.
+    """
+    from tbsim_env.metrics.wosac.features import compute_metric_features
+    from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_light_map
+    from tbsim_env.metrics.wosac.trajectories import (
+        concat_rollouts,
+        log_trajectories,
+        select_objects,
+        simulated_trajectories,
+    )
+
+    first = scenario.current_index + 1
+    objects = select_objects(scenario)
+    log = log_trajectories(scenario, objects, "cpu")
+    sim = simulated_trajectories(log, objects, rollouts, scenario.current_index)
+    feats = compute_metric_features(
+        concat_rollouts(log, sim), road_edge_segments(scenario), traffic_light_map(scenario), first
+    )
+    valid = log.valid[0, : objects.num_eval, first:]
+    out = {}
+    for name, _ in HISTOGRAM_FEATURES:
+        values = getattr(feats, name)  # [1 + R, E, S]
+        lv = values[0][valid].numpy()
+        sv = values[1:][valid.expand(values.shape[0] - 1, -1, -1)].numpy()
+        out[name] = (lv[np.isfinite(lv)], sv[np.isfinite(sv)])
+    return out
+
+
+def plot_histograms(
+    samples: dict[str, list[tuple[np.ndarray, np.ndarray]]], path: str | Path, title: str = ""
+) -> None:
+    """One panel per feature: log (filled) vs simulation (outline) density, to a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 4, figsize=(16, 7))
+    for ax, (name, label) in zip(axes.flat, HISTOGRAM_FEATURES):
+        logs = np.concatenate([s[0] for s in samples[name]]) if samples[name] else np.zeros(0)
+        sims = np.concatenate([s[1] for s in samples[name]]) if samples[name] else np.zeros(0)
+        both = np.concatenate([logs, sims])
+        both = both[np.abs(both) < 1e9]
+        if both.size == 0:
+            ax.set_title(f"{label}\n(no samples)")
+            continue
+        lo, hi = np.percentile(both, [1, 99])
+        bins = np.linspace(lo, hi if hi > lo else lo + 1.0, 40)
+        ax.hist(logs, bins=bins, density=True, alpha=0.5, label="log", color="tab:blue")
+        ax.hist(
+            sims, bins=bins, density=True, histtype="step", lw=2, label="sim", color="tab:orange"
+        )
+        ax.set_title(label)
+    axes.flat[-1].axis("off")
+    axes.flat[0].legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+__all__ = [
+    "HISTOGRAM_FEATURES",
+    "WOSAC_POLICIES",
+    "evaluate_policy",
+    "export_submission",
+    "feature_samples",
+    "iter_rollouts",
+    "make_rollout_fn",
+    "plot_histograms",
+    "scenario_seed",
+]
