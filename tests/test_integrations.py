@@ -107,28 +107,61 @@ def test_stable_baselines3_ppo_learns_a_few_hundred_steps(scenes, tmp_path):
     assert env.action_space.contains(action.astype(np.float32))
 
 
+def test_supersuit_stable_baselines3_vec_env(scenes):
+    pytest.importorskip("supersuit")
+    pytest.importorskip("stable_baselines3")
+    from stable_baselines3.common.vec_env import VecEnv
+
+    from tbsim_env.integrations.supersuit import make_vec_env
+
+    vec = make_vec_env(2, "stable_baselines3", scenarios=scenes[:1], controlled="tracks_to_predict")
+    assert isinstance(vec, VecEnv)
+    sc = scenes[0]
+    q = len({int(i) for i in sc.tracks_to_predict} | {sc.sdc_index})  # agent slots
+    assert vec.num_envs == 2 * q
+    obs = vec.reset()
+    obs, rew, dones, infos = vec.step(np.zeros((vec.num_envs, 2), np.float32))
+    assert obs.shape[0] == rew.shape[0] == 2 * q and not dones.any()
+    vec.close()
+
+
+def test_rllib_all_flag_when_agents_end_differently():
+    pytest.importorskip("ray.rllib", reason="ray[rllib] is not installed (the 'rl' extra)")
+    from tbsim_env.integrations.rllib import make_rllib_env
+
+    env = make_rllib_env({"num_default_scenes": 1, "npc_policy": "log_replay"})
+    par = env.par_env
+    obs, _ = env.reset(seed=0)
+    for _ in range(100):
+        # agent_0 follows its log to its goal (terminated); the others keep their speed and
+        # are truncated at the end of the log. RLlib's own wrapper never ends this episode.
+        acts = {a: np.zeros(2, np.float32) for a in obs}
+        expert = par.env.expert_actions()
+        acts["agent_0"] = expert.get(par._slot_agent["agent_0"], np.zeros(2, np.float32))
+        obs, rew, term, trunc, _ = env.step(acts)
+        if term["__all__"] or trunc["__all__"]:
+            break
+    assert term["__all__"] or trunc["__all__"], "the episode never ended for RLlib"
+    slots = [a for a in term if a != "__all__"]
+    assert all(term[a] or trunc[a] for a in slots)
+    assert term["agent_0"] and any(trunc[a] for a in slots)  # a mixed ending
+
+
 @pytest.mark.slow
 def test_rllib_multi_agent_ppo_two_env_runners():
     pytest.importorskip("ray.rllib", reason="ray[rllib] is not installed (the 'rl' extra)")
     import ray
     from ray.rllib.algorithms.ppo import PPOConfig
-    from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
     from ray.tune.registry import register_env
 
-    def make(_config):
-        scenes = default_scenarios(1)
-        return ParallelPettingZooEnv(
-            SlotAgentsParallelEnv(
-                scenes, controlled="tracks_to_predict", npc_policy="constant_velocity"
-            )
-        )
+    from tbsim_env.integrations.rllib import ENV_NAME, make_rllib_env
 
-    register_env("tbsim_slots", make)
+    register_env(ENV_NAME, make_rllib_env)
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False, ignore_reinit_error=True)
     try:
         config = (
             PPOConfig()
-            .environment("tbsim_slots")
+            .environment(ENV_NAME, env_config={"num_default_scenes": 1})
             .env_runners(num_env_runners=2, rollout_fragment_length=50, num_cpus_per_env_runner=1)
             .multi_agent(
                 policies={"shared"}, policy_mapping_fn=lambda agent_id, *args, **kw: "shared"
@@ -138,8 +171,10 @@ def test_rllib_multi_agent_ppo_two_env_runners():
         )
         algo = config.build_algo()
         result = algo.train()
-        runners = result["env_runners"]
-        assert runners["num_env_steps_sampled"] >= 200
+        assert result["env_runners"]["num_env_steps_sampled"] >= 100  # 2 runners x 50
+        assert result["env_runners"]["num_agent_steps_sampled"]["shared"] >= 200  # noqa
+        learner = result["learners"]["shared"]
+        assert np.isfinite(learner["total_loss"])
         algo.stop()
     finally:
         ray.shutdown()
