@@ -213,6 +213,12 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train(args: argparse.Namespace) -> int:
+    from policies.trafficbots.train import main as train_main
+
+    return train_main(args.args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="tbsim", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -281,6 +287,14 @@ def build_parser() -> argparse.ArgumentParser:
     pp.add_argument("--eval-split", action="store_true", help="validation/test agent filters")
     pp.add_argument("--exclude", nargs="*", help="scenario ids to hold out")
     pp.set_defaults(func=_cmd_preprocess)
+
+    t = sub.add_parser(
+        "train",
+        help="train TrafficBots V1.5 on a token cache (see policies.trafficbots.train)",
+        add_help=False,
+    )
+    t.add_argument("args", nargs=argparse.REMAINDER)
+    t.set_defaults(func=_cmd_train)
     return p
 
 
