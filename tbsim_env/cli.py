@@ -299,6 +299,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["train"]:  # the trainer owns its own argument parser
+        from policies.trafficbots.train import main as train_main
+
+        return train_main(argv[1:])
     args = build_parser().parse_args(argv)
     np.set_printoptions(precision=3)
     if args.command != "train":
