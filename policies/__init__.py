@@ -8,9 +8,25 @@ from policies.base import Policy, PolicyState
 from policies.constant_velocity import ConstantVelocityPolicy
 from policies.log_replay import LogReplayPolicy
 
+
+def _trafficbots(checkpoint: str | None = None, device: str = "cpu", **kwargs) -> Policy:
+    """TrafficBots V1.5 from a checkpoint, or the shipped weights when none is given."""
+    from policies.trafficbots.checkpoint import load_checkpoint
+    from policies.trafficbots.policy import TrafficBotsPolicy
+    from policies.trafficbots.wosac import load_default_model
+
+    model = (
+        load_checkpoint(checkpoint, map_location=device)
+        if checkpoint
+        else load_default_model(device)
+    )
+    return TrafficBotsPolicy(model, **kwargs)
+
+
 _REGISTRY: dict[str, Callable[..., Policy]] = {
     "log_replay": LogReplayPolicy,
     "constant_velocity": ConstantVelocityPolicy,
+    "trafficbots": _trafficbots,
 }
 
 

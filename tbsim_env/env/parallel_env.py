@@ -142,6 +142,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
         torch_threads: intra-op threads used inside ``reset`` / ``step`` (the caller's setting
             is restored afterwards); 1 is fastest for one scenario on CPU; None leaves torch's
             setting alone.
+        npc_checkpoint: TrafficBots checkpoint for ``npc_policy="trafficbots"`` (default: the
+            shipped weights).
     """
 
     metadata = {
@@ -163,6 +165,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         device: str | torch.device = "cpu",
         scenario_order: str = "cycle",
         torch_threads: int | None = 1,
+        npc_checkpoint: str | None = None,
     ) -> None:
         EzPickle.__init__(
             self,
@@ -175,6 +178,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             device=device,
             scenario_order=scenario_order,
             torch_threads=torch_threads,
+            npc_checkpoint=npc_checkpoint,
         )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode={render_mode!r}; supported: None, 'rgb_array'")
@@ -188,7 +192,10 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.torch_threads = torch_threads
         self.scenarios = resolve_scenarios(scenarios)
         self.controlled_spec = controlled
-        self.npc_policy = make_policy(npc_policy)
+        kwargs = {"checkpoint": npc_checkpoint} if npc_checkpoint else {}
+        if npc_policy == "trafficbots":
+            kwargs["device"] = str(self.device)
+        self.npc_policy = make_policy(npc_policy, **kwargs)
         start = self.config.start_step
         self._controlled: list[list[int]] = []
         names: dict[str, None] = {}

@@ -1,0 +1,108 @@
+"""TrafficBots V1.5 rollouts for WOSAC (spec section 7): sample N, keep the K least colliding.
+
+Agents the policy simulates are the (at most 64) agents preprocessing selects; every other sim
+agent (valid at the current step) follows the spec's constant-velocity extrapolation from its
+last two history steps (held still if the step before is invalid). z is held at its current
+value. Deviation from the spec: an agent the model disables mid-rollout (it left the map
+boundary) keeps its last pose instead of jumping to the scene origin (spec 8, quirk 3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from policies.trafficbots.checkpoint import load_checkpoint
+from policies.trafficbots.inference import sample_rollouts
+from policies.trafficbots.model import TrafficBots
+from tbsim_env.config import TokenConfig
+from tbsim_env.data.preprocess import preprocess_scenario
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.metrics.wosac.rollouts import Rollouts
+
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "trafficbots_small"
+"""Base path of the shipped checkpoint (``.safetensors`` + ``.json``)."""
+
+
+def load_default_model(device: str | torch.device = "cpu") -> TrafficBots:
+    """The shipped pretrained model (raises ``FileNotFoundError`` naming the path if absent)."""
+    if not DEFAULT_WEIGHTS.with_suffix(".safetensors").exists():
+        raise FileNotFoundError(
+            f"no shipped TrafficBots weights at {DEFAULT_WEIGHTS}.safetensors; pass a checkpoint"
+        )
+    return load_checkpoint(DEFAULT_WEIGHTS, map_location=device)
+
+
+def trafficbots_rollouts(
+    model: TrafficBots,
+    scenario: Scenario,
+    *,
+    num_rollouts: int = 32,
+    num_samples: int = 128,
+    seed: int = 0,
+    token_config: TokenConfig | None = None,
+) -> Rollouts:
+    """``num_rollouts`` joint futures of every sim agent (``num_samples`` sampled, best kept)."""
+    tokens = preprocess_scenario(scenario, token_config or TokenConfig())
+    gen = torch.Generator(device=model.device).manual_seed(int(seed))
+    samples = sample_rollouts(
+        model, tokens, n=max(num_samples, num_rollouts), k=num_rollouts, generator=gen
+    )
+    t0 = scenario.current_index
+    tr = scenario.tracks
+    sim = np.flatnonzero(tr.valid[:, t0])
+    n_fut = scenario.num_steps - 1 - t0
+    # Constant-velocity extrapolation for every sim agent (spec 7.4), then overwrite the
+    # agents the model simulated.
+    p10 = tr.xyz[sim, t0].astype(np.float64)
+    ok9 = tr.valid[sim, t0 - 1] if t0 > 0 else np.zeros(len(sim), bool)
+    step = np.where(ok9[:, None], p10 - tr.xyz[sim, max(t0 - 1, 0)], 0.0)
+    k = np.arange(1, n_fut + 1, dtype=np.float64)
+    xy = p10[None, :, None, :2] + k[None, None, :, None] * step[None, :, None, :2]
+    xy = np.repeat(xy, num_rollouts, axis=0)  # [R, A, S, 2]
+    heading = np.repeat(np.repeat(tr.heading[sim, t0][None, :, None], n_fut, 2), num_rollouts, 0)
+    pose = samples.pose[0].cpu().numpy().astype(np.float64)  # [R, N, T, 3] token frame
+    valid = samples.valid[0].cpu().numpy()
+    track_row = {int(r): j for j, r in enumerate(sim)}
+    for n_idx, row in enumerate(tokens.agent_track_index):
+        j = track_row.get(int(row))
+        if j is None:
+            continue
+        fut_pose = pose[:, n_idx, t0 + 1 :]
+        fut_valid = valid[:, n_idx, t0 + 1 :]
+        # Hold the last valid pose where the model disabled the agent.
+        last = np.broadcast_to(pose[:, n_idx, t0][:, None], fut_pose.shape).copy()
+        for s in range(n_fut):
+            last[:, s] = np.where(fut_valid[:, s, None], fut_pose[:, s], last[:, max(s - 1, 0)])
+        xy[:, j] = last[..., :2] + tokens.origin
+        heading[:, j] = last[..., 2]
+    z = np.broadcast_to(tr.xyz[sim, t0, 2][None, :, None], (num_rollouts, len(sim), n_fut))
+    return Rollouts(
+        scenario_id=scenario.scenario_id,
+        object_id=torch.from_numpy(tr.id[sim]).long(),
+        x=torch.from_numpy(xy[..., 0]).float(),
+        y=torch.from_numpy(xy[..., 1]).float(),
+        z=torch.from_numpy(np.ascontiguousarray(z)).float(),
+        heading=torch.from_numpy(np.ascontiguousarray(heading)).float(),
+    )
+
+
+def trafficbots_rollout_fn(
+    *, checkpoint: str | None = None, device: str = "cpu", num_samples: int = 128
+) -> Callable[[Scenario, int, int], Rollouts]:
+    """``(scenario, num_rollouts, seed) -> Rollouts`` with a loaded model (default: shipped)."""
+    model = (
+        load_checkpoint(checkpoint, map_location=device)
+        if checkpoint
+        else load_default_model(device)
+    )
+
+    def fn(scenario: Scenario, num_rollouts: int, seed: int) -> Rollouts:
+        return trafficbots_rollouts(
+            model, scenario, num_rollouts=num_rollouts, num_samples=num_samples, seed=seed
+        )
+
+    return fn
