@@ -162,19 +162,20 @@ def test_rllib_multi_agent_ppo_two_env_runners():
         config = (
             PPOConfig()
             .environment(ENV_NAME, env_config={"num_default_scenes": 1})
-            .env_runners(num_env_runners=2, rollout_fragment_length=50, num_cpus_per_env_runner=1)
+            .env_runners(num_env_runners=2, rollout_fragment_length=25, num_cpus_per_env_runner=1)
             .multi_agent(
                 policies={"shared"}, policy_mapping_fn=lambda agent_id, *args, **kw: "shared"
             )
-            .training(train_batch_size=200, minibatch_size=100, num_epochs=1)
+            .training(train_batch_size=100, minibatch_size=100, num_epochs=1)
             .learners(num_learners=0)
         )
         algo = config.build_algo()
         result = algo.train()
-        assert result["env_runners"]["num_env_steps_sampled"] >= 100  # 2 runners x 50
-        assert result["env_runners"]["num_agent_steps_sampled"]["shared"] >= 200  # noqa
+        assert result["env_runners"]["num_env_steps_sampled"] >= 100
+        sampled = result["env_runners"]["num_module_steps_sampled"]["shared"]
+        assert sampled >= 2 * 100  # every slot agent maps to the shared policy
         learner = result["learners"]["shared"]
-        assert np.isfinite(learner["total_loss"])
+        assert learner["num_module_steps_trained"] > 0 and np.isfinite(learner["total_loss"])
         algo.stop()
     finally:
         ray.shutdown()
