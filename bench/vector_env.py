@@ -8,6 +8,7 @@ generated scenes.
 
     python bench/vector_env.py [--npc-policy log_replay constant_velocity] \
         [--batch-sizes 1 16 64] [--controlled sdc] [--steps 200] [--threads N] [--device cpu]
+    python bench/vector_env.py --npc-policy trafficbots [--npc-checkpoint PATH]
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ def bench(
     steps: int,
     device: str,
     threads: int,
+    npc_kwargs: dict | None = None,
 ) -> tuple[float, float]:
     """(agent steps/s, batched env steps/s) over ``steps`` batched steps after a warm-up."""
     env = BatchedTrafficEnv(
@@ -57,6 +59,7 @@ def bench(
         batch,
         controlled=controlled,
         npc_policy=npc_policy,
+        npc_kwargs=npc_kwargs,
         device=device,
         seed=0,
         torch_threads=threads,
@@ -88,6 +91,7 @@ def main() -> None:
         default=["log_replay", "constant_velocity"],
         help="registered NPC policy names (e.g. trafficbots once it is registered)",
     )
+    p.add_argument("--npc-checkpoint", default=None, help="TrafficBots checkpoint (optional)")
     p.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16, 64])
     p.add_argument("--controlled", default="sdc", help="sdc | tracks_to_predict | all")
     p.add_argument("--steps", type=int, default=200, help="batched steps per measurement")
@@ -101,10 +105,22 @@ def main() -> None:
     )
     print(f"{'npc policy':<20} {'B':>4} {'agent steps/s':>14} {'env steps/s':>12}")
     for policy in args.npc_policy:
+        kwargs = {"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else None
         for b in args.batch_sizes:
-            asps, esps = bench(
-                scenarios, b, policy, args.controlled, args.steps, args.device, args.threads
-            )
+            try:
+                asps, esps = bench(
+                    scenarios,
+                    b,
+                    policy,
+                    args.controlled,
+                    args.steps,
+                    args.device,
+                    args.threads,
+                    kwargs,
+                )
+            except FileNotFoundError as e:  # e.g. TrafficBots without weights
+                print(f"{policy:<20} skipped: {e}")
+                break
             print(f"{policy:<20} {b:>4} {asps:>14,.0f} {esps:>12,.1f}", flush=True)
 
 

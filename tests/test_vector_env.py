@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from tbsim_env.config import EnvConfig, TerminationConfig
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.agent_metrics import Route
@@ -239,3 +240,35 @@ def test_take_and_put_rows_round_trip(scenes):
     assert torch.equal(copy.log.pose[2], state.log.pose[2])
     with pytest.raises(TypeError):
         take_rows(object(), rows)
+
+
+def test_stateful_npc_policy_resets_one_slot_without_touching_the_others(scenes):
+    """TrafficBots NPCs (random small model): a slot restart leaves the other slots' NPCs alone."""
+    from policies.trafficbots.config import TrafficBotsConfig
+    from policies.trafficbots.model import TrafficBots
+    from policies.trafficbots.policy import TrafficBotsPolicy
+
+    torch.manual_seed(0)
+    policy = TrafficBotsPolicy(TrafficBots(TrafficBotsConfig.small()))
+
+    def run(crash: bool):
+        cfg = EnvConfig(termination=TerminationConfig(offroad=True))
+        venv = BatchedTrafficEnv(scenes[:2], 2, npc_policy=policy, config=cfg, seed=0)
+        venv.reset(scenario_indices=[0, 1])
+        a = torch.zeros(2, 1, 2)
+        if crash:
+            a[0, 0] = torch.tensor([5.0, 1.5])  # slot 0 leaves the road and its episode ends
+        trace, restarts = [], 0
+        for _ in range(30):
+            obs, rew, *_, info = venv.step(a)
+            restarts += int(info["done"][0])
+            trace.append((obs["agents"][1].clone(), rew[1].clone()))
+        return trace, restarts, venv
+
+    calm, calm_restarts, _ = run(False)
+    crashed, restarts, venv = run(True)
+    assert calm_restarts == 0 and restarts >= 1
+    for (oa, ra), (ob, rb) in zip(calm, crashed):
+        torch.testing.assert_close(oa, ob, rtol=0, atol=1e-4)
+        torch.testing.assert_close(ra, rb, rtol=0, atol=1e-6)
+    assert venv._policy_state.rollout.hist_pose.shape[0] == 2

@@ -157,26 +157,43 @@ def take_rows(tree: Any, rows: torch.Tensor) -> Any:
     raise TypeError(f"cannot take rows of {type(tree).__name__}; use tensors and dataclasses")
 
 
-def put_rows(dst: Any, rows: torch.Tensor, src: Any) -> None:
-    """In place: ``dst_tensor[rows] = src_tensor`` for every tensor of two matching trees."""
+def put_rows(dst: Any, rows: torch.Tensor, src: Any, strict: bool = True) -> None:
+    """In place: ``dst_tensor[rows] = src_tensor`` for every tensor of two matching trees.
+
+    Args:
+        dst: tree (tensor, dataclass, dict, list, tuple) whose tensors have a leading batch.
+        rows: [R] int64 rows of ``dst`` to overwrite.
+        src: the same structure with R rows.
+        strict: raise on non-tensor leaves (other than None); when False they are kept as
+            in ``dst`` (batch-wide metadata such as a policy's step counter).
+
+    Raises:
+        ValueError: a tensor's trailing shape differs between the trees.
+        TypeError: the structures differ, or a non-tensor leaf with ``strict``.
+    """
     if dst is None and src is None:
         return
     if isinstance(dst, torch.Tensor):
         if not isinstance(src, torch.Tensor) or dst.shape[1:] != src.shape[1:]:
-            raise ValueError("put_rows: structures or shapes differ")
+            got = tuple(src.shape) if isinstance(src, torch.Tensor) else type(src).__name__
+            raise ValueError(f"put_rows: {tuple(dst.shape)} rows cannot take {got}")
         dst[rows] = src.to(dst.dtype)
         return
     if dataclasses.is_dataclass(dst) and not isinstance(dst, type):
+        if type(src) is not type(dst):
+            raise TypeError(f"put_rows: {type(dst).__name__} vs {type(src).__name__}")
         for f in dataclasses.fields(dst):
-            put_rows(getattr(dst, f.name), rows, getattr(src, f.name))
+            put_rows(getattr(dst, f.name), rows, getattr(src, f.name), strict)
         return
     if isinstance(dst, dict):
         for k in dst:
-            put_rows(dst[k], rows, src[k])
+            put_rows(dst[k], rows, src[k], strict)
         return
     if isinstance(dst, (list, tuple)):
         for a, b in zip(dst, src, strict=True):
-            put_rows(a, rows, b)
+            put_rows(a, rows, b, strict)
+        return
+    if not strict and type(src) is type(dst):
         return
     raise TypeError(f"cannot put rows into {type(dst).__name__}; use tensors and dataclasses")
 
@@ -238,9 +255,14 @@ class BatchedTrafficEnv:
         batch_size: B, number of scenario slots stepped at once.
         controlled: ``"sdc"``, ``"tracks_to_predict"``, ``"all"`` or a list of track ids.
             Scenarios where nothing is controllable are left out of the draw.
-        npc_policy: ``"log_replay"``, ``"constant_velocity"``, a registered name or a
-            ``Policy``. A stateful policy's state must be a tree (dataclass / dict / tuple)
-            of tensors with the batch as leading dimension so that one slot can be reset.
+        npc_policy: ``"log_replay"``, ``"constant_velocity"``, ``"trafficbots"``, a
+            registered name or a ``Policy``. A stateful policy's state must be a tree
+            (dataclass / dict / tuple) of tensors with the batch as leading dimension and
+            trailing shapes that do not depend on the batch's scenarios, so that one slot can
+            be reset by ``initial_state`` on that slot alone (other leaves are batch-wide
+            metadata and kept).
+        npc_kwargs: keyword arguments of the registered policy factory (e.g.
+            ``{"checkpoint": path}`` for ``"trafficbots"``; its ``device`` is set to ours).
         device: torch device of the simulation and of the returned tensors.
         config: episode, reward and termination settings (shared with ``TrafficEnv``).
         obs_config: observation sizes.
@@ -265,6 +287,7 @@ class BatchedTrafficEnv:
         *,
         controlled: ControlledSpec = "sdc",
         npc_policy: str | Policy = "log_replay",
+        npc_kwargs: dict[str, Any] | None = None,
         device: str | torch.device = "cpu",
         config: EnvConfig | None = None,
         obs_config: ObsConfig | None = None,
@@ -281,7 +304,10 @@ class BatchedTrafficEnv:
         self.device = torch.device(device)
         self.config = config or EnvConfig()
         self.obs_config = obs_config or ObsConfig()
-        self.npc_policy = make_policy(npc_policy)
+        kwargs = dict(npc_kwargs or {})
+        if npc_policy == "trafficbots":
+            kwargs.setdefault("device", str(self.device))
+        self.npc_policy = make_policy(npc_policy, **kwargs)
         self.route_points = int(route_points)
         self.route_spacing = float(route_spacing)
         self.torch_threads = torch_threads
@@ -475,7 +501,7 @@ class BatchedTrafficEnv:
                 fresh = self.npc_policy.initial_state(
                     sub, [self.scenarios[int(k)] for k in ks], self._generator
                 )
-                put_rows(self._policy_state, rows, fresh)
+                put_rows(self._policy_state, rows, fresh, strict=False)
         put_rows(self._history, rows, init_history(sub, self.obs_config.history))
         sub_route = take_rows(self._route, rows)
         metrics, cand = step_metrics(sub, self._ext[rows], sub_route)
