@@ -25,11 +25,17 @@ from tbsim_env.rendering import write_video
 MANOEUVRES = ("brake", "swerve", "accelerate")
 
 
-def scripted_action(manoeuvre: str, action_high: np.ndarray) -> np.ndarray:
-    """The takeover action (acceleration m/s^2, yaw rate rad/s) of a manoeuvre."""
+def scripted_action(manoeuvre: str, action_high: np.ndarray, speed: float) -> np.ndarray:
+    """The takeover action (acceleration m/s^2, yaw rate rad/s) of a manoeuvre.
+
+    Args:
+        manoeuvre: one of ``MANOEUVRES``.
+        action_high: [2] the agent's action limits.
+        speed: m/s, the agent's current signed speed (braking stops at 0, never reverses).
+    """
     acc, yaw = float(action_high[0]), float(action_high[1])
     if manoeuvre == "brake":
-        return np.array([-acc, 0.0], np.float32)
+        return np.array([-np.clip(speed / C.DT, -acc, acc), 0.0], np.float32)
     if manoeuvre == "swerve":
         return np.array([0.0, 0.3 * yaw], np.float32)
     if manoeuvre == "accelerate":
@@ -43,6 +49,7 @@ def main() -> None:
     p.add_argument("--scenario-index", type=int, default=0, help="which scenario of the file")
     p.add_argument("--controlled", default="sdc", help="sdc | tracks_to_predict | all | ids")
     p.add_argument("--npc-policy", default="constant_velocity", help="e.g. log_replay")
+    p.add_argument("--npc-checkpoint", default=None, help="TrafficBots checkpoint")
     p.add_argument("--takeover-s", type=float, default=3.0, help="seconds of expert driving")
     p.add_argument("--manoeuvre", choices=MANOEUVRES, default="brake")
     p.add_argument("--max-steps", type=int, default=80, help="steps to simulate (0.1 s each)")
@@ -56,9 +63,11 @@ def main() -> None:
         args.scenario,
         controlled=controlled,
         npc_policy=args.npc_policy,
+        npc_checkpoint=args.npc_checkpoint,
         render_mode="rgb_array",
     )
-    env.reset(seed=0, options={"scenario_index": args.scenario_index})
+    _, infos = env.reset(seed=0, options={"scenario_index": args.scenario_index})
+    speed = {a: float(info["speed"]) for a, info in infos.items()}
     print(
         f"scenario {env.scenario.scenario_id}: controlling {env.agents} "
         f"({args.manoeuvre} after {args.takeover_s:.1f} s), NPCs: {args.npc_policy}"
@@ -73,11 +82,13 @@ def main() -> None:
             actions = env.expert_actions()
         else:
             actions = {
-                a: scripted_action(args.manoeuvre, env.action_space(a).high) for a in env.agents
+                a: scripted_action(args.manoeuvre, env.action_space(a).high, speed[a])
+                for a in env.agents
             }
         _, rewards, terms, truncs, infos = env.step(actions)
         step += 1
         frames.append(env.render())
+        speed.update({a: float(info["speed"]) for a, info in infos.items()})
         for a, info in infos.items():
             if info["collision"]:
                 events.append(f"t={step * C.DT:.1f}s {a} collided")

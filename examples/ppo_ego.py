@@ -41,6 +41,7 @@ class Args:
         default="constant_velocity",
         metadata={"help": "NPC policy: constant_velocity | log_replay | trafficbots"},
     )
+    npc_checkpoint: str = field(default="", metadata={"help": "TrafficBots checkpoint"})
     total_timesteps: int = field(default=600_000, metadata={"help": "agent steps to train"})
     time_limit: float = field(default=0.0, metadata={"help": "stop after this many s (0: none)"})
     learning_rate: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
@@ -185,6 +186,7 @@ def main() -> None:
         args.num_envs,
         controlled="sdc",
         npc_policy=args.npc_policy,
+        npc_kwargs={"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else None,
         config=EnvConfig(),
         seed=args.seed,
         route_points=args.route_points,
