@@ -1,0 +1,103 @@
+"""TrafficBots V1.5 closed-loop step cost.
+
+For a config (``paper`` by default) on a real WOMD scenario (or a generated one without data),
+prints milliseconds per closed-loop step for 1 rollout and for R rollouts batched, the FLOPs of
+one step (counted by ``torch.utils.flop_counter``: matrix products, the bulk of the work), the
+achieved GFLOP/s, and a dense float32 matmul GFLOP/s measured in the same run as the machine's
+reference. Target on CPU: at least 30% of that reference.
+
+    python bench/policy_step.py [--config paper|small] [--rollouts 32] [--threads N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import torch
+from torch.utils.flop_counter import FlopCounterMode
+
+from policies.trafficbots import TokenBatch, TrafficBots, TrafficBotsConfig
+from tbsim_env.data.preprocess import preprocess_scenario
+
+DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
+
+
+def matmul_gflops(n: int = 1024, repeats: int = 10) -> float:
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    a @ b
+    t0 = time.perf_counter()
+    for _ in range(repeats):
+        a @ b
+    return 2 * n**3 * repeats / (time.perf_counter() - t0) / 1e9
+
+
+def step_cost(model: TrafficBots, batch: TokenBatch, rollouts: int, steps: int):
+    """(seconds per step, FLOPs per step) of ``model.step`` with ``rollouts`` rollouts."""
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        ctx = model.prepare(batch, rollouts, gen)
+        state = model.initial_state(ctx)
+        t = model.cfg.n_history - 1
+        pose = batch.ag_pose[:, :, t].repeat_interleave(rollouts, 0)
+        speed = batch.ag_motion[:, :, t, 0].repeat_interleave(rollouts, 0)
+        valid = batch.ag_valid[:, :, t].repeat_interleave(rollouts, 0)
+        tl = batch.tl_state[:, :, t].repeat_interleave(rollouts, 0)
+        for _ in range(model.cfg.n_history):  # fill the history window
+            _, state = model.step(ctx, state, pose, speed, valid, tl)
+        counter = FlopCounterMode(display=False)
+        with counter:
+            model.step(ctx, state, pose, speed, valid, tl)
+        flops = counter.get_total_flops()
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            _, state = model.step(ctx, state, pose, speed, valid, tl)
+        return (time.perf_counter() - t0) / steps, flops
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--config", default="paper", choices=("paper", "small"))
+    p.add_argument("--rollouts", type=int, default=32)
+    p.add_argument("--steps", type=int, default=3)
+    p.add_argument("--threads", type=int, default=torch.get_num_threads())
+    p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", DEFAULT_DATA))
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    path = Path(args.data) / "waymo-open-dataset" / "motion_data_one_scenario.tfrecord"
+    if path.exists():
+        from tbsim_env.data import load_scenarios
+
+        scenario, label = load_scenarios(path)[0], f"real {path.name}"
+    else:
+        from tbsim_env.data.generator import generate_scenario
+
+        scenario, label = generate_scenario("intersection", 0), "generated intersection"
+    tokens = preprocess_scenario(scenario)
+    batch = TokenBatch.from_tokens(tokens)
+    cfg = TrafficBotsConfig.paper() if args.config == "paper" else TrafficBotsConfig.small()
+    model = TrafficBots(cfg).eval()
+    n_ag = int(batch.ag_valid.any(-1).sum())
+    n_mp = int(batch.mp_valid[..., 0].sum())
+    n_tl = int((batch.tl_piece >= 0).sum())
+    print(
+        f"torch {torch.__version__}, {args.threads} threads; {label}: {n_ag} agents, "
+        f"{n_mp} map pieces, {n_tl} TL tokens; config {args.config} "
+        f"({model.num_parameters():,} parameters)"
+    )
+    ref = matmul_gflops()
+    print(f"reference dense fp32 matmul (1024^3): {ref:8.1f} GFLOP/s")
+    for r in (1, args.rollouts):
+        sec, flops = step_cost(model, batch, r, args.steps)
+        achieved = flops / sec / 1e9
+        print(
+            f"{r:3d} rollout(s): {sec * 1e3:9.1f} ms/step, {flops / 1e9:8.2f} GFLOP/step, "
+            f"{achieved:7.1f} GFLOP/s = {100 * achieved / ref:5.1f}% of the matmul reference"
+            f"   (target >= 30%)"
+        )
+
+
+if __name__ == "__main__":
+    main()
