@@ -7,6 +7,11 @@ produces.
 
 from __future__ import annotations
 
-from tbsim_env.data.generator.scenes import LAYOUTS, default_scenarios, generate_scenario
+from tbsim_env.data.generator.scenes import (
+    LAYOUTS,
+    default_scenarios,
+    generate_scenario,
+    training_mix,
+)
 
-__all__ = ["LAYOUTS", "default_scenarios", "generate_scenario"]
+__all__ = ["LAYOUTS", "default_scenarios", "generate_scenario", "training_mix"]

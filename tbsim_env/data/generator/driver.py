@@ -9,7 +9,16 @@ Each step a vehicle takes the lowest of these IDM accelerations:
 * stopping before a stop line, treated as a stationary leader, when the lane's signal is
   red, or yellow and the vehicle can stop comfortably, or when vehicles of another
   intersection approach are still in the box;
-* stopping before the conflict point of a merging lane until a gap is accepted.
+* stopping before the conflict point of a merging lane until a gap is accepted;
+* at an unsignalised junction (``RoadNetwork.junction``), stopping at the line until the
+  vehicle's connector is granted: stop-sign approaches first come to a full stop, lower
+  priority movements wait for an accepted time gap to higher priority traffic, and a
+  connector is never granted while a conflicting one is held by another vehicle.
+
+Drivers differ: each vehicle gets a personality in [-1 (timid), 1 (aggressive)] around a
+per-scene mean, which sets its desired speed, headway, standstill gap, acceleration,
+braking, reaction time at stop signs and accepted gap; vehicles are cars, vans and
+occasional trucks or buses (these keep to routes without sharp turns).
 
 The loop runs over time only; every per-vehicle operation is vectorised over vehicles.
 Units: metres, seconds, m/s, m/s^2.
@@ -23,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tbsim_env.constants import DT, SignalState
-from tbsim_env.data.generator.roads import RoadNetwork, signal_states
+from tbsim_env.data.generator.roads import STOP, RoadNetwork, connector_conflicts, signal_states
 from tbsim_env.data.generator.routes import RouteTable
 
 _BIG = 1.0e9
@@ -49,13 +58,31 @@ class DriverConfig:
         merge_front_gap: accepted merge gap ahead = this + 1.0 s * own speed, m.
         merge_rear_gap: accepted merge gap behind = this + 1.5 s * follower speed + 2 s *
             closing speed, m.
+        reaction: range of the dwell after a full stop before a vehicle may go, s.
+        gap_time: range of the accepted time gap to higher-priority traffic at a junction, s.
+        personality_mean: range of the per-scene mean personality (-1 timid, 1 aggressive).
+        personality_spread: standard deviation of the personality around the scene mean.
+        van_share: range of the per-scene share of vans (5-6.5 m).
+        truck_share: range of the per-scene share of trucks and buses (8-12 m).
+        straight_curvature: trucks and buses only take routes whose curvature stays below
+            this, 1/m.
+
+    All ranges are (timid end, aggressive end) ordered low to high; a vehicle's value is
+    placed in its range by its personality (70 %) and independent noise (30 %).
     """
 
     desired_speed: tuple[float, float]
-    time_headway: tuple[float, float] = (1.0, 1.8)
-    min_gap: tuple[float, float] = (2.0, 3.0)
-    max_accel: tuple[float, float] = (1.2, 2.0)
-    comfort_decel: tuple[float, float] = (1.5, 2.5)
+    time_headway: tuple[float, float] = (0.9, 2.2)
+    min_gap: tuple[float, float] = (1.8, 3.5)
+    max_accel: tuple[float, float] = (1.1, 2.4)
+    comfort_decel: tuple[float, float] = (1.5, 3.0)
+    reaction: tuple[float, float] = (0.4, 1.6)
+    gap_time: tuple[float, float] = (3.5, 6.5)
+    personality_mean: tuple[float, float] = (-0.35, 0.35)
+    personality_spread: float = 0.45
+    van_share: tuple[float, float] = (0.05, 0.2)
+    truck_share: tuple[float, float] = (0.0, 0.1)
+    straight_curvature: float = 0.02
     max_decel: float = 5.0
     lateral_accel: float = 2.0
     yellow_decel: float = 3.0
@@ -75,6 +102,9 @@ class Fleet:
         size: [N, 3] float64 (length, width, height) in metres.
         desired_speed, time_headway, min_gap, max_accel, comfort_decel: [N] float64 IDM
             parameters in SI units.
+        reaction: [N] float64 dwell after a full stop, s.
+        gap_time: [N] float64 accepted time gap to higher-priority traffic, s.
+        personality: [N] float64 in [-1 (timid), 1 (aggressive)].
     """
 
     route: np.ndarray
@@ -84,6 +114,14 @@ class Fleet:
     min_gap: np.ndarray
     max_accel: np.ndarray
     comfort_decel: np.ndarray
+    reaction: np.ndarray
+    gap_time: np.ndarray
+    personality: np.ndarray
+
+    @property
+    def is_long(self) -> np.ndarray:
+        """[N] bool, trucks and buses (longer than 7.5 m)."""
+        return self.size[:, 0] > 7.5
 
 
 @dataclass(frozen=True)
@@ -103,6 +141,15 @@ class DriveLog:
     alive: np.ndarray
 
 
+CAR_SIZE = (4.6, 1.9, 1.6)
+"""(length, width, height) in metres given to a truck slot that can only take turning routes."""
+
+
+def straight_routes(routes: RouteTable, cfg: DriverConfig) -> np.ndarray:
+    """[R] bool, routes that trucks and buses may take (no sharp turns)."""
+    return routes.curvature.max(axis=1) < cfg.straight_curvature
+
+
 def draw_fleet(
     routes: RouteTable,
     route_weights: np.ndarray,
@@ -110,24 +157,48 @@ def draw_fleet(
     cfg: DriverConfig,
     rng: np.random.Generator,
 ) -> Fleet:
-    """Draw ``n`` vehicles: route (by weight), size (cars, some vans) and IDM parameters."""
-    route = rng.choice(routes.num_routes, size=n, p=route_weights / route_weights.sum())
-    van = rng.random(n) < 0.08
-    length = np.where(van, rng.uniform(5.5, 6.5, n), rng.uniform(4.2, 5.1, n))
-    width = np.where(van, rng.uniform(2.1, 2.3, n), rng.uniform(1.8, 2.05, n))
-    height = np.where(van, rng.uniform(2.2, 2.8, n), rng.uniform(1.4, 1.8, n))
+    """Draw ``n`` vehicles: route (by weight), size and personality-driven IDM parameters.
 
-    def u(r: tuple[float, float]) -> np.ndarray:
-        return rng.uniform(r[0], r[1], n)
+    Sizes: cars (4.2-5.1 m), vans (5.0-6.5 m) and trucks/buses (8-12 m, slower and with
+    less acceleration) with per-scene shares from ``cfg``; trucks get straight routes only.
+    """
+    w = route_weights / route_weights.sum()
+    route = rng.choice(routes.num_routes, size=n, p=w)
+    mean = rng.uniform(*cfg.personality_mean)
+    pers = np.clip(rng.normal(mean, cfg.personality_spread, n), -1.0, 1.0)
+    kind = rng.random(n)
+    van_share, truck_share = rng.uniform(*cfg.van_share), rng.uniform(*cfg.truck_share)
+    straight = straight_routes(routes, cfg)
+    truck = (kind < truck_share) & straight.any()
+    van = ~truck & (kind < truck_share + van_share)
+    if truck.any():
+        ws = np.where(straight, w, 0.0)
+        bent = truck & ~straight[route]
+        route[bent] = rng.choice(routes.num_routes, size=int(bent.sum()), p=ws / ws.sum())
+    length = np.where(van, rng.uniform(5.0, 6.5, n), rng.uniform(4.2, 5.1, n))
+    width = np.where(van, rng.uniform(2.0, 2.3, n), rng.uniform(1.8, 2.05, n))
+    height = np.where(van, rng.uniform(1.9, 2.8, n), rng.uniform(1.4, 1.8, n))
+    length = np.where(truck, rng.uniform(8.0, 12.0, n), length)
+    width = np.where(truck, rng.uniform(2.4, 2.55, n), width)
+    height = np.where(truck, rng.uniform(3.0, 3.8, n), height)
 
+    def trait(r: tuple[float, float], sign: float) -> np.ndarray:
+        """Value in range r: higher for aggressive drivers if sign > 0, else lower."""
+        x = 0.5 + 0.5 * (0.7 * sign * pers + 0.3 * rng.uniform(-1.0, 1.0, n))
+        return r[0] + (r[1] - r[0]) * np.clip(x, 0.0, 1.0)
+
+    heavy = np.where(truck, 0.6, 1.0)
     return Fleet(
         route=route.astype(np.int64),
         size=np.stack([length, width, height], axis=1),
-        desired_speed=u(cfg.desired_speed),
-        time_headway=u(cfg.time_headway),
-        min_gap=u(cfg.min_gap),
-        max_accel=u(cfg.max_accel),
-        comfort_decel=u(cfg.comfort_decel),
+        desired_speed=trait(cfg.desired_speed, 1.0) * np.where(truck, 0.85, 1.0),
+        time_headway=trait(cfg.time_headway, -1.0),
+        min_gap=trait(cfg.min_gap, -1.0),
+        max_accel=trait(cfg.max_accel, 1.0) * heavy,
+        comfort_decel=trait(cfg.comfort_decel, 1.0) * np.where(truck, 0.8, 1.0),
+        reaction=trait(cfg.reaction, -1.0),
+        gap_time=trait(cfg.gap_time, -1.0),
+        personality=pers,
     )
 
 
@@ -154,6 +225,13 @@ class _Static:
     merge_prio: np.ndarray  # [R, L+1] merge-frame lane offsets of the yield lane for priority
     conflict_s: np.ndarray  # [R] route s of the merge conflict point for yielding routes
     yield_lane: np.ndarray  # [L+1] True for lanes that must yield
+    j_kind: np.ndarray  # [R] junction control of the route's approach, -1 if none
+    j_line: np.ndarray  # [R] route s of the junction stop line (inf if none)
+    j_exit: np.ndarray  # [R] route s where the route's connector ends (inf if none)
+    j_conn: np.ndarray  # [R] connector lane id of the route (0 if none)
+    j_in: np.ndarray  # [R] inbound lane id ending at the stop line (0 if none)
+    j_rank: np.ndarray  # [R] priority rank of the connector (0 highest)
+    conflict: np.ndarray  # [L+1, L+1] bool, connector lanes that conflict
 
 
 def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
@@ -191,7 +269,34 @@ def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
         merge_virtual[on_y, p] = off[on_y, y] + ll[y] - ll[p]
         conflict_s[on_y] = off[on_y, y] + m.conflict_s
         merge_prio[on_p, y] = off[on_p, p] + ll[p] - ll[y]
+    j_kind = np.full(n_r, -1, np.int64)
+    j_line = np.full(n_r, np.inf)
+    j_exit = np.full(n_r, np.inf)
+    j_conn = np.zeros(n_r, np.int64)
+    j_in = np.zeros(n_r, np.int64)
+    j_rank = np.zeros(n_r, np.int64)
+    conflict = np.zeros((n_l, n_l), bool)
+    if net.junction is not None:
+        conflict = connector_conflicts(net)
+        kinds = dict(zip(net.junction.lane_ids, net.junction.kind))
+        for r, path in enumerate(routes.lanes):
+            for k, lid in enumerate(path[:-1]):
+                if lid in kinds:
+                    conn = path[k + 1]
+                    j_kind[r] = kinds[lid]
+                    j_line[r] = off[r, lid] + ll[lid]
+                    j_exit[r] = off[r, conn] + ll[conn]
+                    j_conn[r], j_in[r] = conn, lid
+                    j_rank[r] = net.junction.rank[conn]
+                    break
     return _Static(
+        j_kind=j_kind,
+        j_line=j_line,
+        j_exit=j_exit,
+        j_conn=j_conn,
+        j_in=j_in,
+        j_rank=j_rank,
+        conflict=conflict,
         parent=parent,
         conn_arm=conn_arm,
         signal_row=signal_row,
@@ -202,6 +307,39 @@ def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
         conflict_s=conflict_s,
         yield_lane=yield_lane,
     )
+
+
+def _junction_blocked(
+    i: int,
+    conn: np.ndarray,
+    rank: np.ndarray,
+    waiting: np.ndarray,
+    ttl: np.ndarray,
+    gap_time: np.ndarray,
+    st: _Static,
+    held_conns: list[int],
+) -> bool:
+    """Whether vehicle i may not take its junction connector now.
+
+    Args:
+        i: vehicle index.
+        conn: [N] connector lane id of each vehicle's route (0 if none).
+        rank: [N] priority rank of that connector (0 highest).
+        waiting: [N] vehicles before their stop line without a grant.
+        ttl: [N] time to reach the stop line (inf for non-waiting vehicles), s.
+        gap_time: [N] accepted time gap of each driver, s.
+        st: static lookup tables (conflict matrix).
+        held_conns: connector lane ids held by granted vehicles.
+
+    Returns:
+        True when a conflicting connector is held, or a higher-ranked vehicle on a
+        conflicting connector reaches its line within vehicle i's accepted gap.
+    """
+    c = conn[i]
+    if st.conflict[c, held_conns].any():
+        return True
+    higher = waiting & (rank < rank[i]) & st.conflict[c, conn]
+    return bool((higher & (ttl < gap_time[i])).any())
 
 
 def _curve_accel(
@@ -264,7 +402,11 @@ def simulate(
     """
     st = _prepare(net, routes)
     n = fleet.route.shape[0]
-    length = fleet.size[:, 0]
+    size = fleet.size.copy()
+    length = size[:, 0]
+    straight = straight_routes(routes, cfg)
+    granted = np.zeros(n, bool)  # junction connector granted (or stop line passed)
+    stop_t = np.full(n, -1, np.int64)  # step of the full stop at a stop sign, -1 if none
     s = np.where(np.arange(n) < num_initial, s0, 0.0).astype(float)
     v = np.where(np.arange(n) < num_initial, v0, 0.0).astype(float)
     alive = np.arange(n) < num_initial
@@ -305,6 +447,11 @@ def simulate(
                 room = rear[j] - 0.5 * length[want] - fleet.min_gap[want]
                 v_new = min(v_new, v[j] + 1.0, max(room, 0.0) / fleet.time_headway[want])
             choices = np.flatnonzero(routes.source == src)
+            if length[want] > 7.5:
+                if straight[choices].any():
+                    choices = choices[straight[choices]]
+                else:
+                    size[want] = CAR_SIZE
             w = route_weights[choices]
             r[want] = choices[rng.choice(choices.size, p=w / w.sum())]
             s[want], v[want], alive[want] = 0.0, v_new, True
@@ -380,6 +527,49 @@ def simulate(
             wait = yielding & ~merge_ok
             stop_at = np.where(wait, np.minimum(stop_at, c_s), stop_at)
 
+        # ---------------------------------------------------------------- junction
+        creep = np.zeros(n, bool)
+        if net.junction is not None:
+            jr = alive & (st.j_kind[r] >= 0)
+            j_line = st.j_line[r]
+            granted |= jr & (front >= j_line)
+            held = jr & granted & (s - 0.5 * length < st.j_exit[r] + 1.0)
+            waiting = jr & ~granted
+            to_line = j_line - front
+            is_stop = st.j_kind[r] == STOP
+            zone = waiting & is_stop & (to_line < 3.5)
+            stop_t = np.where(zone & (v < 0.05) & (stop_t < 0), t, stop_t)
+            first = np.zeros(n, bool)
+            wi = np.flatnonzero(waiting)
+            if wi.size:
+                order = wi[np.lexsort((-front[wi], st.j_in[r[wi]]))]
+                lanes_o = st.j_in[r[order]]
+                first[order[np.concatenate([[True], lanes_o[1:] != lanes_o[:-1]])]] = True
+            dwell = (t - stop_t) * DT >= fleet.reaction
+            ready = first & is_stop & (stop_t >= 0) & dwell & (to_line < 3.5)
+            d_decide = v**2 / (2.0 * fleet.comfort_decel) + 4.0
+            major = first & ~is_stop
+            ready |= major & (to_line < d_decide)
+            rank, conn = st.j_rank[r], st.j_conn[r]
+            ttl = np.where(waiting, np.maximum(to_line, 0.0) / np.maximum(v, 0.5), np.inf)
+            held_conns = list(conn[held])
+
+            args = (conn, rank, waiting, ttl, fleet.gap_time, st)
+            cand = np.flatnonzero(ready)
+            arrival = np.where(stop_t >= 0, stop_t, t)
+            for i in cand[np.lexsort((cand, arrival[cand], rank[cand]))]:
+                if not _junction_blocked(i, *args, held_conns):
+                    granted[i] = True
+                    held_conns.append(conn[i])
+            # Priority approaches flow freely; they only brake for the line when blocked.
+            must = np.zeros(n, bool)
+            for i in np.flatnonzero(major & ~granted):
+                must[i] = _junction_blocked(i, *args, held_conns)
+            hold = jr & ~granted & (is_stop | must)
+            target = j_line + np.where(is_stop, fleet.min_gap - 1.0, 0.0)
+            stop_at = np.where(hold, np.minimum(stop_at, target), stop_at)
+            creep = hold & is_stop & (to_line < 3.5) & (v < 0.3)
+
         # ---------------------------------------------------------------- acceleration
         cap_here, a_curve = _curve_accel(routes, r, s, v, cfg.lateral_accel)
         v_des = np.minimum(fleet.desired_speed, cap_here)
@@ -388,6 +578,8 @@ def simulate(
         acc = np.minimum(acc, _idm(fleet, v, v_des, line_gap, np.zeros(n)))
         acc = np.where(a_curve < -0.3, np.minimum(acc, a_curve), acc)
         acc = np.clip(acc, -cfg.max_decel, fleet.max_accel)
+        # Come to a full stop at a stop sign (v reaches exactly 0).
+        acc = np.where(creep, np.minimum(acc, -v / DT), acc)
 
         out_s[:, t], out_v[:, t], out_alive[:, t] = s, v, alive
         v_new = np.maximum(v + acc * DT, 0.0)
@@ -397,5 +589,5 @@ def simulate(
         done |= gone
         alive &= ~gone
     return DriveLog(
-        fleet=dataclasses.replace(fleet, route=r), s=out_s, speed=out_v, alive=out_alive
+        fleet=dataclasses.replace(fleet, route=r, size=size), s=out_s, speed=out_v, alive=out_alive
     )

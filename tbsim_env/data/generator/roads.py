@@ -66,6 +66,43 @@ class Merge:
     conflict_s: float
 
 
+PRIORITY = 0
+"""``JunctionControl.kind`` of an approach with right of way (no sign, no full stop)."""
+STOP = 1
+"""``JunctionControl.kind`` of a stop-sign approach (full stop at the line, then yield)."""
+
+
+@dataclass(frozen=True)
+class JunctionControl:
+    """Right-of-way rules of an unsignalised junction.
+
+    Every controlled lane ends at a stop line where its connector lanes begin. A vehicle
+    crosses the line only once it has been granted its connector, which the driver does when
+    no conflicting connector is held (see ``connector_conflicts``) and, for a lower rank, no
+    higher-ranked vehicle is approaching within the driver's accepted time gap.
+
+    Attributes:
+        lane_ids: ids of the controlled inbound lanes, [J].
+        kind: ``PRIORITY`` or ``STOP`` per controlled lane, [J].
+        rank: priority rank of each connector lane id (dict lane id -> rank): 0 = major
+            through/right turn, 1 = major left turn (yields to oncoming rank 0), 2 = minor
+            road / stop sign (yields to ranks 0 and 1). Equal ranks go first come first
+            served.
+    """
+
+    lane_ids: tuple[int, ...]
+    kind: tuple[int, ...]
+    rank: dict[int, int]
+
+
+@dataclass(frozen=True)
+class StopSign:
+    """A stop sign: its position [2] (metres, at the kerb by the stop line) and lane ids."""
+
+    position: np.ndarray
+    lanes: tuple[int, ...]
+
+
 @dataclass(frozen=True)
 class SignalPlan:
     """Fixed-time signal plan: each phase gets green, then yellow, then an all-red clearance.
@@ -134,6 +171,8 @@ class RoadNetwork:
         signals: the signal plan, or None for an unsignalised layout.
         merges: lanes that must yield to another lane.
         half_extent: the map covers [-half_extent, half_extent]^2; objects leave beyond it.
+        junction: right-of-way rules of an unsignalised junction, or None.
+        stop_signs: stop signs (written as ``MapFeatureType.STOP_SIGN``).
     """
 
     layout: str
@@ -148,6 +187,8 @@ class RoadNetwork:
     signals: SignalPlan | None
     merges: tuple[Merge, ...]
     half_extent: float
+    junction: JunctionControl | None = None
+    stop_signs: tuple[StopSign, ...] = ()
 
     def lane(self, lane_id: int) -> Lane:
         """The lane with this id."""
@@ -187,15 +228,23 @@ def _link(
     )
 
 
-def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
-    """Signalised 4-way intersection of two roads with 2 lanes per direction.
+def _build_junction(
+    layout: str, arms: tuple[int, ...], control: str, arm_length: float
+) -> RoadNetwork:
+    """Junction of 2-lane-per-direction roads on the given arms (shared by the 4-way layouts
+    and the T-junction).
 
     Arm k points along polar angle k*pi/2 (east, north, west, south). Inbound lanes end at the
     stop line 14 m from the centre; connector lanes (through from both lanes, left turn from
-    the inner lane, right turn from the outer lane) cross the box. Signals use split phasing
-    (one arm at a time), so turning movements of different arms never run together.
+    the inner lane, right turn from the outer lane, where the target arm exists) cross the box.
 
     Args:
+        layout: layout name.
+        arms: the present arms, a subset of (0, 1, 2, 3) in increasing order; a missing arm
+            must have both neighbours present.
+        control: "signal" (split phasing, one arm at a time), "all_stop" (stop sign on every
+            arm) or "minor_stop" (stop sign on arms whose opposite arm is missing; the through
+            road has priority and its left turns yield to oncoming traffic).
         arm_length: distance from the centre to the map border along each arm, metres.
     """
     w, n_lanes, stop, half = LANE_WIDTH, 2, 14.0, 2 * LANE_WIDTH
@@ -205,6 +254,7 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
     exits: dict[int, list[int]] = {}
     left: dict[int, list[int]] = {}
     right: dict[int, list[int]] = {}
+    turn: dict[int, int] = {}  # connector -> -1 right, 0 through, 1 left
 
     def add(pts: np.ndarray, arm: int, is_conn: bool) -> int:
         points.append(pts)
@@ -216,9 +266,9 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
         th = k * np.pi / 2
         return np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
 
-    inbound = [[0] * n_lanes for _ in range(4)]
-    outbound = [[0] * n_lanes for _ in range(4)]
-    for k in range(4):
+    inbound = {k: [0] * n_lanes for k in arms}
+    outbound = {k: [0] * n_lanes for k in arms}
+    for k in arms:
         u, r = axes(k)
         for i in range(n_lanes):
             lat = (i + 0.5) * w
@@ -228,13 +278,16 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
             for i in range(n_lanes - 1):
                 right[lanes[i]] = [lanes[i + 1]]
                 left[lanes[i + 1]] = [lanes[i]]
-    for k in range(4):
+    for k in arms:
         th_in = k * np.pi / 2 + np.pi
-        moves = [(i, (k + 2) % 4, i) for i in range(n_lanes)]
-        moves += [(0, (k + 3) % 4, 0), (n_lanes - 1, (k + 1) % 4, n_lanes - 1)]
-        for i, k_out, j in moves:
+        moves = [(i, (k + 2) % 4, i, 0) for i in range(n_lanes)]
+        moves += [(0, (k + 3) % 4, 0, 1), (n_lanes - 1, (k + 1) % 4, n_lanes - 1, -1)]
+        for i, k_out, j, kind in moves:
+            if k_out not in arms:
+                continue
             a, b = points[inbound[k][i]][-1], points[outbound[k_out][j]][0]
             conn = add(bezier(a, th_in, b, k_out * np.pi / 2), k, True)
+            turn[conn] = kind
             exits.setdefault(inbound[k][i], []).append(conn)
             exits[conn] = [outbound[k_out][j]]
     lanes = _link(points, exits, left, right, approach, connector)
@@ -244,7 +297,7 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
     edges: list[np.ndarray] = []
     crosswalks: list[np.ndarray] = []
     sidewalks: list[np.ndarray] = []
-    for k in range(4):
+    for k in arms:
         u, r = axes(k)
         road_lines.append(line(stop * u, arm_length * u))
         line_types.append(RoadLineType.SOLID_DOUBLE_YELLOW)
@@ -260,32 +313,56 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
         crosswalks.append(
             np.stack([c0 * u - half * r, c1 * u - half * r, c1 * u + half * r, c0 * u + half * r])
         )
-        # Kerb of the quadrant between arm k and arm k+1, road on the left of the direction.
         b, _ = axes(k + 1)
-        a0 = np.arctan2(-b[1], -b[0])
-        arc = circle_arc(stop * u + stop * b, stop - half, a0, a0 - np.pi / 2)
-        edge = np.concatenate(
-            [
-                line(arm_length * u + half * b, stop * u + half * b)[:-1],
-                arc,
-                line(half * u + stop * b, half * u + arm_length * b)[1:],
-            ]
-        )
+        if (k + 1) % 4 in arms:
+            # Kerb of the quadrant between arm k and arm k+1, road on the left of the direction.
+            a0 = np.arctan2(-b[1], -b[0])
+            arc = circle_arc(stop * u + stop * b, stop - half, a0, a0 - np.pi / 2)
+            edge = np.concatenate(
+                [
+                    line(arm_length * u + half * b, stop * u + half * b)[:-1],
+                    arc,
+                    line(half * u + stop * b, half * u + arm_length * b)[1:],
+                ]
+            )
+        else:
+            # Arm k+1 is missing: one straight kerb from arm k to arm k+2.
+            edge = line(arm_length * u + half * b, -arm_length * u + half * b)
         edges.append(edge)
 
-    inbound_ids = tuple(inbound[k][i] + 1 for k in range(4) for i in range(n_lanes))
-    plan = SignalPlan(
-        lane_ids=inbound_ids,
-        phase=tuple(k for k in range(4) for _ in range(n_lanes)),
-        num_phases=4,
-        green_s=9.0,
-        yellow_s=3.5,
-        all_red_s=2.5,
-    )
+    inbound_ids = tuple(inbound[k][i] + 1 for k in arms for i in range(n_lanes))
+    plan = None
+    junction = None
+    stop_signs: list[StopSign] = []
+    if control == "signal":
+        plan = SignalPlan(
+            lane_ids=inbound_ids,
+            phase=tuple(p for p, _ in enumerate(arms) for _ in range(n_lanes)),
+            num_phases=len(arms),
+            green_s=9.0,
+            yellow_s=3.5,
+            all_red_s=2.5,
+        )
+    elif control in ("all_stop", "minor_stop"):
+        kinds: list[int] = []
+        rank: dict[int, int] = {}
+        for k in arms:
+            minor = control == "all_stop" or (k + 2) % 4 not in arms
+            kinds += [STOP if minor else PRIORITY] * n_lanes
+            if minor:
+                u, r = axes(k)
+                pos = (stop + 1.0) * u + (half + 1.0) * r
+                stop_signs.append(StopSign(pos, tuple(inbound[k][i] + 1 for i in range(n_lanes))))
+            for i in range(n_lanes):
+                for c in exits[inbound[k][i]]:
+                    rank[c + 1] = 2 if minor else (1 if turn[c] == 1 else 0)
+        junction = JunctionControl(lane_ids=inbound_ids, kind=tuple(kinds), rank=rank)
+    else:
+        raise ValueError(f"unknown junction control {control!r}")
     return RoadNetwork(
-        layout="intersection",
+        layout=layout,
         lane_type=LaneType.SURFACE_STREET,
-        speed_limit_mph=35.0,
+        speed_limit_mph=35.0 if control == "signal" else 30.0,
         lanes=lanes,
         road_lines=tuple(road_lines),
         road_line_types=tuple(line_types),
@@ -295,7 +372,74 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
         signals=plan,
         merges=(),
         half_extent=arm_length,
+        junction=junction,
+        stop_signs=tuple(stop_signs),
     )
+
+
+def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
+    """Signalised 4-way intersection of two roads with 2 lanes per direction.
+
+    Signals use split phasing (one arm at a time), so turning movements of different arms
+    never run together. See ``_build_junction`` for the geometry.
+
+    Args:
+        arm_length: distance from the centre to the map border along each arm, metres.
+    """
+    return _build_junction("intersection", (0, 1, 2, 3), "signal", arm_length)
+
+
+def build_stop_intersection(arm_length: float = 100.0) -> RoadNetwork:
+    """All-way stop-controlled 4-way intersection (stop sign on every arm).
+
+    Vehicles stop fully at the line, then cross first come first served when no conflicting
+    movement holds the box.
+
+    Args:
+        arm_length: distance from the centre to the map border along each arm, metres.
+    """
+    return _build_junction("stop_intersection", (0, 1, 2, 3), "all_stop", arm_length)
+
+
+def build_t_junction(arm_length: float = 100.0) -> RoadNetwork:
+    """T-junction: an east-west major road and a minor road from the south with a stop sign.
+
+    The minor road turns left (across both major directions) or right; it stops and then
+    yields to major traffic. Major left turns into the minor road yield to oncoming traffic.
+
+    Args:
+        arm_length: distance from the centre to the map border along each arm, metres.
+    """
+    return _build_junction("t_junction", (0, 2, 3), "minor_stop", arm_length)
+
+
+def connector_conflicts(net: RoadNetwork, clearance: float = 3.0) -> np.ndarray:
+    """Which connector lanes may not be used at the same time.
+
+    Two connectors conflict when their centre lines come closer than ``clearance`` (wide
+    enough for two of the widest vehicles side by side) and they do not start on the same
+    inbound lane (vehicles there are ordered by car following).
+
+    Args:
+        net: road network.
+        clearance: smallest centre-line distance of two connectors used together, metres.
+
+    Returns:
+        [L + 1, L + 1] bool, indexed by lane id (row and column 0 unused).
+    """
+    from shapely.geometry import LineString
+
+    n = len(net.lanes) + 1
+    out = np.zeros((n, n), bool)
+    conns = [ln for ln in net.lanes if ln.is_connector]
+    geoms = {ln.id: LineString(ln.points) for ln in conns}
+    for a in conns:
+        for b in conns:
+            if a.id >= b.id or set(a.entry) & set(b.entry):
+                continue
+            if geoms[a.id].distance(geoms[b.id]) < clearance:
+                out[a.id, b.id] = out[b.id, a.id] = True
+    return out
 
 
 def _ease(t: np.ndarray) -> np.ndarray:
@@ -408,6 +552,10 @@ def to_road_map(net: RoadNetwork) -> RoadMap:
         add(pts, MapFeatureType.ROAD_EDGE, int(RoadEdgeType.BOUNDARY))
     for pts in net.crosswalks:
         add(pts, MapFeatureType.CROSSWALK, 0)
+    controlled = [ids(()) for _ in polylines]
+    for sign in net.stop_signs:
+        add(sign.position[None, :], MapFeatureType.STOP_SIGN, 0)
+        controlled.append(ids(sign.lanes))
     n = len(polylines)
     return RoadMap(
         id=np.arange(1, n + 1, dtype=np.int64),
@@ -419,9 +567,14 @@ def to_road_map(net: RoadNetwork) -> RoadMap:
         exit_lanes=tuple(exit_),
         left_neighbors=tuple(lefts),
         right_neighbors=tuple(rights),
-        controlled_lanes=tuple(ids(()) for _ in range(n)),
+        controlled_lanes=tuple(controlled),
     )
 
 
-LAYOUT_BUILDERS = {"intersection": build_intersection, "merge": build_merge}
+LAYOUT_BUILDERS = {
+    "intersection": build_intersection,
+    "merge": build_merge,
+    "stop_intersection": build_stop_intersection,
+    "t_junction": build_t_junction,
+}
 """Layout name -> builder of its ``RoadNetwork``."""

@@ -9,7 +9,13 @@ import numpy as np
 
 from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
 from tbsim_env.data.generator.driver import DriveLog, DriverConfig, draw_fleet, simulate
-from tbsim_env.data.generator.roads import LAYOUT_BUILDERS, RoadNetwork, signal_states, to_road_map
+from tbsim_env.data.generator.roads import (
+    LAYOUT_BUILDERS,
+    STOP,
+    RoadNetwork,
+    signal_states,
+    to_road_map,
+)
 from tbsim_env.data.generator.routes import RouteTable, build_routes
 from tbsim_env.data.scenario import Scenario, Tracks, TrafficSignals, wrap_angle_np
 
@@ -19,12 +25,12 @@ LAYOUTS: tuple[str, ...] = tuple(LAYOUT_BUILDERS)
 _DEFAULT_SCENES: tuple[tuple[str, int], ...] = (
     ("intersection", 0),
     ("merge", 0),
+    ("stop_intersection", 0),
+    ("t_junction", 0),
     ("intersection", 1),
     ("merge", 1),
-    ("intersection", 2),
-    ("merge", 2),
-    ("intersection", 3),
-    ("merge", 3),
+    ("stop_intersection", 1),
+    ("t_junction", 1),
 )
 
 
@@ -36,11 +42,14 @@ class LayoutTraffic:
         driver: driver parameter ranges.
         initial_vehicles: range (inclusive) of vehicles placed at the start of the warm-up.
         pedestrians: default number of pedestrians.
+        stop_source_boost: traffic entering through stop-controlled lanes is this many times
+            the other sources' (initial placement and inflow), so minor roads see action.
     """
 
     driver: DriverConfig
     initial_vehicles: tuple[int, int]
     pedestrians: int
+    stop_source_boost: float = 1.0
 
 
 TRAFFIC = {
@@ -53,6 +62,17 @@ TRAFFIC = {
         driver=DriverConfig(desired_speed=(15.0, 20.0), inflow=0.25, warmup_s=6.0),
         initial_vehicles=(14, 18),
         pedestrians=0,
+    ),
+    "stop_intersection": LayoutTraffic(
+        driver=DriverConfig(desired_speed=(8.0, 13.0), inflow=0.05),
+        initial_vehicles=(16, 22),
+        pedestrians=4,
+    ),
+    "t_junction": LayoutTraffic(
+        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.06),
+        initial_vehicles=(14, 20),
+        pedestrians=3,
+        stop_source_boost=2.5,
     ),
 }
 
@@ -74,30 +94,45 @@ def _place_initial(
     route: np.ndarray,
     n: int,
     rng: np.random.Generator,
+    length: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Route coordinates [n] for the first n slots, spread out (>= 14 m between centres).
+    """Route coordinates [n] for the first n slots, spread out (>= 14 m between centres of
+    cars, 10 m plus half of both lengths for longer vehicles).
 
-    Vehicles are not placed inside the intersection box nor past a merge point. A slot that
+    Vehicles are not placed inside the intersection box nor past a merge point, nor within
+    35 m of an unsignalised junction's stop line (so that they can stop there). A slot that
     finds no free spot after a few tries is put at the start of its route (where the driver
     holds it back behind the others, as the warm-up sorts it out).
+
+    Args:
+        length: [>= n] vehicle lengths in metres (None: all 4.6 m).
     """
     conn = np.zeros(len(net.lanes) + 1, bool)
     for ln in net.lanes:
         conn[ln.id] = ln.is_connector or bool(ln.entry and len(ln.entry) > 1)
+    guard = np.zeros(len(net.lanes) + 1)
+    if net.junction is not None:
+        guard[list(net.junction.lane_ids)] = 35.0
+    length = np.full(n, 4.6) if length is None else np.asarray(length, float)
     placed_xy = np.zeros((0, 2))
+    placed_len = np.zeros(0)
     s_out = np.zeros(n)
     for k in range(n):
         r = route[k : k + 1]
         for _ in range(30):
             s = rng.uniform(5.0, routes.length[r] - 10.0)
-            lane, _ = routes.locate(r, s)
+            lane, lane_s = routes.locate(r, s)
             xy, _ = routes.interpolate(r, s)
             if conn[lane[0]]:
                 continue
-            if placed_xy.size and np.min(np.linalg.norm(placed_xy - xy, axis=1)) < 14.0:
+            if lane_s[0] + 0.5 * length[k] > routes.lane_length[lane[0]] - guard[lane[0]]:
+                continue
+            need = np.maximum(14.0, 10.0 + 0.5 * (placed_len + length[k]))
+            if placed_xy.size and np.any(np.linalg.norm(placed_xy - xy, axis=1) < need):
                 continue
             s_out[k] = s[0]
             placed_xy = np.concatenate([placed_xy, xy])
+            placed_len = np.append(placed_len, length[k])
             break
         else:
             s_out[k] = -1.0
@@ -188,6 +223,12 @@ def generate_scenario(
     net = LAYOUT_BUILDERS[layout]()
     routes = build_routes(net)
     weights = _route_weights(routes)
+    sources = np.unique(routes.source)
+    boost = np.ones(sources.size)
+    if net.junction is not None:
+        stops = [lid for lid, k in zip(net.junction.lane_ids, net.junction.kind) if k == STOP]
+        boost = np.where(np.isin(sources, stops), traffic.stop_source_boost, 1.0)
+        weights = weights * boost[np.searchsorted(sources, routes.source)]
     lo, hi = traffic.initial_vehicles
     n_init = int(rng.integers(lo, hi + 1)) if num_vehicles is None else int(num_vehicles)
     warm = int(round(cfg.warmup_s / DT))
@@ -195,7 +236,7 @@ def generate_scenario(
     n_src = int(np.unique(routes.source).size)
     capacity = n_init + int(3 * cfg.inflow * n_src * total_steps * DT) + 4
     fleet = draw_fleet(routes, weights, capacity, cfg, rng)
-    s0 = _place_initial(net, routes, fleet.route, n_init, rng)
+    s0 = _place_initial(net, routes, fleet.route, n_init, rng, fleet.size[:, 0])
     v0 = fleet.desired_speed * rng.uniform(0.6, 0.9, capacity)
     placed = np.concatenate([s0 >= 0.0, np.zeros(capacity - n_init, bool)])
     # Slots that found no spot are moved to the end and spawned later instead.
@@ -211,7 +252,7 @@ def generate_scenario(
         s0,
         v0[order],
         n_placed,
-        np.full(n_src, cfg.inflow * DT),
+        boost * cfg.inflow * DT,
         weights,
         total_steps,
         cfg,
@@ -304,6 +345,22 @@ def _signals(net: RoadNetwork, offset_s: float) -> TrafficSignals:
         valid=np.ones(state.shape, bool),
         stop_point=stop,
     )
+
+
+def training_mix(seed: int, layouts: tuple[str, ...] | None = None) -> Scenario:
+    """One scene of the training mix: layouts taken round robin by seed.
+
+    ``training_mix(seed)`` is ``generate_scenario(layouts[seed % len(layouts)], seed)``, the
+    same scene a cache built as ``"generated:<layouts>:A-B"`` holds for that seed.
+
+    Args:
+        seed: scene seed (>= 0).
+        layouts: layouts to cycle through; None uses every layout in ``LAYOUTS``.
+    """
+    names = LAYOUTS if layouts is None else tuple(layouts)
+    if not names:
+        raise ValueError("layouts must not be empty")
+    return generate_scenario(names[int(seed) % len(names)], seed)
 
 
 def default_scenarios(n: int = 4) -> list[Scenario]:

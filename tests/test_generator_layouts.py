@@ -1,0 +1,351 @@
+"""Tests of the generator's scene variety: every layout, stop signs, T-junction priority,
+driver personalities and vehicle sizes, the training mix (tbsim_env.data.generator)."""
+
+from __future__ import annotations
+
+import functools
+import time
+
+import numpy as np
+import pytest
+
+from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, MapFeatureType, ObjectType
+from tbsim_env.data.generator import LAYOUTS, default_scenarios, generate_scenario, training_mix
+from tbsim_env.data.generator.driver import DriverConfig, draw_fleet, straight_routes
+from tbsim_env.data.generator.roads import (
+    LAYOUT_BUILDERS,
+    PRIORITY,
+    STOP,
+    build_t_junction,
+    connector_conflicts,
+)
+from tbsim_env.data.generator.routes import build_routes
+from tbsim_env.data.scenario import Scenario, wrap_angle_np
+from tests.test_generator import box_corners, boxes_overlap, signed_edge_distance
+
+SEEDS10 = tuple(range(10))
+ALL_CASES = [(layout, seed) for layout in LAYOUTS for seed in SEEDS10]
+JUNCTIONS = ("stop_intersection", "t_junction")
+
+
+@functools.cache
+def scene(layout: str, seed: int) -> Scenario:
+    return generate_scenario(layout, seed)
+
+
+def vehicles(sc: Scenario) -> np.ndarray:
+    return np.flatnonzero(sc.tracks.object_type == int(ObjectType.VEHICLE))
+
+
+# ----------------------------------------------------------------------------- API
+
+
+def test_layouts_are_registered() -> None:
+    assert set(LAYOUTS) == {"intersection", "merge", "stop_intersection", "t_junction"}
+    assert LAYOUTS[:2] == ("intersection", "merge")
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_every_layout_validates_and_is_deterministic(layout: str) -> None:
+    a, b = scene(layout, 3), generate_scenario(layout, 3)
+    a.validate()
+    for name in ("id", "object_type", "xyz", "heading", "velocity", "size", "valid"):
+        np.testing.assert_array_equal(getattr(a.tracks, name), getattr(b.tracks, name))
+    np.testing.assert_array_equal(a.tracks_to_predict, b.tracks_to_predict)
+    assert not np.array_equal(a.tracks.xyz[-1], scene(layout, 4).tracks.xyz[-1])
+    t = a.tracks
+    assert a.sdc_index == t.num_tracks - 1
+    assert t.object_type[-1] == int(ObjectType.VEHICLE)
+    assert t.valid[-1, CURRENT_INDEX]
+    assert 1 <= a.tracks_to_predict.size <= 4 and a.sdc_index not in a.tracks_to_predict
+    assert (t.object_type[a.tracks_to_predict] == int(ObjectType.VEHICLE)).all()
+    assert a.num_steps == NUM_STEPS
+
+
+def test_sdc_is_valid_over_the_whole_log_in_most_scenes() -> None:
+    full = [scene(layout, s).tracks.valid[-1].all() for layout in LAYOUTS for s in SEEDS10]
+    assert np.mean(full) >= 0.9
+
+
+def test_training_mix_round_robin() -> None:
+    for seed in range(len(LAYOUTS)):
+        sc = training_mix(seed)
+        assert sc.scenario_id == f"gen-{LAYOUTS[seed % len(LAYOUTS)]}-{seed:04d}"
+    sc = training_mix(5, ("t_junction", "merge"))
+    assert sc.scenario_id == "gen-merge-0005"
+    np.testing.assert_array_equal(sc.tracks.xyz, scene("merge", 5).tracks.xyz)
+    with pytest.raises(ValueError):
+        training_mix(0, ())
+
+
+def test_default_scenarios_cover_every_layout_and_are_fast() -> None:
+    start = time.perf_counter()
+    scenes = default_scenarios(8)
+    elapsed = time.perf_counter() - start
+    assert {s.scenario_id.split("-")[1] for s in scenes} == set(LAYOUTS)
+    assert elapsed < 4.0  # < 3 s on an idle core; slack for shared CI machines
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_generation_under_a_second(layout: str) -> None:
+    generate_scenario(layout, 11)  # warm caches (imports)
+    start = time.perf_counter()
+    generate_scenario(layout, 12)
+    assert time.perf_counter() - start < 1.5
+
+
+# ----------------------------------------------------------------------------- map
+
+
+@pytest.mark.parametrize("layout", JUNCTIONS)
+def test_junction_map_follows_womd_conventions(layout: str) -> None:
+    m = scene(layout, 0).road_map
+    index = m.index_of_id()
+    lanes = m.indices_of(MapFeatureType.LANE)
+    for k in lanes:
+        pl = m.polylines[k]
+        spacing = np.linalg.norm(np.diff(pl[:, :2], axis=0), axis=1)
+        assert spacing.max() <= 0.5 + 1e-9 and spacing.min() > 0.35
+        for e in m.exit_lanes[k]:
+            j = index[int(e)]
+            assert np.linalg.norm(m.polylines[j][0] - pl[-1]) < 0.1
+            assert m.id[k] in m.entry_lanes[j]
+        for e in m.entry_lanes[k]:
+            assert m.id[k] in m.exit_lanes[index[int(e)]]
+        for nb in m.left_neighbors[k]:
+            assert m.id[k] in m.right_neighbors[index[int(nb)]]
+    edges = m.indices_of(MapFeatureType.ROAD_EDGE)
+    lane_pts = np.concatenate([m.polylines[k][:, :2] for k in lanes])
+    dist = signed_edge_distance(lane_pts, [m.polylines[k][:, :2] for k in edges])
+    assert (dist < -1.0).all(), dist.max()
+    cw = m.indices_of(MapFeatureType.CROSSWALK)
+    assert cw.size == (4 if layout == "stop_intersection" else 3)
+    assert all(m.polylines[k].shape == (4, 3) for k in cw)
+    assert m.indices_of(MapFeatureType.ROAD_LINE).size > 0
+    assert len(scene(layout, 0).signals.lane_id) == 0
+
+
+@pytest.mark.parametrize("layout", JUNCTIONS)
+def test_stop_signs_control_the_lanes_ending_at_the_junction(layout: str) -> None:
+    m = scene(layout, 0).road_map
+    index = m.index_of_id()
+    signs = m.indices_of(MapFeatureType.STOP_SIGN)
+    assert signs.size == (4 if layout == "stop_intersection" else 1)
+    for k in signs:
+        assert m.polylines[k].shape == (1, 3)
+        ctrl = m.controlled_lanes[k]
+        assert ctrl.size == 2
+        for lid in ctrl:
+            j = index[int(lid)]
+            assert m.feature_type[j] == int(MapFeatureType.LANE)
+            assert len(m.entry_lanes[j]) == 0 and len(m.exit_lanes[j]) >= 1
+            # The sign stands by the end of the lane it controls.
+            assert np.linalg.norm(m.polylines[j][-1, :2] - m.polylines[k][0, :2]) < 8.0
+    others = np.setdiff1d(np.arange(m.num_features), signs)
+    assert all(m.controlled_lanes[k].size == 0 for k in others)
+
+
+def test_t_junction_priority_rules() -> None:
+    net = build_t_junction()
+    assert net.junction is not None and net.signals is None
+    kinds = dict(zip(net.junction.lane_ids, net.junction.kind))
+    minor = [lid for lid, k in kinds.items() if k == STOP]
+    assert len(minor) == 2 and sum(k == PRIORITY for k in kinds.values()) == 4
+    turns = []
+    for lid in minor:
+        for c in net.lane(lid).exit:
+            assert net.junction.rank[c] == 2
+            p = net.lane(c).points
+            h = np.unwrap(np.arctan2(*np.diff(p, axis=0)[:, ::-1].T))
+            turns.append(round(float(h[-1] - h[0]) / (np.pi / 2)))
+    assert sorted(turns) == [-1, 1]  # the minor road turns left or right, no through
+    conflict = connector_conflicts(net)
+    assert not np.diagonal(conflict).any() and (conflict == conflict.T).all()
+    ranks = net.junction.rank
+    # Both major through directions never conflict with each other.
+    for a in ranks:
+        for b in ranks:
+            if ranks[a] == 0 and ranks[b] == 0:
+                assert not conflict[a, b]
+    # Major left turns (rank 1) conflict with oncoming through traffic.
+    lefts = [c for c, r in ranks.items() if r == 1]
+    assert lefts and all(conflict[c, [a for a in ranks if ranks[a] == 0]].any() for c in lefts)
+
+
+# ----------------------------------------------------------------------------- safety
+
+
+@pytest.mark.parametrize(("layout", "seed"), ALL_CASES)
+def test_no_overlap_between_any_agents(layout: str, seed: int) -> None:
+    sc = scene(layout, seed)
+    t = sc.tracks
+    corners = box_corners(t.xyz[..., :2], t.heading, t.size)
+    i, j = np.triu_indices(t.num_tracks, 1)
+    hit = boxes_overlap(corners[i], corners[j]) & t.valid[i] & t.valid[j]
+    assert not hit.any(), f"overlap of tracks {i[hit.any(1)]} and {j[hit.any(1)]}"
+
+
+@pytest.mark.parametrize(("layout", "seed"), ALL_CASES)
+def test_vehicle_kinematics_every_layout(layout: str, seed: int) -> None:
+    sc = scene(layout, seed)
+    t = sc.tracks
+    veh = vehicles(sc)
+    valid = t.valid[veh]
+    pair = valid[:, 1:] & valid[:, :-1]
+    speed = np.linalg.norm(t.velocity[veh], axis=-1)
+    moving = valid & (speed > 0.5)
+    vdir = np.arctan2(t.velocity[veh, :, 1], t.velocity[veh, :, 0])
+    assert np.abs(wrap_angle_np(vdir - t.heading[veh]))[moving].max() < 1e-3
+    fd = np.diff(t.xyz[veh, :, :2], axis=1) / DT
+    mean_v = 0.5 * (t.velocity[veh, 1:] + t.velocity[veh, :-1])
+    assert np.linalg.norm(fd - mean_v, axis=-1)[pair].max() < 0.3
+    acc = np.diff(speed, axis=1) / DT
+    assert np.mean(np.abs(acc[pair]) <= 5.0 + 1e-3) > 0.99
+    yaw = wrap_angle_np(np.diff(t.heading[veh].astype(np.float64), axis=1)) / DT
+    assert np.abs(yaw[pair]).max() <= 1.5
+
+
+def stop_sign_crossings(sc: Scenario) -> tuple[int, int]:
+    """(stop-line crossings of stop-controlled lanes, crossings without a full stop before).
+
+    A vehicle is on a controlled lane when its centre is within 1.75 m of the lane's line
+    through the lane end and it heads along the lane. A crossing (front bumper from before
+    the line to past it) needs an earlier step of the same approach with speed < 0.05 m/s
+    and the front within 4 m of the line. Crossings of vehicles that were already moving
+    within 8 m of the line when first seen are skipped (their stop may predate the log).
+    """
+    t, m = sc.tracks, sc.road_map
+    veh = vehicles(sc)
+    index = m.index_of_id()
+    speed = np.linalg.norm(t.velocity[veh], axis=-1)
+    crossings = missing = 0
+    for k in m.indices_of(MapFeatureType.STOP_SIGN):
+        for lid in m.controlled_lanes[k]:
+            pl = m.polylines[index[int(lid)]][:, :2]
+            d = (pl[-1] - pl[-2]) / np.linalg.norm(pl[-1] - pl[-2])
+            rel = t.xyz[veh, :, :2] - pl[-1]
+            lon = rel @ d + 0.5 * t.size[veh, :, 0]
+            lat = np.abs(rel @ np.array([-d[1], d[0]]))
+            head = np.cos(t.heading[veh]) * d[0] + np.sin(t.heading[veh]) * d[1]
+            on = t.valid[veh] & (lat < 1.75) & (head > 0.9) & (lon > -90.0)
+            cross = on[:, :-1] & on[:, 1:] & (lon[:, :-1] <= 0) & (lon[:, 1:] > 0)
+            for a, step in zip(*np.nonzero(cross)):
+                first = int(np.argmax(on[a]))
+                if lon[a, first] > -8.0 and speed[a, first] >= 0.05:
+                    continue
+                crossings += 1
+                seg = slice(first, step + 1)
+                stopped = on[a, seg] & (speed[a, seg] < 0.05) & (lon[a, seg] > -4.0)
+                missing += int(not stopped.any())
+    return crossings, missing
+
+
+@pytest.mark.parametrize("layout", JUNCTIONS)
+def test_full_stop_at_stop_signs(layout: str) -> None:
+    total = 0
+    for seed in SEEDS10:
+        crossings, missing = stop_sign_crossings(scene(layout, seed))
+        assert missing == 0, (seed, crossings, missing)
+        total += crossings
+    assert total >= 5  # the check is not vacuous
+
+
+def test_stop_check_detects_rolling_stops() -> None:
+    sc = scene("stop_intersection", 0)
+    t = sc.tracks
+    # Replace every vehicle speed by a constant 5 m/s: no one ever stops.
+    vel = t.velocity.copy()
+    norm = np.maximum(np.linalg.norm(vel, axis=-1, keepdims=True), 1e-9)
+    unit = np.where(norm > 1e-6, vel / norm, 1.0)
+    fake = sc.replace(tracks=type(t)(**{**t.__dict__, "velocity": (unit * 5.0).astype(np.float32)}))
+    total = sum(stop_sign_crossings(scene("stop_intersection", s))[0] for s in SEEDS10)
+    assert total > 0
+    crossings, missing = stop_sign_crossings(fake)
+    assert missing == crossings
+
+
+def test_stop_intersection_vehicles_cross_from_several_approaches() -> None:
+    arms = set()
+    for seed in SEEDS10:
+        sc = scene("stop_intersection", seed)
+        t = sc.tracks
+        veh = vehicles(sc)
+        inside = t.valid[veh] & (np.abs(t.xyz[veh, :, :2]).max(axis=-1) < 8.0)
+        for a in np.flatnonzero(inside.any(axis=1)):
+            step = int(np.argmax(inside[a]))
+            h = float(t.heading[veh[a], step])
+            arms.add(round(h / (np.pi / 2)) % 4)
+    assert len(arms) == 4
+
+
+def test_t_junction_minor_road_turns_left_and_right() -> None:
+    turns = set()
+    for seed in SEEDS10:
+        sc = scene("t_junction", seed)
+        t = sc.tracks
+        for a in vehicles(sc):
+            v = np.flatnonzero(t.valid[a])
+            p0, p1 = t.xyz[a, v[0], :2], t.xyz[a, v[-1], :2]
+            if p0[1] < -10.0 and abs(p1[1]) < 8.0:  # came from the south arm, left on major
+                turns.add("left" if p1[0] < -8.0 else "right" if p1[0] > 8.0 else "?")
+    assert {"left", "right"} <= turns
+
+
+# ----------------------------------------------------------------------------- variety
+
+
+def test_driver_personalities_shape_parameters() -> None:
+    net = LAYOUT_BUILDERS["intersection"]()
+    routes = build_routes(net)
+    cfg = DriverConfig(desired_speed=(9.0, 14.0))
+    w = np.ones(routes.num_routes)
+    fleet = draw_fleet(routes, w, 2000, cfg, np.random.default_rng(0))
+    p = fleet.personality
+    assert p.min() < -0.7 and p.max() > 0.7  # timid and aggressive drivers
+    car = ~fleet.is_long
+    for name, sign in (
+        ("desired_speed", 1),
+        ("time_headway", -1),
+        ("min_gap", -1),
+        ("max_accel", 1),
+        ("comfort_decel", 1),
+        ("reaction", -1),
+        ("gap_time", -1),
+    ):
+        x = getattr(fleet, name)[car]
+        assert sign * np.corrcoef(p[car], x)[0, 1] > 0.6, name
+    assert fleet.time_headway.min() < 1.1 and fleet.time_headway.max() > 2.0
+    # Per-seed culture: the mean personality differs between seeds.
+    means = [
+        draw_fleet(routes, w, 400, cfg, np.random.default_rng(s)).personality.mean()
+        for s in range(8)
+    ]
+    assert np.ptp(means) > 0.2
+
+
+def test_vehicle_sizes_include_vans_and_trucks_on_straight_routes() -> None:
+    net = LAYOUT_BUILDERS["intersection"]()
+    routes = build_routes(net)
+    cfg = DriverConfig(desired_speed=(9.0, 14.0), truck_share=(0.05, 0.1))
+    fleet = draw_fleet(routes, np.ones(routes.num_routes), 3000, cfg, np.random.default_rng(1))
+    length = fleet.size[:, 0]
+    truck = fleet.is_long
+    assert 0.04 < truck.mean() < 0.11
+    assert ((length[truck] >= 8.0) & (length[truck] <= 12.0)).all()
+    assert ((length > 5.0) & (length < 6.5)).mean() > 0.03
+    assert straight_routes(routes, cfg)[fleet.route[truck]].all()
+    assert not straight_routes(routes, cfg).all()
+    # Trucks are slower off the line than cars.
+    assert fleet.max_accel[truck].mean() < 0.8 * fleet.max_accel[~truck].mean()
+
+
+def test_generated_scenes_contain_long_vehicles() -> None:
+    lengths = np.concatenate(
+        [
+            scene(layout, s).tracks.size[vehicles(scene(layout, s))].max(axis=1)[:, 0]
+            for layout in LAYOUTS
+            for s in SEEDS10
+        ]
+    )
+    assert (lengths > 8.0).sum() >= 3
+    assert lengths.max() <= 12.0 + 1e-4
