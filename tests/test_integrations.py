@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import warnings
 
+import gymnasium as gym
 import numpy as np
 import pytest
+from pettingzoo import ParallelEnv
 from pettingzoo.test import parallel_api_test
 
 from tbsim_env.data.generator import default_scenarios
@@ -125,26 +127,63 @@ def test_supersuit_stable_baselines3_vec_env(scenes):
     vec.close()
 
 
+class _MixedEndingEnv(ParallelEnv):
+    """Two agents; at step 2 agent_0 terminates and agent_1 is truncated."""
+
+    metadata = {"name": "mixed_v0"}
+    possible_agents = ["agent_0", "agent_1"]
+
+    def __init__(self) -> None:
+        self.agents: list[str] = []
+        self.t = 0
+        self.render_mode = None
+
+    def observation_space(self, agent):
+        return gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def action_space(self, agent):
+        return gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, seed=None, options=None):
+        self.agents, self.t = list(self.possible_agents), 0
+        return {a: np.zeros(1, np.float32) for a in self.agents}, {a: {} for a in self.agents}
+
+    def step(self, actions):
+        self.t += 1
+        end = self.t == 2
+        obs = {a: np.zeros(1, np.float32) for a in self.agents}
+        term = {"agent_0": end, "agent_1": False}
+        trunc = {"agent_0": False, "agent_1": end}
+        if end:
+            self.agents = []
+        return obs, dict.fromkeys(obs, 0.0), term, trunc, {a: {} for a in obs}
+
+
 def test_rllib_all_flag_when_agents_end_differently():
     pytest.importorskip("ray.rllib", reason="ray[rllib] is not installed (the 'rl' extra)")
-    from tbsim_env.integrations.rllib import make_rllib_env
+    from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
 
+    from tbsim_env.integrations.rllib import TbsimRLlibEnv, make_rllib_env
+
+    act = {a: np.zeros(1, np.float32) for a in _MixedEndingEnv.possible_agents}
+    for wrapper, ends in ((ParallelPettingZooEnv, False), (TbsimRLlibEnv, True)):
+        env = wrapper(_MixedEndingEnv())
+        env.reset()
+        env.step(act)
+        _, _, term, trunc, _ = env.step(act)
+        # RLlib's own wrapper never ends an episode with mixed endings; ours does.
+        assert (term["__all__"] or trunc["__all__"]) == ends
+    assert trunc["__all__"] and not term["__all__"]
+
+    # The real env ends for RLlib within one log (80 steps), whatever the agents do.
     env = make_rllib_env({"num_default_scenes": 1, "npc_policy": "log_replay"})
-    par = env.par_env
     obs, _ = env.reset(seed=0)
-    for _ in range(100):
-        # agent_0 follows its log to its goal (terminated); the others keep their speed and
-        # are truncated at the end of the log. RLlib's own wrapper never ends this episode.
-        acts = {a: np.zeros(2, np.float32) for a in obs}
-        expert = par.env.expert_actions()
-        acts["agent_0"] = expert.get(par._slot_agent["agent_0"], np.zeros(2, np.float32))
-        obs, rew, term, trunc, _ = env.step(acts)
+    for _ in range(81):
+        obs, rew, term, trunc, _ = env.step({a: np.zeros(2, np.float32) for a in obs})
         if term["__all__"] or trunc["__all__"]:
             break
     assert term["__all__"] or trunc["__all__"], "the episode never ended for RLlib"
-    slots = [a for a in term if a != "__all__"]
-    assert all(term[a] or trunc[a] for a in slots)
-    assert term["agent_0"] and any(trunc[a] for a in slots)  # a mixed ending
+    assert all(term[a] or trunc[a] for a in term if a != "__all__")
 
 
 @pytest.mark.slow
