@@ -2,7 +2,9 @@
 
 Layouts (``LAYOUTS``) are built in ``roads``, vehicles are driven by the rule-based driver in
 ``driver`` and ``scenes`` packs the result into the same ``Scenario`` type the WOMD reader
-produces.
+produces. Layouts: "intersection" (signalised, split phasing), "merge" (freeway on-ramp),
+"stop_intersection" (all-way stop, first come first served) and "t_junction" (minor road
+with a stop sign yielding to the major road). ``training_mix(seed)`` cycles through them.
 """
 
 from __future__ import annotations
