@@ -96,3 +96,46 @@ def test_mismatched_npc_checkpoint_is_rejected(tmp_path, random_checkpoint):
     (tmp_path / "bad.json").write_text(text)
     with pytest.raises(CheckpointError):
         TrafficEnv(npc_policy="trafficbots", npc_checkpoint=str(bad))
+
+
+def test_torchrun_ddp_two_processes(tmp_path):
+    """DistributedDataParallel over Gloo on CPU: 2 processes train, replicas stay identical."""
+    import subprocess
+    import sys
+
+    build_cache(["generated:merge:0-1"], tmp_path / "cache", workers=1, progress=False)
+    cmd = [
+        sys.executable,
+        "-m",
+        "torch.distributed.run",
+        "--standalone",
+        "--nproc-per-node",
+        "2",
+        "-m",
+        "policies.trafficbots.train",
+        "--data",
+        str(tmp_path / "cache"),
+        "--out",
+        str(tmp_path / "run"),
+        "--steps",
+        "2",
+        "--rollout-steps",
+        "12",
+        "--device",
+        "cpu",
+        "--workers",
+        "0",
+        "--threads",
+        "1",
+        "--log-every",
+        "1",
+        "--batch-size",
+        "1",
+    ]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (tmp_path / "run" / "last.safetensors").exists()
+    steps = [
+        json.loads(x)["step"] for x in (tmp_path / "run" / "metrics.jsonl").read_text().split()
+    ]
+    assert steps == [1, 2]

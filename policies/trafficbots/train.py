@@ -112,6 +112,32 @@ def _collate(items: list) -> list:
     return items
 
 
+class TrainingObjective(torch.nn.Module):
+    """``forward`` = one training rollout and its loss, so ``DistributedDataParallel`` can wrap
+    it: DDP synchronises the gradients of whatever its wrapped ``forward`` uses."""
+
+    def __init__(self, model: TrafficBots) -> None:
+        super().__init__()
+        self.model = model
+
+    def forward(
+        self,
+        batch: TokenBatch,
+        prior_prob: float,
+        teacher_forcing_p: float,
+        generator: torch.Generator,
+        n_steps: int | None,
+    ) -> tuple[torch.Tensor, dict[str, float]]:
+        return training_step(
+            self.model,
+            batch,
+            prior_prob=prior_prob,
+            teacher_forcing_p=teacher_forcing_p,
+            generator=generator,
+            n_steps=n_steps,
+        )
+
+
 def _optimizer_state_to_files(opt: torch.optim.Optimizer, step: int, path: Path) -> None:
     """Optimiser state as ``<path>.safetensors`` (tensors) + ``<path>.json``. No pickle."""
     sd = opt.state_dict()
@@ -214,10 +240,13 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         start = _optimizer_state_from_files(opt, out / "optimizer")
         if main:
             print(f"resuming {out} from step {start}")
-    ddp = model
+    objective: torch.nn.Module = TrainingObjective(model)
     if world > 1:
-        ddp = torch.nn.parallel.DistributedDataParallel(
-            model, device_ids=[device.index] if device.type == "cuda" else None
+        # Prior-latent batches leave the posterior encoders unused: find_unused_parameters.
+        # device_ids=None: the module lives on one device, and DDP must not try to scatter
+        # the TokenBatch input.
+        objective = torch.nn.parallel.DistributedDataParallel(
+            objective, device_ids=None, find_unused_parameters=True
         )
 
     data = TokenCache(Path(cfg.data))
@@ -237,6 +266,11 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         persistent_workers=cfg.workers > 0,
         drop_last=True,
     )
+    if world > 1 and len(loader) == 0:
+        raise ValueError(
+            f"{len(data)} scenes cannot fill one batch of {cfg.batch_size} on each of {world} "
+            "processes; lower --batch-size or add data"
+        )
     use_amp = cfg.amp and device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
     logger = _Logger(out, main)
@@ -261,13 +295,8 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
             items = next(it)
         batch = TokenBatch.from_tokens(items, device=device)
         with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=use_amp):
-            loss, logs = training_step(
-                ddp if world > 1 else model,
-                batch,
-                prior_prob=cfg.prior_prob,
-                teacher_forcing_p=cfg.teacher_forcing(step),
-                generator=roll_gen,
-                n_steps=cfg.rollout_steps,
+            loss, logs = objective(
+                batch, cfg.prior_prob, cfg.teacher_forcing(step), roll_gen, cfg.rollout_steps
             )
         if not math.isfinite(float(loss.detach())):
             raise FloatingPointError(f"non-finite loss at step {step}: {logs}")
@@ -296,7 +325,15 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
     bar.close()
     logger.close()
     if world > 1:
+        # Replicas must still be identical: compare a parameter checksum across ranks.
+        checksum = torch.stack([p.detach().double().sum() for p in model.parameters()]).sum()
+        sums = [torch.zeros_like(checksum) for _ in range(world)]
+        torch.distributed.all_gather(sums, checksum)
+        if any(abs(float(x) - float(sums[0])) > 1e-6 * (1 + abs(float(sums[0]))) for x in sums):
+            raise RuntimeError(f"DDP replicas diverged: parameter checksums {sums}")
+        scalars = {**scalars, "param_checksum": float(checksum)}
         torch.distributed.barrier()
+        torch.distributed.destroy_process_group()
     return scalars
 
 
