@@ -136,6 +136,6 @@ def test_torchrun_ddp_two_processes(tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     assert (tmp_path / "run" / "last.safetensors").exists()
     steps = [
-        json.loads(x)["step"] for x in (tmp_path / "run" / "metrics.jsonl").read_text().split()
+        json.loads(x)["step"] for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     ]
     assert steps == [1, 2]
