@@ -1,5 +1,6 @@
-"""The PettingZoo environment and its per-agent metrics."""
+"""The environments: PettingZoo ``TrafficEnv`` and the tensor-batched ``BatchedTrafficEnv``."""
 
 from tbsim_env.env.parallel_env import TrafficEnv, agent_name
+from tbsim_env.env.vector_env import BatchedTrafficEnv
 
-__all__ = ["TrafficEnv", "agent_name"]
+__all__ = ["BatchedTrafficEnv", "TrafficEnv", "agent_name"]

@@ -32,6 +32,7 @@ from tbsim_env import constants as C
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, step_metrics
+from tbsim_env.env.rewards import reward_and_termination
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     History,
@@ -375,23 +376,18 @@ class TrafficEnv(ParallelEnv, EzPickle):
             state, self._ext_slots, self._route, self._edge_cache
         )
         live_before = list(self.agents)
-        rc, tc = self.config.reward, self.config.termination
         m = metrics
-        progress = m.progress[0]
-        gained = (progress - self._progress).clamp_min(0.0)
-        self._progress = torch.maximum(self._progress, progress)
-        goal_now = (m.goal_distance[0] <= rc.goal_radius) & self._has_goal & ~self._goal_reached
-        self._goal_reached |= goal_now
-        coll, off = m.collision[0], m.offroad[0]
-        reward = (
-            rc.collision * coll
-            + rc.offroad * off
-            + rc.progress * gained
-            + rc.goal * goal_now
-            + rc.log_divergence * m.log_divergence[0]
-            + rc.alive
+        outcome = reward_and_termination(
+            StepMetrics(**{f: getattr(m, f)[0] for f in StepMetrics.__dataclass_fields__}),
+            self._progress,
+            self._goal_reached,
+            self._has_goal,
+            self.config.reward,
+            self.config.termination,
         )
-        term = (coll & tc.collision) | (off & tc.offroad) | (goal_now & tc.goal)
+        self._progress = outcome.progress_best
+        self._goal_reached |= outcome.goal_now
+        reward, term = outcome.reward, outcome.terminated
         truncated_all = int(state.step[0]) >= self._end
         self.state_ = state
         columns = self._info_columns(m)

@@ -39,7 +39,7 @@ import torch
 
 from policies import make_policy
 from policies.base import Policy, PolicyState
-from tbsim_env.config import EnvConfig, RewardConfig, TerminationConfig
+from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, step_metrics
 from tbsim_env.env.parallel_env import (
@@ -48,6 +48,7 @@ from tbsim_env.env.parallel_env import (
     controlled_indices,
     resolve_scenarios,
 )
+from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     History,
@@ -68,66 +69,6 @@ from tbsim_env.torch_utils import torch_threads
 
 ROUTE_KEY = "route"
 """Optional extra observation key: upcoming points of the logged route in the ego frame."""
-
-
-# ---------------------------------------------------------------------- rewards (shared formula)
-@dataclass(frozen=True)
-class RewardOutcome:
-    """Result of ``reward_and_termination``.
-
-    Attributes:
-        reward: [B, Q] float32 reward of this step.
-        terminated: [B, Q] bool, the agent's episode ends by an event this step.
-        goal_now: [B, Q] bool, the agent reached its goal this step (first time).
-        progress_best: [B, Q] m, best progress so far (the new baseline).
-    """
-
-    reward: torch.Tensor
-    terminated: torch.Tensor
-    goal_now: torch.Tensor
-    progress_best: torch.Tensor
-
-
-def reward_and_termination(
-    metrics: StepMetrics,
-    progress_best: torch.Tensor,
-    goal_reached: torch.Tensor,
-    has_goal: torch.Tensor,
-    reward_config: RewardConfig,
-    termination_config: TerminationConfig,
-) -> RewardOutcome:
-    """Per-agent reward and termination of one step (the definition of ``TrafficEnv``).
-
-    reward = collision * [collided] + offroad * [off road] + progress * (metres of new
-    progress beyond the best so far) + goal * [goal reached now] + log_divergence * gap + alive.
-
-    Args:
-        metrics: ``step_metrics`` of the new state, fields [B, Q].
-        progress_best: [B, Q] m, best progress along the logged route before this step.
-        goal_reached: [B, Q] bool, the goal was reached before this step.
-        has_goal: [B, Q] bool, the logged route is longer than the goal radius.
-        reward_config: reward weights.
-        termination_config: termination events.
-    """
-    rc, tc = reward_config, termination_config
-    gained = (metrics.progress - progress_best).clamp_min(0.0)
-    goal_now = (metrics.goal_distance <= rc.goal_radius) & has_goal & ~goal_reached
-    coll, off = metrics.collision, metrics.offroad
-    reward = (
-        rc.collision * coll
-        + rc.offroad * off
-        + rc.progress * gained
-        + rc.goal * goal_now
-        + rc.log_divergence * metrics.log_divergence
-        + rc.alive
-    )
-    term = (coll & tc.collision) | (off & tc.offroad) | (goal_now & tc.goal)
-    return RewardOutcome(
-        reward=reward.float(),
-        terminated=term,
-        goal_now=goal_now,
-        progress_best=torch.maximum(progress_best, metrics.progress),
-    )
 
 
 # ---------------------------------------------------------------------- row helpers
