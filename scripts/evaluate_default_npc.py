@@ -1,0 +1,101 @@
+"""Measure the shipped TrafficBots NPC against the baselines for docs/MODEL_CARD.md.
+
+Held-out sets (never in the training cache, see scripts/train_default_npc.sh):
+  * real WOMD: 637f20cafde22ff8 (motion_data_one_scenario.tfrecord) and db4edc9bd0c9d18c
+    (gpudrive/tfrecord-00000-of-01000_4.json);
+  * generated: seeds 10000-10005 of the intersection and merge layouts (training used 0-399).
+
+Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a JSON of every
+per-scenario field, plus a rollout picture.
+
+    python scripts/evaluate_default_npc.py --out docs/model_card [--checkpoint PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+
+import torch
+
+from tbsim_env.data import load_scenarios
+from tbsim_env.data.generator import generate_scenario
+from tbsim_env.evaluation import make_rollout_fn, scenario_seed
+from tbsim_env.metrics.wosac import aggregate, score_scenario, scores_to_json
+
+HELD_OUT_REAL = (
+    "waymo-open-dataset/motion_data_one_scenario.tfrecord",
+    "gpudrive/tfrecord-00000-of-01000_4.json",
+)
+HELD_OUT_GENERATED = tuple((("intersection", "merge")[s % 2], 10000 + s) for s in range(6))
+POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
+COLUMNS = (
+    ("realism_meta_metric", "meta"),
+    ("kinematic_metrics", "kinematic"),
+    ("interactive_metrics", "interactive"),
+    ("map_based_metrics", "map"),
+    ("min_average_displacement_error", "minADE"),
+    ("simulated_collision_rate", "collision rate"),
+    ("simulated_offroad_rate", "off-road rate"),
+)
+
+
+def table(rows: dict[str, dict], version: str) -> str:
+    head = "| policy | " + " | ".join(c[1] for c in COLUMNS) + " |"
+    sep = "|---" * (len(COLUMNS) + 1) + "|"
+    lines = [f"**{version}**", "", head, sep]
+    for pol, agg in rows.items():
+        lines.append(f"| {pol} | " + " | ".join(f"{agg[c[0]]:.4f}" for c in COLUMNS) + " |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--out", default="docs/model_card")
+    p.add_argument("--checkpoint", default=None)
+    p.add_argument("--samples", type=int, default=32, help="TrafficBots rollouts sampled (>=32)")
+    p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sets = {
+        "held-out real WOMD": [load_scenarios(Path(args.data) / f)[0] for f in HELD_OUT_REAL],
+        "held-out generated": [generate_scenario(lay, seed) for lay, seed in HELD_OUT_GENERATED],
+    }
+    report, dump = [], {}
+    for set_name, scenarios in sets.items():
+        per_version: dict[str, dict[str, dict]] = {"wosac2025": {}, "wosac2024": {}}
+        for pol in POLICIES:
+            if pol == "trafficbots":
+                from policies.trafficbots.wosac import trafficbots_rollout_fn
+
+                fn = trafficbots_rollout_fn(checkpoint=args.checkpoint, num_samples=args.samples)
+            else:
+                fn = make_rollout_fn(pol)
+            scores = {"wosac2025": [], "wosac2024": []}
+            for sc in scenarios:
+                r = fn(sc, 32, scenario_seed(0, sc.scenario_id))
+                for v in scores:
+                    scores[v].append(score_scenario(sc, r, v))
+                print(
+                    f"{set_name} {pol} {sc.scenario_id}: "
+                    f"{scores['wosac2025'][-1].realism_meta_metric:.4f}",
+                    flush=True,
+                )
+            for v in scores:
+                per_version[v][pol] = aggregate(scores[v]).__dict__
+                dump[f"{set_name}/{pol}/{v}"] = scores_to_json(scores[v])
+        report.append(f"### {set_name} ({', '.join(s.scenario_id for s in scenarios)})\n")
+        for v, rows in per_version.items():
+            report.append(table(rows, v) + "\n")
+    text = "\n".join(report)
+    print(text)
+    (out / "results.md").write_text(text)
+    (out / "results.json").write_text(json.dumps(dump, indent=1, default=float))
+
+
+if __name__ == "__main__":
+    main()
