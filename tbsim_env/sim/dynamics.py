@@ -34,9 +34,20 @@ def action_limits(object_type: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor
         (max_accel [...] m/s^2, max_yaw_rate [...] rad/s), float32 on the input's device.
     """
     idx = object_type.long().clamp(0, C.NUM_OBJECT_TYPES - 1)
-    acc = torch.tensor(C.MAX_ACCEL, dtype=torch.float32, device=object_type.device)
-    yaw = torch.tensor(C.MAX_YAW_RATE, dtype=torch.float32, device=object_type.device)
-    return acc[idx], yaw[idx]
+    table = _limit_table(object_type.device)
+    return table[0][idx], table[1][idx]
+
+
+_LIMIT_TABLES: dict[torch.device, torch.Tensor] = {}
+
+
+def _limit_table(device: torch.device) -> torch.Tensor:
+    """[2, NUM_OBJECT_TYPES] (max accel, max yaw rate), cached per device (built once)."""
+    if device not in _LIMIT_TABLES:
+        _LIMIT_TABLES[device] = torch.tensor(
+            [C.MAX_ACCEL, C.MAX_YAW_RATE], dtype=torch.float32, device=device
+        )
+    return _LIMIT_TABLES[device]
 
 
 def clip_action(action: torch.Tensor, object_type: torch.Tensor) -> torch.Tensor:
