@@ -274,8 +274,9 @@ def observe(
     me = state.pose[bq, observers]  # [B, Q, 3]
     static = agent_static_features(state) if agent_static is None else agent_static
     attrs = torch.cat([static, state.speed[..., None]], dim=-1)  # [B, N, 7]
-    own_hist = _history_features(history.pose, history.speed, state.pose)
-    own_hist = own_hist * history.valid[..., None]  # [B, N, H, 5]
+    ego_valid = history.valid[bq, observers]  # [B, Q, H]
+    ego_hist = _history_features(history.pose[bq, observers], history.speed[bq, observers], me)
+    ego_hist = ego_hist * ego_valid[..., None]  # [B, Q, H, 5]
 
     # Agents.
     dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
@@ -283,7 +284,12 @@ def observe(
     other[bq, torch.arange(observers.shape[1], device=state.device), observers] = False
     a_idx, a_mask = _nearest(dist, other, cfg.num_agents, cfg.agent_radius)
     a_f = a_mask.float()
-    a_pose = relative_pose(me[:, :, None], state.pose[bk, a_idx]) * a_f[..., None]
+    nb_pose = state.pose[bk, a_idx]  # [B, Q, K, 3]
+    a_pose = relative_pose(me[:, :, None], nb_pose) * a_f[..., None]
+    # Each neighbour's history in its own current frame (only for the K gathered ones).
+    nb_valid = history.valid[bk, a_idx] & a_mask[..., None]  # [B, Q, K, H]
+    nb_hist = _history_features(history.pose[bk, a_idx], history.speed[bk, a_idx], nb_pose)
+    nb_hist = nb_hist * nb_valid[..., None]
 
     # Map pieces.
     m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
@@ -304,11 +310,11 @@ def observe(
     t_state = _TL_EYE.to(state.device)[tl_state[bk, t_idx]] * t_f[..., None]
 
     return {
-        "ego_history": own_hist[bq, observers],
-        "ego_history_mask": history.valid[bq, observers].float(),
+        "ego_history": ego_hist,
+        "ego_history_mask": ego_valid.float(),
         "ego_attributes": attrs[bq, observers],
-        "agents": own_hist[bk, a_idx] * a_f[..., None, None],
-        "agents_history_mask": history.valid[bk, a_idx] * a_f[..., None],
+        "agents": nb_hist,
+        "agents_history_mask": nb_valid.float(),
         "agents_attributes": attrs[bk, a_idx] * a_f[..., None],
         "agents_pose": a_pose,
         "agents_mask": a_f,
