@@ -21,8 +21,10 @@ def real(womd_dir):
 
 
 def test_parallel_api_on_real_scenario(one_scenario_path):
-    parallel_api_test(TrafficEnv(str(one_scenario_path)), num_cycles=100)
-    env = TrafficEnv(str(one_scenario_path), controlled="tracks_to_predict")
+    parallel_api_test(TrafficEnv(str(one_scenario_path), npc_policy="log_replay"), num_cycles=100)
+    env = TrafficEnv(
+        str(one_scenario_path), npc_policy="log_replay", controlled="tracks_to_predict"
+    )
     parallel_api_test(env, num_cycles=100)
 
 
@@ -32,11 +34,11 @@ def test_parallel_api_on_embedded_default():
 
 
 def test_agent_names_carry_track_ids(real):
-    env = TrafficEnv([real], controlled="tracks_to_predict")
+    env = TrafficEnv([real], npc_policy="log_replay", controlled="tracks_to_predict")
     env.reset(seed=0)
     ids = {int(real.tracks.id[i]) for i in real.tracks_to_predict} | {real.sdc_id}
     assert set(env.agents) == {f"track_{i}" for i in ids}
-    env = TrafficEnv([real], controlled=[int(real.tracks.id[43])])
+    env = TrafficEnv([real], npc_policy="log_replay", controlled=[int(real.tracks.id[43])])
     env.reset()
     assert env.agents == [f"track_{int(real.tracks.id[43])}"]
 
@@ -70,14 +72,16 @@ def test_determinism_over_80_steps():
 
 def test_observations_invariant_to_rotation_and_translation(real):
     moved = transform_scenario(real, 1.1, (-3200.0, 4700.0))
-    obs_a, _ = TrafficEnv([real], controlled="tracks_to_predict").reset(seed=0)
-    env_b = TrafficEnv([moved], controlled="tracks_to_predict")
+    obs_a, _ = TrafficEnv([real], npc_policy="log_replay", controlled="tracks_to_predict").reset(
+        seed=0
+    )
+    env_b = TrafficEnv([moved], npc_policy="log_replay", controlled="tracks_to_predict")
     obs_b, _ = env_b.reset(seed=0)
     for agent in obs_a:
         for key in obs_a[agent]:
             np.testing.assert_allclose(obs_a[agent][key], obs_b[agent][key], atol=1e-4, err_msg=key)
     # And after some closed-loop steps with the same actions.
-    env_a = TrafficEnv([real], controlled="tracks_to_predict")
+    env_a = TrafficEnv([real], npc_policy="log_replay", controlled="tracks_to_predict")
     env_a.reset(seed=0)
     env_b.reset(seed=0)
     for _ in range(20):
@@ -91,7 +95,7 @@ def test_observations_invariant_to_rotation_and_translation(real):
 
 
 def test_observation_content(real):
-    env = TrafficEnv([real])
+    env = TrafficEnv([real], npc_policy="log_replay")
     obs, _ = env.reset(seed=0)
     o = obs[env.agents[0]]
     assert env.observation_space(env.agents[0]).contains(o)
@@ -106,7 +110,7 @@ def test_observation_content(real):
 
 
 def test_bad_actions_raise_clear_errors(real):
-    env = TrafficEnv([real])
+    env = TrafficEnv([real], npc_policy="log_replay")
     env.reset(seed=0)
     a = env.agents[0]
     with pytest.raises(ActionError, match="not finite"):
@@ -120,11 +124,11 @@ def test_bad_actions_raise_clear_errors(real):
     with pytest.raises(ActionError, match="shape"):
         env.step({a: np.zeros(3)})
     with pytest.raises(ValueError, match="no track with id"):
-        TrafficEnv([real], controlled=[123456789])
+        TrafficEnv([real], npc_policy="log_replay", controlled=[123456789])
 
 
 def test_out_of_range_actions_are_clipped(real):
-    env = TrafficEnv([real])
+    env = TrafficEnv([real], npc_policy="log_replay")
     env.reset(seed=0)
     a = env.agents[0]
     slot = env.sim_state.agents.track_id[0].tolist().index(int(a.split("_")[1]))
@@ -135,7 +139,9 @@ def test_out_of_range_actions_are_clipped(real):
 
 def test_expert_actions_follow_the_log(real):
     no_goal = EnvConfig(termination=TerminationConfig(goal=False))
-    env = TrafficEnv([real], controlled=[int(real.tracks.id[43])], config=no_goal)
+    env = TrafficEnv(
+        [real], npc_policy="log_replay", controlled=[int(real.tracks.id[43])], config=no_goal
+    )
     env.reset(seed=0)
     a = env.agents[0]
     gaps = []
@@ -164,7 +170,7 @@ def test_collision_terminates_and_removes_agent():
 
 
 def test_episode_length_and_truncation(real):
-    env = TrafficEnv([real])
+    env = TrafficEnv([real], npc_policy="log_replay")
     env.reset(seed=0)
     a = env.agents[0]
     n = 0
@@ -176,7 +182,7 @@ def test_episode_length_and_truncation(real):
 
 
 def test_render_rgb_array(real):
-    env = TrafficEnv([real], render_mode="rgb_array")
+    env = TrafficEnv([real], npc_policy="log_replay", render_mode="rgb_array")
     env.reset(seed=0)
     frame = env.render()
     assert frame.dtype == np.uint8 and frame.ndim == 3 and frame.shape[2] == 3
