@@ -44,3 +44,14 @@ def scenario_input_path(womd_dir: Path) -> Path:
 @pytest.fixture(scope="session")
 def tf_example_path(womd_dir: Path) -> Path:
     return womd_dir / "waymo-open-dataset" / "motion_data_one_example.tfrecord"
+
+
+@pytest.fixture(scope="module")
+def torch_one_thread():
+    """Run a module with one torch intra-op thread (tiny tensors; see README, Benchmarks)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -43,21 +43,11 @@ ORIGIN = np.array([1000.0, -2000.0])
 
 
 def _road_map(features: list[tuple[MapFeatureType, int, np.ndarray]]) -> RoadMap:
-    f = len(features)
-    e = tuple(np.zeros(0, np.int64) for _ in range(f))
-    return RoadMap(
-        id=np.arange(f, dtype=np.int64),
-        feature_type=np.array([int(k) for k, _, _ in features], np.int8),
-        subtype=np.array([s for _, s, _ in features], np.int8),
-        polylines=tuple(
-            np.concatenate([p + ORIGIN, np.zeros((len(p), 1))], axis=1) for _, _, p in features
-        ),
-        speed_limit_mph=np.zeros(f, np.float32),
-        entry_lanes=e,
-        exit_lanes=e,
-        left_neighbors=e,
-        right_neighbors=e,
-        controlled_lanes=e,
+    return RoadMap.from_polylines(
+        np.arange(len(features)),
+        [int(k) for k, _, _ in features],
+        [s for _, s, _ in features],
+        [np.concatenate([p + ORIGIN, np.zeros((len(p), 1))], axis=1) for _, _, p in features],
     )
 
 

@@ -135,19 +135,7 @@ def _edge_state(points):
     pts = np.concatenate([pts, np.zeros((len(pts), 1))], axis=1)
     origin = sc.tracks.xyz[sc.sdc_index, sc.current_index, :2]
     pts[:, :2] += origin
-    e = (np.zeros(0, np.int64),)
-    rm = RoadMap(
-        id=np.array([1]),
-        feature_type=np.array([C.MapFeatureType.ROAD_EDGE], np.int8),
-        subtype=np.array([1], np.int8),
-        polylines=(pts,),
-        speed_limit_mph=np.zeros(1, np.float32),
-        entry_lanes=e,
-        exit_lanes=e,
-        left_neighbors=e,
-        right_neighbors=e,
-        controlled_lanes=e,
-    )
+    rm = RoadMap.from_polylines([1], [C.MapFeatureType.ROAD_EDGE], [1], [pts])
     return build_sim_state([sc.replace(road_map=rm)])
 
 

@@ -24,14 +24,7 @@ from policies.trafficbots import (
 from policies.trafficbots.synthetic import make_synthetic_tokens
 from tbsim_env.errors import CheckpointError
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Many small ops: one thread avoids oversubscribing the shared CPU (much faster here)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

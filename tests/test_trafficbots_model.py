@@ -26,13 +26,7 @@ from tbsim_env.data.tokens import SceneTokens
 SPEC_USED_PARAMS = 7.9e6
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Many small ops: one thread avoids oversubscribing the shared CPU (much faster here)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -17,13 +17,7 @@ from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -20,13 +20,7 @@ def _grad_norm(module: torch.nn.Module) -> float:
     return sum(float(p.grad.norm()) for p in module.parameters() if p.grad is not None)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """Many small ops: one thread avoids oversubscribing the shared CPU (much faster here)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -17,13 +17,7 @@ from tbsim_env.data.cache import build_cache
 from tbsim_env.env import TrafficEnv
 from tbsim_env.errors import CheckpointError
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")

@@ -254,19 +254,7 @@ def _map_with_edges(polylines, extra_lanes=()):
     sub = [int(RoadEdgeType.BOUNDARY)] * len(polylines) + [int(LaneType.SURFACE_STREET)] * len(
         extra_lanes
     )
-    empty = tuple(np.zeros(0, np.int64) for _ in range(f))
-    return RoadMap(
-        id=np.arange(1, f + 1, dtype=np.int64),
-        feature_type=np.array(kinds, np.int8),
-        subtype=np.array(sub, np.int8),
-        polylines=tuple(lines),
-        speed_limit_mph=np.zeros(f, np.float32),
-        entry_lanes=empty,
-        exit_lanes=empty,
-        left_neighbors=empty,
-        right_neighbors=empty,
-        controlled_lanes=empty,
-    )
+    return RoadMap.from_polylines(np.arange(1, f + 1), kinds, sub, lines)
 
 
 def _edges(*polylines):

@@ -245,20 +245,7 @@ def _road_map(roads: Any, ctx: _Ctx) -> RoadMap:
             str(ctx.error(f"skipped {len(skipped)} road(s): {', '.join(skipped[:5])}")),
             stacklevel=3,
         )
-    f = len(ids)
-    empty = tuple(np.zeros(0, np.int64) for _ in range(f))
-    return RoadMap(
-        id=np.asarray(ids, np.int64),
-        feature_type=np.asarray(kinds, np.int8),
-        subtype=np.asarray(subtypes, np.int8),
-        polylines=tuple(polylines),
-        speed_limit_mph=np.zeros(f, np.float32),
-        entry_lanes=empty,
-        exit_lanes=empty,
-        left_neighbors=empty,
-        right_neighbors=empty,
-        controlled_lanes=empty,
-    )
+    return RoadMap.from_polylines(ids, kinds, subtypes, polylines)
 
 
 def _metadata(meta: Any, ctx: _Ctx) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:

@@ -97,6 +97,34 @@ class RoadMap:
         return {int(i): k for k, i in enumerate(self.id)}
 
     @staticmethod
+    def from_polylines(
+        ids: np.ndarray | list[int],
+        feature_type: np.ndarray | list[int],
+        subtype: np.ndarray | list[int],
+        polylines: tuple[np.ndarray, ...] | list[np.ndarray],
+    ) -> RoadMap:
+        """A map of geometry only: no speed limits, lane connectivity or stop-sign lanes.
+
+        Args:
+            ids: [F] feature ids; feature_type: [F] ``MapFeatureType``; subtype: [F].
+            polylines: F arrays [n_i, 3] float64.
+        """
+        f = len(ids)
+        empty = tuple(np.zeros(0, np.int64) for _ in range(f))
+        return RoadMap(
+            id=np.asarray(ids, np.int64),
+            feature_type=np.asarray(feature_type, np.int8),
+            subtype=np.asarray(subtype, np.int8),
+            polylines=tuple(polylines),
+            speed_limit_mph=np.zeros(f, np.float32),
+            entry_lanes=empty,
+            exit_lanes=empty,
+            left_neighbors=empty,
+            right_neighbors=empty,
+            controlled_lanes=empty,
+        )
+
+    @staticmethod
     def empty() -> RoadMap:
         e: tuple[np.ndarray, ...] = ()
         return RoadMap(

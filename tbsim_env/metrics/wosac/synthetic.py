@@ -56,20 +56,7 @@ def straight_road_map(
         ids.append(100 + k)
         types.append(int(MapFeatureType.LANE))
         subtypes.append(int(LaneType.SURFACE_STREET))
-    f = len(ids)
-    empty = tuple(np.zeros(0, np.int64) for _ in range(f))
-    return RoadMap(
-        id=np.array(ids, np.int64),
-        feature_type=np.array(types, np.int8),
-        subtype=np.array(subtypes, np.int8),
-        polylines=tuple(polylines),
-        speed_limit_mph=np.zeros(f, np.float32),
-        entry_lanes=empty,
-        exit_lanes=empty,
-        left_neighbors=empty,
-        right_neighbors=empty,
-        controlled_lanes=empty,
-    )
+    return RoadMap.from_polylines(ids, types, subtypes, polylines)
 
 
 def synthetic_scenario(
