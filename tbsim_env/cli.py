@@ -226,7 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="simulate the embedded generated scenes and write a video")
     d.add_argument("--out", default="tbsim_demo.mp4", help="video path (.mp4 or .gif)")
     d.add_argument("--scenarios", type=int, default=1, help="how many default scenes to render")
-    d.add_argument("--npc-policy", default="log_replay", help="NPC policy name")
+    d.add_argument("--npc-policy", default="trafficbots", help="NPC policy name")
     d.add_argument("--steps", type=int, default=None, help="steps to simulate (default: all)")
     d.add_argument("--fps", type=int, default=10)
     d.set_defaults(func=_cmd_demo)

@@ -132,8 +132,9 @@ class TrafficEnv(ParallelEnv, EzPickle):
         controlled: which agents the caller controls: ``"sdc"`` (default),
             ``"tracks_to_predict"`` (those plus the SDC), ``"all"`` valid at the start, or a
             list of WOMD track ids.
-        npc_policy: ``"log_replay"`` (exact), ``"constant_velocity"``, ``"trafficbots"``, or a
-            policy object.
+        npc_policy: ``"trafficbots"`` (default: the shipped pretrained TrafficBots V1.5, see
+            docs/MODEL_CARD.md), ``"log_replay"`` (exact), ``"constant_velocity"``, or a policy
+            object.
         config: episode, reward and termination settings.
         obs_config: observation sizes.
         render_mode: None or ``"rgb_array"``.
@@ -159,7 +160,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         scenarios: Any = None,
         *,
         controlled: ControlledSpec = "sdc",
-        npc_policy: str | Policy = "log_replay",
+        npc_policy: str | Policy = "trafficbots",
         config: EnvConfig | None = None,
         obs_config: ObsConfig | None = None,
         render_mode: str | None = None,
