@@ -167,7 +167,7 @@ def test_rounded_box_collision_matches_shapely() -> None:
     shapely = pytest.importorskip("shapely")
     from shapely.geometry import Polygon
 
-    from policies.trafficbots.collision import box_corners
+    from tbsim_env.sim.collision import box_corners
 
     gen = torch.Generator().manual_seed(3)
     n = 300
@@ -182,7 +182,7 @@ def test_rounded_box_collision_matches_shapely() -> None:
     def shape(pose, size):
         lw = size * 1.1
         s = 0.7 * lw.min() / 2
-        corners = box_corners(pose, lw[0] / 2 - s, lw[1] / 2 - s)
+        corners = box_corners(pose, lw[0] - 2 * s, lw[1] - 2 * s)  # the inner box
         return Polygon(corners.tolist()).buffer(float(s), quad_segs=64)
 
     ref = [shape(pose_a[i], size_a[i]).intersects(shape(pose_b[i], size_b[i])) for i in range(n)]

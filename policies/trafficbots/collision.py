@@ -11,27 +11,10 @@ from __future__ import annotations
 
 import torch
 
+from tbsim_env.sim.collision import box_corners
+
 CORNER_ROUNDING_FACTOR = 0.7
 COLLISION_SIZE_SCALE = 1.1
-
-
-def box_corners(pose: torch.Tensor, half_len: torch.Tensor, half_wid: torch.Tensor) -> torch.Tensor:
-    """Corners of oriented boxes, counter-clockwise.
-
-    Args:
-        pose: [..., 3] (x, y, yaw) box centre and heading.
-        half_len: [...] half length.
-        half_wid: [...] half width.
-
-    Returns:
-        [..., 4, 2].
-    """
-    c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
-    u = torch.stack([c, s], dim=-1) * half_len[..., None]  # [..., 2]
-    v = torch.stack([-s, c], dim=-1) * half_wid[..., None]
-    xy = pose[..., None, :2]
-    signs = torch.tensor([[1, 1], [-1, 1], [-1, -1], [1, -1]], dtype=pose.dtype, device=pose.device)
-    return xy + signs[:, 0, None] * u[..., None, :] + signs[:, 1, None] * v[..., None, :]
 
 
 def _point_segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -77,8 +60,8 @@ def rounded_box_collision(
     lb, wb = size_b[..., 0] * scale, size_b[..., 1] * scale
     ra = factor * torch.minimum(la, wa) / 2
     rb = factor * torch.minimum(lb, wb) / 2
-    ca = box_corners(pose_a, la / 2 - ra, wa / 2 - ra)  # [..., 4, 2]
-    cb = box_corners(pose_b, lb / 2 - rb, wb / 2 - rb)
+    ca = box_corners(pose_a, la - 2 * ra, wa - 2 * ra)  # [..., 4, 2], inner boxes
+    cb = box_corners(pose_b, lb - 2 * rb, wb - 2 * rb)
     ca, cb = torch.broadcast_tensors(ca, cb)
     # Distance between disjoint convex polygons: the smallest vertex-to-edge distance.
     d_ab = _point_segment_distance(

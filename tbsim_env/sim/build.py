@@ -8,20 +8,13 @@ import numpy as np
 import torch
 
 from tbsim_env import constants as C
+from tbsim_env.data.preprocess.scene import scene_origin
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.dynamics import signed_speed
 from tbsim_env.sim.state import AgentInfo, LogTrajectory, RoadEdges, SignalLog, SimState
 
 CYCLIC_TOLERANCE_SQ = 1.0
 """A road edge whose ends are closer than 1 m (squared 1 m^2) is closed (WOSAC convention)."""
-
-
-def scenario_origin(scenario: Scenario) -> np.ndarray:
-    """[2] float64: the SDC xy at the current step (mean of valid positions as a fallback)."""
-    t = scenario.tracks
-    if t.valid[scenario.sdc_index, scenario.current_index]:
-        return t.xyz[scenario.sdc_index, scenario.current_index, :2].astype(np.float64)
-    return t.xyz[..., :2][t.valid].mean(axis=0).astype(np.float64)
 
 
 def _agent_sizes(scenario: Scenario, step: int) -> np.ndarray:
@@ -102,7 +95,7 @@ def build_sim_state(
     edges = []
     origins = np.zeros((b, 2), np.float64)
     for i, sc in enumerate(scenarios):
-        origins[i] = scenario_origin(sc)
+        origins[i] = scene_origin(sc)
         edges.append(_road_edge_segments(sc, origins[i]))
     e = max(max(len(x[0]) for x in edges), 1)
 

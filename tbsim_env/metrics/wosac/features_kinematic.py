@@ -6,17 +6,12 @@ are NaN at the first and last step and accelerations at the first two and last t
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 
 from tbsim_env.constants import DT
-
-
-def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
-    """Floor-mod wrap of angles (rad) into [-pi, pi)."""
-    return torch.remainder(angle + math.pi, 2.0 * math.pi) - math.pi
+from tbsim_env.sim.geometry import wrap_angle
 
 
 def central_diff(values: torch.Tensor) -> torch.Tensor:
