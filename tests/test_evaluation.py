@@ -11,7 +11,13 @@ import torch
 from policies import make_policy
 from tbsim_env.cli import main
 from tbsim_env.data import load_scenarios
-from tbsim_env.data.cache import CacheError, TokenCache, build_cache, read_shard
+from tbsim_env.data.cache import (
+    CacheError,
+    TokenCache,
+    build_cache,
+    open_training_data,
+    read_shard,
+)
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.metrics.wosac import read_submission, score_scenario, validate_scenario_rollouts
 from tbsim_env.metrics.wosac.submission import rollouts_to_proto
@@ -173,3 +179,31 @@ def test_token_cache_round_trip(tmp_path):
     (tmp_path / "shard-00000.safetensors").write_bytes(b"garbage")
     with pytest.raises(CacheError, match="cannot read shard"):
         read_shard(tmp_path / "shard-00000.safetensors")
+
+
+def test_token_cache_keeps_an_lru_of_shards_and_joins_folders(tmp_path, monkeypatch):
+    a, b = tmp_path / "a", tmp_path / "b"
+    build_cache(["generated:merge:0-3"], a, workers=1, shard_size=1, progress=False)
+    build_cache(["generated:t_junction:0-1"], b, workers=1, shard_size=1, progress=False)
+    import tbsim_env.data.cache as cache_mod
+
+    reads = []
+    real_read = cache_mod.read_shard
+    monkeypatch.setattr(cache_mod, "read_shard", lambda p: reads.append(p) or real_read(p))
+    cache = TokenCache(a, max_shards=2)
+    for i in (0, 1, 0, 1, 2, 0):  # 0 and 1 stay cached; 2 evicts 0, which is read again
+        assert cache[i].scenario_id == f"gen-merge-{i:04d}"
+    assert len(reads) == 4
+    with pytest.raises(ValueError, match="max_shards"):
+        TokenCache(a, max_shards=0)
+
+    data = open_training_data(f"{a}, {b}*3")
+    assert len(data) == 4 + 3 * 2
+    ids = [data[i].scenario_id for i in range(len(data))]
+    assert ids.count("gen-t_junction-0001") == 3 and ids.count("gen-merge-0002") == 1
+    assert isinstance(open_training_data(str(a)), TokenCache)
+    for bad in (f"{a}*0", f"{a}*x", " , "):
+        with pytest.raises(ValueError):
+            open_training_data(bad)
+    with pytest.raises(CacheError):
+        open_training_data(str(tmp_path / "missing"))

@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, MapFeatureType, ObjectType
-from tbsim_env.data.generator import LAYOUTS, default_scenarios, generate_scenario, training_mix
+from tbsim_env.data.generator import (
+    LAYOUTS,
+    default_scenarios,
+    frame_offset,
+    generate_scenario,
+    training_mix,
+)
 from tbsim_env.data.generator.driver import DriverConfig, draw_fleet, straight_routes
 from tbsim_env.data.generator.roads import (
     LAYOUT_BUILDERS,
@@ -30,7 +36,23 @@ JUNCTIONS = ("stop_intersection", "t_junction")
 
 @functools.cache
 def scene(layout: str, seed: int) -> Scenario:
-    return generate_scenario(layout, seed)
+    """The generated scene moved back into its layout's frame (junction at the origin)."""
+    dx, dy = frame_offset(layout, seed)
+    return generate_scenario(layout, seed).translated((-dx, -dy))
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_scene_lies_far_from_the_placeholder_origin(layout: str) -> None:
+    """Invalid track steps hold (0, 0) as in WOMD; no road may be near there."""
+    sc = generate_scenario(layout, 3)
+    pts = np.concatenate([p[:, :2] for p in sc.road_map.polylines])
+    assert np.linalg.norm(pts, axis=-1).min() > 500.0
+    t = sc.tracks
+    assert (t.xyz[~t.valid] == 0.0).all()
+    dx, dy = frame_offset(layout, 3)
+    back = sc.translated((-dx, -dy))
+    local = scene(layout, 3)
+    np.testing.assert_allclose(back.tracks.xyz, local.tracks.xyz, atol=1e-9)
 
 
 def vehicles(sc: Scenario) -> np.ndarray:
@@ -47,7 +69,7 @@ def test_layouts_are_registered() -> None:
 
 @pytest.mark.parametrize("layout", LAYOUTS)
 def test_every_layout_validates_and_is_deterministic(layout: str) -> None:
-    a, b = scene(layout, 3), generate_scenario(layout, 3)
+    a, b = generate_scenario(layout, 3), generate_scenario(layout, 3)
     a.validate()
     for name in ("id", "object_type", "xyz", "heading", "velocity", "size", "valid"):
         np.testing.assert_array_equal(getattr(a.tracks, name), getattr(b.tracks, name))
@@ -73,7 +95,7 @@ def test_training_mix_round_robin() -> None:
         assert sc.scenario_id == f"gen-{LAYOUTS[seed % len(LAYOUTS)]}-{seed:04d}"
     sc = training_mix(5, ("t_junction", "merge"))
     assert sc.scenario_id == "gen-merge-0005"
-    np.testing.assert_array_equal(sc.tracks.xyz, scene("merge", 5).tracks.xyz)
+    np.testing.assert_array_equal(sc.tracks.xyz, generate_scenario("merge", 5).tracks.xyz)
     with pytest.raises(ValueError):
         training_mix(0, ())
 

@@ -39,7 +39,7 @@ from policies.trafficbots.checkpoint import load_state_into, save_checkpoint
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.losses import training_step
 from policies.trafficbots.model import TrafficBots
-from tbsim_env.data.cache import TokenCache
+from tbsim_env.data.cache import open_training_data
 from tbsim_env.errors import CheckpointError
 
 
@@ -48,7 +48,8 @@ class TrainConfig:
     """Everything a training run depends on (saved as ``<out>/train_config.json``).
 
     Attributes:
-        data: token cache folder (``tbsim preprocess``).
+        data: token cache folder (``tbsim preprocess``), or several comma-separated, each
+            optionally ``FOLDER*N`` to draw its scenes N times as often.
         out: run folder (checkpoints, metrics).
         model: ``"small"`` or ``"paper"`` preset (``TrafficBotsConfig``).
         steps: optimiser steps.
@@ -68,6 +69,8 @@ class TrainConfig:
         ckpt_every: steps between checkpoints.
         device: ``"auto"`` (CUDA if available), ``"cpu"`` or ``"cuda"``.
         threads: torch intra-op threads on CPU (None: leave torch's default).
+        cache_shards: cache shards kept in memory per folder (0: all; a random sampler over a
+            cache larger than this re-reads a shard for most items).
         rollout_steps: simulate only log steps 0 .. rollout_steps-1 per batch (None: all 91).
             A CPU budget knob (the spec trains on full episodes): 51 = 4 s of closed loop.
     """
@@ -93,6 +96,7 @@ class TrainConfig:
     device: str = "auto"
     threads: int | None = None
     rollout_steps: int | None = None
+    cache_shards: int = 0
 
     def model_config(self) -> TrafficBotsConfig:
         if self.model == "small":
@@ -249,7 +253,7 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
             objective, device_ids=None, find_unused_parameters=True
         )
 
-    data = TokenCache(Path(cfg.data))
+    data = open_training_data(cfg.data, max_shards=cfg.cache_shards or None)
     if len(data) == 0:
         raise ValueError(f"token cache {cfg.data} is empty")
     gen = torch.Generator().manual_seed(cfg.seed + 1000 * rank + start)

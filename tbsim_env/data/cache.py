@@ -10,8 +10,11 @@ Layout of a cache folder::
 
 Each shard is one safetensors file (no pickle): the arrays of scene i are stored under the keys
 ``"{i}.{field}"``, the scenario ids in the file metadata. ``TokenCache`` is a
-``torch.utils.data.Dataset`` over the whole folder that keeps the last shard it read in memory,
-so a sequential or shard-grouped sampler reads each file once per epoch.
+``torch.utils.data.Dataset`` over the whole folder that keeps the shards it read last in memory
+(an LRU of ``max_shards`` shards, or all of them), so a sequential or shard-grouped sampler reads
+each file once per epoch and a random sampler over a cache that fits in memory reads it once.
+``open_training_data("a,b*20")`` joins several caches, oversampling some (few real scenes among
+thousands of generated ones).
 
 ``build_cache`` fills a folder from WOMD TFRecords, GPUDrive JSON or the procedural generator with
 several worker processes and a progress bar.
@@ -23,6 +26,7 @@ import dataclasses
 import json
 import multiprocessing as mp
 import re
+from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +34,7 @@ from pathlib import Path
 import numpy as np
 from safetensors import safe_open
 from safetensors.numpy import save_file
+from torch.utils.data import ConcatDataset, Dataset
 from tqdm import tqdm
 
 from tbsim_env.config import TokenConfig
@@ -206,9 +211,12 @@ class TokenCache:
     """
 
     root: Path
+    max_shards: int | None = 1
 
     def __post_init__(self) -> None:
         self.root = Path(self.root)
+        if self.max_shards is not None and self.max_shards < 1:
+            raise ValueError(f"max_shards must be >= 1 or None, got {self.max_shards}")
         path = self.root / "manifest.json"
         if not path.exists():
             raise CacheError(f"{self.root}: no manifest.json (build it with `tbsim preprocess`)")
@@ -217,7 +225,7 @@ class TokenCache:
             raise CacheError(f"{path}: format {self.manifest.get('format')!r}, expected {FORMAT}")
         counts = [s["count"] for s in self.manifest["shards"]]
         self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._loaded: tuple[int, list[SceneTokens]] | None = None
+        self._loaded: OrderedDict[int, list[SceneTokens]] = OrderedDict()
 
     def __len__(self) -> int:
         return int(self._starts[-1])
@@ -233,6 +241,41 @@ class TokenCache:
         if not 0 <= index < len(self):
             raise IndexError(f"index {index} outside [0, {len(self)})")
         k = self.shard_of(index)
-        if self._loaded is None or self._loaded[0] != k:
-            self._loaded = (k, read_shard(self.root / self.manifest["shards"][k]["file"]))
-        return self._loaded[1][index - int(self._starts[k])]
+        shard = self._loaded.get(k)
+        if shard is None:
+            shard = read_shard(self.root / self.manifest["shards"][k]["file"])
+            self._loaded[k] = shard
+            if self.max_shards is not None and len(self._loaded) > self.max_shards:
+                self._loaded.popitem(last=False)
+        else:
+            self._loaded.move_to_end(k)
+        return shard[index - int(self._starts[k])]
+
+
+def open_training_data(spec: str, max_shards: int | None = 1) -> Dataset:
+    """Dataset over one or several cache folders.
+
+    Args:
+        spec: comma-separated cache folders; ``FOLDER*N`` repeats a folder N times (N >= 1), so
+            a uniform sampler draws its scenes N times as often. Example:
+            ``"runs/generated,runs/real*20"``.
+        max_shards: shards each folder keeps in memory (None: all).
+
+    Returns:
+        A ``TokenCache`` for a single folder, else a ``ConcatDataset`` of them.
+
+    Raises:
+        CacheError: a folder is not a cache; ValueError: a malformed repeat count.
+    """
+    parts: list[Dataset] = []
+    for item in (x.strip() for x in spec.split(",")):
+        if not item:
+            continue
+        folder, _, rep = item.partition("*")
+        if rep and (not rep.isdigit() or int(rep) < 1):
+            raise ValueError(f"data spec {item!r}: repeat count must be a positive integer")
+        cache = TokenCache(Path(folder), max_shards=max_shards)
+        parts.extend([cache] * (int(rep) if rep else 1))
+    if not parts:
+        raise ValueError(f"data spec {spec!r} names no cache folder")
+    return parts[0] if len(parts) == 1 else ConcatDataset(parts)

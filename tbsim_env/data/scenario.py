@@ -214,6 +214,19 @@ class Scenario:
     def replace(self, **changes) -> Scenario:
         return dataclasses.replace(self, **changes)
 
+    def translated(self, shift: tuple[float, float]) -> Scenario:
+        """The scenario moved by ``shift`` (x, y metres): tracks at valid steps, every map
+        polyline and the signal stop points. Invalid track steps keep their placeholder 0."""
+        d = np.array([shift[0], shift[1], 0.0])
+        t = self.tracks
+        tracks = dataclasses.replace(t, xyz=np.where(t.valid[..., None], t.xyz + d, t.xyz))
+        m = self.road_map
+        road_map = dataclasses.replace(
+            m, polylines=tuple(p + d[: p.shape[-1]] for p in m.polylines)
+        )
+        sig = dataclasses.replace(self.signals, stop_point=self.signals.stop_point + d)
+        return self.replace(tracks=tracks, road_map=road_map, signals=sig)
+
     def role_mask(self) -> np.ndarray:
         """[A, 3] bool: (is SDC, in objects_of_interest, in tracks_to_predict)."""
         a = self.tracks.num_tracks

@@ -12,8 +12,9 @@ from __future__ import annotations
 from tbsim_env.data.generator.scenes import (
     LAYOUTS,
     default_scenarios,
+    frame_offset,
     generate_scenario,
     training_mix,
 )
 
-__all__ = ["LAYOUTS", "default_scenarios", "generate_scenario", "training_mix"]
+__all__ = ["LAYOUTS", "default_scenarios", "frame_offset", "generate_scenario", "training_mix"]

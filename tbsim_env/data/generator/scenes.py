@@ -77,8 +77,23 @@ TRAFFIC = {
 }
 
 
+FRAME_OFFSET_RANGE_M: tuple[float, float] = (1000.0, 5000.0)
+"""Range of |x| and |y| of the generated scene's world origin (metres). The layouts are built
+around (0, 0), but a track's invalid steps hold the placeholder (0, 0, 0) as in WOMD, and
+anything that reads the log blindly (log replay in WOSAC scoring) would park departed agents on
+the junction. Real WOMD scenes lie far from (0, 0), so the generated ones are moved there too."""
+
+
 def _rng(layout: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(layout.encode())])
+
+
+def frame_offset(layout: str, seed: int) -> tuple[float, float]:
+    """Seeded world offset of a scene (its own stream, so the traffic draws are unchanged)."""
+    rng = np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 1])
+    mag = rng.uniform(*FRAME_OFFSET_RANGE_M, size=2)
+    sign = rng.choice([-1.0, 1.0], size=2)
+    return float(mag[0] * sign[0]), float(mag[1] * sign[1])
 
 
 def _route_weights(routes: RouteTable) -> np.ndarray:
@@ -293,19 +308,23 @@ def generate_scenario(
         valid=valid,
     )
     predict = _tracks_to_predict(tracks, otype, valid)
-    return Scenario(
-        scenario_id=f"gen-{layout}-{seed:04d}",
-        timestamps=DT * np.arange(NUM_STEPS, dtype=np.float64),
-        current_index=CURRENT_INDEX,
-        tracks=tracks,
-        road_map=to_road_map(net),
-        signals=_signals(net, offset_s),
-        sdc_index=len(order) - 1,
-        tracks_to_predict=predict,
-        predict_difficulty=np.ones(predict.size, np.int8),
-        objects_of_interest=np.zeros(0, np.int64),
-        source=f"<generated {layout} seed {seed}>",
-    ).validate()
+    return (
+        Scenario(
+            scenario_id=f"gen-{layout}-{seed:04d}",
+            timestamps=DT * np.arange(NUM_STEPS, dtype=np.float64),
+            current_index=CURRENT_INDEX,
+            tracks=tracks,
+            road_map=to_road_map(net),
+            signals=_signals(net, offset_s),
+            sdc_index=len(order) - 1,
+            tracks_to_predict=predict,
+            predict_difficulty=np.ones(predict.size, np.int8),
+            objects_of_interest=np.zeros(0, np.int64),
+            source=f"<generated {layout} seed {seed}>",
+        )
+        .translated(frame_offset(layout, seed))
+        .validate()
+    )
 
 
 def _choose_sdc(xy: np.ndarray, valid: np.ndarray) -> int:
