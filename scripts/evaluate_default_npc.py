@@ -3,7 +3,7 @@
 Held-out sets (never in the training cache, see scripts/train_default_npc.sh):
   * real WOMD: 637f20cafde22ff8 (motion_data_one_scenario.tfrecord) and db4edc9bd0c9d18c
     (gpudrive/tfrecord-00000-of-01000_4.json);
-  * generated: seeds 10000-10005 of the intersection and merge layouts (training used 0-399).
+  * generated: seeds 10000-10007, two of each layout (training used seeds 0-479).
 
 Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a JSON of every
 per-scenario field, plus a rollout picture.
@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 
 from tbsim_env.data import load_scenarios
-from tbsim_env.data.generator import generate_scenario
+from tbsim_env.data.generator import LAYOUTS, generate_scenario
 from tbsim_env.evaluation import make_rollout_fn, scenario_seed
 from tbsim_env.metrics.wosac import aggregate, score_scenario, scores_to_json
 
@@ -29,7 +29,7 @@ HELD_OUT_REAL = (
     "waymo-open-dataset/motion_data_one_scenario.tfrecord",
     "gpudrive/tfrecord-00000-of-01000_4.json",
 )
-HELD_OUT_GENERATED = tuple((("intersection", "merge")[s % 2], 10000 + s) for s in range(6))
+HELD_OUT_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 10000 + s) for s in range(8))
 POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
 COLUMNS = (
     ("realism_meta_metric", "meta"),

@@ -33,7 +33,8 @@ def test_train_writes_checkpoints_and_resumes(tmp_path):
     cfg = TrainConfig(
         data=str(tmp_path / "cache"),
         out=str(tmp_path / "run"),
-        steps=2,
+        steps=3,
+        stop_at=2,  # a first segment of a 3-step run
         rollout_steps=13,
         log_every=1,
         ckpt_every=1,
@@ -43,11 +44,13 @@ def test_train_writes_checkpoints_and_resumes(tmp_path):
     train(cfg, progress=False)
     lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(x)["step"] for x in lines] == [1, 2]
+    # The teacher-forcing schedule spans all 3 steps, not the segment: 0.3 -> 0.15 -> 0.
+    assert [json.loads(x)["teacher_forcing"] for x in lines] == pytest.approx([0.3, 0.15])
     assert all(np.isfinite(json.loads(x)["loss"]) for x in lines)
     meta = json.loads((tmp_path / "run" / "optimizer.json").read_text())
     assert meta["step"] == 2
     weights_before = (tmp_path / "run" / "last.safetensors").read_bytes()
-    train(TrainConfig(**{**cfg.__dict__, "steps": 3}), progress=False)
+    train(TrainConfig(**{**cfg.__dict__, "stop_at": None}), progress=False)
     lines = (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(x)["step"] for x in lines] == [1, 2, 3]  # resumed at 2, not restarted
     assert (tmp_path / "run" / "last.safetensors").read_bytes() != weights_before

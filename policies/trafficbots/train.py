@@ -69,6 +69,9 @@ class TrainConfig:
         ckpt_every: steps between checkpoints.
         device: ``"auto"`` (CUDA if available), ``"cpu"`` or ``"cuda"``.
         threads: torch intra-op threads on CPU (None: leave torch's default).
+        stop_at: end this run at this step (None: at ``steps``); the schedules still span
+            ``steps``, so a run cut into segments (preemptible or time-limited machines) follows
+            the same schedule as one uninterrupted run.
         cache_shards: cache shards kept in memory per folder (0: all; a random sampler over a
             cache larger than this re-reads a shard for most items).
         rollout_steps: simulate only log steps 0 .. rollout_steps-1 per batch (None: all 91).
@@ -97,6 +100,7 @@ class TrainConfig:
     threads: int | None = None
     rollout_steps: int | None = None
     cache_shards: int = 0
+    stop_at: int | None = None
 
     def model_config(self) -> TrafficBotsConfig:
         if self.model == "small":
@@ -280,15 +284,16 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
     logger = _Logger(out, main)
     roll_gen = torch.Generator(device=device).manual_seed(cfg.seed + 7919 * rank + start)
     model.train()
+    end = cfg.steps if cfg.stop_at is None else min(cfg.stop_at, cfg.steps)
     bar = tqdm(
-        total=cfg.steps, initial=start, desc="train", unit="step", disable=not (progress and main)
+        total=end, initial=start, desc="train", unit="step", disable=not (progress and main)
     )
     scalars: dict[str, float] = {}
     t0, seen = time.perf_counter(), 0
     epoch = 0
     it = iter(loader)
     step = start
-    while step < cfg.steps:
+    while step < end:
         try:
             items = next(it)
         except StopIteration:  # DistributedSampler: next epoch
@@ -313,7 +318,7 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         step += 1
         seen += len(items) * world
         bar.update(1)
-        if step % cfg.log_every == 0 or step == cfg.steps:
+        if step % cfg.log_every == 0 or step == end:
             rate = seen / (time.perf_counter() - t0)
             scalars = {
                 **logs,
@@ -323,7 +328,7 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
             }
             logger.log(step, scalars)
             bar.set_postfix(loss=f"{logs['loss']:.3f}", il=f"{logs['imitation']:.3f}")
-        if main and (step % cfg.ckpt_every == 0 or step == cfg.steps):
+        if main and (step % cfg.ckpt_every == 0 or step == end):
             save_checkpoint(model, last)
             _optimizer_state_to_files(opt, step, out / "optimizer")
     bar.close()
