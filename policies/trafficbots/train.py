@@ -285,9 +285,7 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
     roll_gen = torch.Generator(device=device).manual_seed(cfg.seed + 7919 * rank + start)
     model.train()
     end = cfg.steps if cfg.stop_at is None else min(cfg.stop_at, cfg.steps)
-    bar = tqdm(
-        total=end, initial=start, desc="train", unit="step", disable=not (progress and main)
-    )
+    bar = tqdm(total=end, initial=start, desc="train", unit="step", disable=not (progress and main))
     scalars: dict[str, float] = {}
     t0, seen = time.perf_counter(), 0
     epoch = 0
