@@ -38,6 +38,7 @@ from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import cached_arange
 
 NUM_TYPE_FEATURES = 4
 """Type one-hot over (vehicle, pedestrian, cyclist, other)."""
@@ -92,6 +93,11 @@ class MapContext:
         tl_pose: [B, L, 3] pose of the controlled lane piece.
         tl_state: [B, L, T] int64 ``TLState`` from the log.
         tl_valid: [B, L, T] bool.
+        tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, what an observation shows of a
+            piece, concatenated: ``nodes``, ``nodes_valid`` and the ``map_class`` one-hot
+            (one gather per step instead of three).
+        invalid: [B, 1, M] bool, not ``valid`` (padding pieces).
+        tl_onehot: [B, L, T, NUM_TL_STATES] float32 one-hot of ``tl_state``.
     """
 
     pose: torch.Tensor
@@ -102,6 +108,9 @@ class MapContext:
     tl_pose: torch.Tensor
     tl_state: torch.Tensor
     tl_valid: torch.Tensor
+    tokens: torch.Tensor
+    invalid: torch.Tensor
+    tl_onehot: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -182,7 +191,21 @@ def build_map_context(
         for key in ("tl_pose", "tl_state", "tl_valid"):
             out[key][i, :lt] = p[key]
     dev = origins.device
-    return MapContext(**{k: torch.from_numpy(v).to(dev) for k, v in out.items()})
+    t = {k: torch.from_numpy(v).to(dev) for k, v in out.items()}
+    tokens = torch.cat(
+        [
+            t["nodes"].flatten(-2),
+            t["nodes_valid"].float(),
+            _MAP_EYE.to(dev)[t["map_class"]],
+        ],
+        dim=-1,
+    )
+    return MapContext(
+        **t,
+        tokens=tokens,
+        invalid=~t["valid"][:, None],
+        tl_onehot=_TL_EYE.to(dev)[t["tl_state"]],
+    )
 
 
 def init_history(state: SimState, length: int) -> History:
@@ -232,19 +255,21 @@ def agent_static_features(state: SimState) -> torch.Tensor:
 
 
 def _nearest(
-    dist: torch.Tensor, valid: torch.Tensor, k: int, radius: float
+    dist: torch.Tensor, invalid: torch.Tensor, k: int, radius: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices [B, Q, k] of the k nearest valid targets and their mask (within radius).
 
     Args:
-        dist: [B, Q, M] distances; valid: [B, Q, M] bool (broadcastable).
+        dist: [B, Q, M] distances; invalid: [B, Q, M] bool (broadcastable), targets to skip.
     """
     m = dist.shape[-1]
-    d = dist.masked_fill(~valid, float("inf"))
+    d = dist.masked_fill(invalid, float("inf"))
     if m < k:
         d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
     top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
-    return idx.clamp(max=m - 1), top <= radius
+    if m < k:
+        idx = idx.clamp(max=m - 1)
+    return idx, top <= radius
 
 
 def observe(
@@ -269,61 +294,57 @@ def observe(
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
     """
-    bq = torch.arange(state.batch_size, device=state.device)[:, None]  # [B, 1]
+    # One step is a few hundred tiny tensor operations, so this is written to use few: every
+    # agent's history is put in its own frame once (the observer's and its neighbours' are
+    # gathered from it), and the relative poses of all selected tokens are one computation.
+    bq = cached_arange(state.batch_size, state.device)[:, None]  # [B, 1]
     bk = bq[..., None]  # [B, 1, 1]
     me = state.pose[bq, observers]  # [B, Q, 3]
+    me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
     static = agent_static_features(state) if agent_static is None else agent_static
     attrs = torch.cat([static, state.speed[..., None]], dim=-1)  # [B, N, 7]
-    ego_valid = history.valid[bq, observers]  # [B, Q, H]
-    ego_hist = _history_features(history.pose[bq, observers], history.speed[bq, observers], me)
-    ego_hist = ego_hist * ego_valid[..., None]  # [B, Q, H, 5]
+    # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
+    hist = _history_features(history.pose, history.speed, state.pose)
+    hist = hist * history.valid[..., None]
 
-    # Agents.
-    dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
-    other = state.valid[:, None, :].clone().expand_as(dist).clone()
-    other[bq, torch.arange(observers.shape[1], device=state.device), observers] = False
-    a_idx, a_mask = _nearest(dist, other, cfg.num_agents, cfg.agent_radius)
-    a_f = a_mask.float()
-    nb_pose = state.pose[bk, a_idx]  # [B, Q, K, 3]
-    a_pose = relative_pose(me[:, :, None], nb_pose) * a_f[..., None]
-    # Each neighbour's history in its own current frame (only for the K gathered ones).
-    nb_valid = history.valid[bk, a_idx] & a_mask[..., None]  # [B, Q, K, H]
-    nb_hist = _history_features(history.pose[bk, a_idx], history.speed[bk, a_idx], nb_pose)
-    nb_hist = nb_hist * nb_valid[..., None]
-
-    # Map pieces.
-    m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
-    m_idx, m_mask = _nearest(m_dist, ctx.valid[:, None], cfg.num_map, cfg.map_radius)
-    m_f = m_mask.float()
-    m_pose = relative_pose(me[:, :, None], ctx.pose[bk, m_idx]) * m_f[..., None]
-
-    # Traffic lights at the current step.
+    # Nearest agents (other than the observer), map pieces and traffic lights.
+    n = state.num_agents
+    dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)  # [B, Q, N]
+    not_other = ~state.valid[:, None] | (cached_arange(n, state.device) == observers[..., None])
+    a_idx, a_mask = _nearest(dist, not_other, cfg.num_agents, cfg.agent_radius)
+    m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me_xy, dim=-1)
+    m_idx, m_mask = _nearest(m_dist, ctx.invalid, cfg.num_map, cfg.map_radius)
     t_now = state.step.clamp(max=ctx.tl_state.shape[-1] - 1)[:, None]  # [B, 1]
-    tl_state = ctx.tl_state[bq, :, t_now][:, 0]  # [B, L]
-    tl_valid = ctx.tl_valid[bq, :, t_now][:, 0]
-    t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
-    t_idx, t_mask = _nearest(
-        t_dist, tl_valid[:, None], cfg.num_traffic_lights, cfg.traffic_light_radius
-    )
-    t_f = t_mask.float()
-    t_pose = relative_pose(me[:, :, None], ctx.tl_pose[bk, t_idx]) * t_f[..., None]
-    t_state = _TL_EYE.to(state.device)[tl_state[bk, t_idx]] * t_f[..., None]
+    tl_invalid = ~ctx.tl_valid[bq, :, t_now]  # [B, 1, L]
+    t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me_xy, dim=-1)
+    t_idx, t_mask = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
 
+    # Poses of all selected tokens relative to the observer, zero where masked.
+    sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
+    mask = torch.cat([a_mask, m_mask, t_mask], -1).float()  # [B, Q, Ka + Km + Kt]
+    token_pose = torch.cat([state.pose[bk, a_idx], ctx.pose[bk, m_idx], ctx.tl_pose[bk, t_idx]], 2)
+    rel = relative_pose(me[:, :, None], token_pose) * mask[..., None]
+    a_pose, m_pose, t_pose = rel.split(sizes, 2)
+    a_f, m_f, t_f = mask.split(sizes, -1)
+
+    p = cfg.tokens.piece_segments
+    m_tok = ctx.tokens[bk, m_idx] * m_f[..., None]  # [B, Q, Km, P * 4 + P + classes]
+    m_nodes, m_nodes_mask, m_class = m_tok.split((p * NODE_FEATURES, p, C.NUM_MAP_CLASSES), -1)
     return {
-        "ego_history": ego_hist,
-        "ego_history_mask": ego_valid.float(),
+        "ego_history": hist[bq, observers],
+        "ego_history_mask": history.valid[bq, observers].float(),
         "ego_attributes": attrs[bq, observers],
-        "agents": nb_hist,
-        "agents_history_mask": nb_valid.float(),
+        "agents": hist[bk, a_idx] * a_f[..., None, None],
+        "agents_history_mask": (history.valid[bk, a_idx] & a_mask[..., None]).float(),
         "agents_attributes": attrs[bk, a_idx] * a_f[..., None],
         "agents_pose": a_pose,
         "agents_mask": a_f,
-        "map": ctx.nodes[bk, m_idx] * m_f[..., None, None],
-        "map_nodes_mask": ctx.nodes_valid[bk, m_idx] * m_f[..., None],
-        "map_class": _MAP_EYE.to(state.device)[ctx.map_class[bk, m_idx]] * m_f[..., None],
+        "map": m_nodes.unflatten(-1, (p, NODE_FEATURES)),
+        "map_nodes_mask": m_nodes_mask,
+        "map_class": m_class,
         "map_pose": m_pose,
         "map_mask": m_f,
-        "traffic_lights": t_state,
+        "traffic_lights": ctx.tl_onehot[bk, t_idx, t_now[..., None]] * t_f[..., None],
         "traffic_lights_pose": t_pose,
         "traffic_lights_mask": t_f,
     }

@@ -24,3 +24,21 @@ def torch_threads(n: int | None):
         yield
     finally:
         torch.set_num_threads(before)
+
+
+_ARANGE: dict[tuple[int, torch.device], torch.Tensor] = {}
+
+
+def cached_arange(n: int, device: torch.device | str) -> torch.Tensor:
+    """``torch.arange(n)`` (int64) on ``device``, built once per (n, device); never modify it.
+
+    Hot per-step code indexes with it (e.g. the batch index ``cached_arange(B)[:, None]``);
+    building it anew costs about as much as the indexing itself. It is made outside
+    inference mode so that autograd code may use it too.
+    """
+    key = (n, torch.device(device))
+    out = _ARANGE.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _ARANGE[key] = torch.arange(n, device=key[1])
+    return out

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from tbsim_env.sim.geometry import cos_sin
+from tbsim_env.torch_utils import cached_arange
 
 
 def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
@@ -58,6 +59,37 @@ def pairwise_overlap(
     sep |= (d[..., 0] * cb + d[..., 1] * sb).abs() > lb + la * cd + wa * sd
     sep |= (-d[..., 0] * sb + d[..., 1] * cb).abs() > wb + la * sd + wa * cd
     return ~sep
+
+
+def collided_with_others(
+    query: torch.Tensor,
+    pose: torch.Tensor,
+    size: torch.Tensor,
+    valid: torch.Tensor,
+) -> torch.Tensor:
+    """Collision flag of K query agents against every other valid agent (``collided``'s rule).
+
+    The bounding-circle prefilter and the box test of ``collided`` on the same values, laid
+    out as [B, K, N] instead of gathered per query, so the per-step cost is a few operations.
+    A query agent's own validity is not checked (the caller masks it).
+
+    Args:
+        query: [B, K] int64 agent slots.
+        pose: [B, N, 3]; size: [B, N, 2] (length, width); valid: [B, N] bool.
+
+    Returns:
+        [B, K] bool.
+    """
+    b_idx = cached_arange(pose.shape[0], pose.device)[:, None]
+    pose_q, size_q = pose[b_idx, query], size[b_idx, query]  # [B, K, 3], [B, K, 2]
+    radius = 0.5 * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
+    gap = torch.linalg.vector_norm(pose[:, None, :, :2] - pose_q[:, :, None, :2], dim=-1)
+    near = gap <= radius[:, None] + radius[b_idx, query][..., None]  # [B, K, N]
+    others = cached_arange(pose.shape[1], pose.device) != query[..., None]
+    near &= valid[:, None] & others
+    if not bool(near.any()):
+        return torch.zeros_like(query, dtype=torch.bool)
+    return (pairwise_overlap(pose_q, size_q, pose, size) & near).any(-1)
 
 
 def collided(
