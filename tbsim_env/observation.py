@@ -36,7 +36,7 @@ from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local
+from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange
 
@@ -234,9 +234,11 @@ def push_history(history: History, state: SimState) -> History:
 
 def _history_features(pose: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
     """[..., H, 5] history in ``frame`` ([..., 3]): x, y, cos, sin, speed."""
-    xy = to_local(pose[..., :2], frame[..., None, :])
-    c, s = cos_sin(pose[..., 2] - frame[..., None, 2])
-    return torch.cat([xy, c[..., None], s[..., None], speed[..., None]], -1)
+    x, y, yaw = pose.unbind(-1)
+    frame = frame.unsqueeze(-2)
+    lx, ly = to_local_xy(x, y, frame)
+    c, s = cos_sin(yaw - frame[..., 2])
+    return torch.stack([lx, ly, c, s, speed], -1)
 
 
 def agent_static_features(state: SimState) -> torch.Tensor:

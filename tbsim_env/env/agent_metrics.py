@@ -123,10 +123,11 @@ def step_metrics(
         (metrics, candidates for the next call).
     """
     b_idx = cached_arange(state.batch_size, state.device)[:, None]
-    coll = collided_with_others(query, state.pose, state.agents.size[..., :2], state.valid)
     pose = state.pose[b_idx, query]
     present = state.valid[b_idx, query]
     size = state.agents.size[b_idx, query, :2]
+    all_size = state.agents.size[..., :2]
+    coll = collided_with_others(query, pose, size, state.pose, all_size, state.valid)
     if candidates is None:
         candidates = EdgeCandidates.build(pose, state.road_edges)
     off_d, candidates = box_offroad_distance(pose, size, state.road_edges, candidates)

@@ -12,8 +12,9 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.sim.collision import box_corners
+from tbsim_env.sim.collision import box_corner_xy, box_corners
 from tbsim_env.sim.state import RoadEdges
+from tbsim_env.torch_utils import const
 
 NO_EDGE_DISTANCE = -1.0e10
 """Distance reported when a scenario has no road edge (always on-road)."""
@@ -208,8 +209,8 @@ def _signed_and_unsigned(
     return torch.where(has_edge, out, torch.full_like(out, NO_EDGE_DISTANCE)), d
 
 
-_JOINT_SCALE = torch.tensor([-1.0, 1.0])
-_JOINT_LIMIT = torch.tensor([0.0, 1.0])
+_JOINT_SCALE = (-1.0, 1.0)
+_JOINT_LIMIT = (0.0, 1.0)
 """``t * scale > limit``: (t < 0, t > 1), the projection falls before / after the segment."""
 
 
@@ -239,20 +240,18 @@ def _candidate_signed_and_unsigned(
     d = dist.gather(-1, local)
     t_best = t.gather(-1, local)
     row = cand.sides.gather(2, local.expand(-1, -1, -1, SIDE_FEATURES))  # [B, K, P, 16]
-    sx, sy, vx, vy, flags = row.split((3, 3, 3, 3, 4), -1)
+    sx, sy, vx, vy, flags = row.split_with_sizes([3, 3, 3, 3, 4], -1)
     # Side of the nearest segment, its predecessor and its successor: [B, K, P, 3].
     n3 = torch.sign((x - sx) * vy - (y - sy) * vx)
-    n, n_pn = n3.split((1, 2), -1)
-    flags = flags > 0.5
-    joint = torch.where(flags[..., :2], torch.maximum(n, n_pn), torch.minimum(n, n_pn))
-    scale = _JOINT_SCALE.to(t.device, t.dtype)
-    limit = _JOINT_LIMIT.to(t.device, t.dtype)
+    n, n_pn = n3.split_with_sizes([1, 2], -1)
+    convex, has = (flags > const(0.5, flags)).split_with_sizes([2, 2], -1)
+    joint = torch.where(convex, torch.maximum(n, n_pn), torch.minimum(n, n_pn))
     # (t < 0 and a predecessor, t > 1 and a successor).
-    use = (t_best * scale > limit) & flags[..., 2:]
-    use_prev, use_next = use.split(1, -1)
-    joint_prev, joint_next = joint.split(1, -1)
+    use = (t_best * const(_JOINT_SCALE, t) > const(_JOINT_LIMIT, t)) & has
+    use_prev, use_next = use.split_with_sizes([1, 1], -1)
+    joint_prev, joint_next = joint.split_with_sizes([1, 1], -1)
     sign = torch.where(use_next, joint_next, torch.where(use_prev, joint_prev, n))
-    out = (sign * d).masked_fill_(cand.no_edge[..., None], NO_EDGE_DISTANCE)
+    out = (sign * d).masked_fill_(cand.no_edge.unsqueeze(-1), NO_EDGE_DISTANCE)
     return out, d
 
 
@@ -273,13 +272,14 @@ def box_offroad_distance(
     Returns:
         ([B, K] m, the candidates to pass next time, or None when none were given).
     """
-    corners = box_corners(pose, size[..., 0], size[..., 1])  # [B, K, 4, 2]
+    length, width = size.unbind(-1)
     bsz, k = pose.shape[:2]
     if candidates is None:
-        flat = corners.reshape(bsz, k * 4, 2)
+        flat = box_corners(pose, length, width).reshape(bsz, k * 4, 2)
         return signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1), None
-    x, y = corners[..., None].unbind(-2)  # [B, K, 4, 1] each
-    half_diag = 0.5 * torch.linalg.vector_norm(size, dim=-1)
+    x, y = box_corner_xy(pose, length, width)
+    x, y = x.unsqueeze(-1), y.unsqueeze(-1)  # [B, K, 4, 1]
+    half_diag = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)
     stale = torch.linalg.vector_norm(pose[..., :2] - candidates.center, dim=-1) + half_diag
     signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
     # Exact while every segment that could be nearest to a corner is in the candidate set.
@@ -288,7 +288,7 @@ def box_offroad_distance(
         signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
         if bool((nearest.amax((-2, -1)) + half_diag > candidates.reach).any()):
             # The cache cannot vouch for these boxes (e.g. far from every edge): use all.
-            flat = corners.reshape(bsz, k * 4, 2)
+            flat = torch.stack([x, y], -1).reshape(bsz, k * 4, 2)
             full = signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1)
             return full, candidates
     return signed.amax((-2, -1)), candidates
