@@ -38,7 +38,7 @@ from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange
+from tbsim_env.torch_utils import cached_arange, const
 
 NUM_TYPE_FEATURES = 4
 """Type one-hot over (vehicle, pedestrian, cyclist, other)."""
@@ -93,11 +93,12 @@ class MapContext:
         tl_pose: [B, L, 3] pose of the controlled lane piece.
         tl_state: [B, L, T] int64 ``TLState`` from the log.
         tl_valid: [B, L, T] bool.
-        tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, what an observation shows of a
-            piece, concatenated: ``nodes``, ``nodes_valid`` and the ``map_class`` one-hot
-            (one gather per step instead of three).
-        invalid: [B, 1, M] bool, not ``valid`` (padding pieces).
-        tl_onehot: [B, L, T, NUM_TL_STATES] float32 one-hot of ``tl_state``.
+        tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES + 3] float32, derived: what an
+            observation shows of a piece, concatenated (``nodes``, ``nodes_valid``, the
+            ``map_class`` one-hot, ``pose``), so that a step gathers it in one operation.
+        invalid: [B, 1, M] bool, derived: not ``valid`` (padding pieces).
+        tl_tokens: [B, L, T, NUM_TL_STATES + 3] float32, derived: one-hot of ``tl_state`` and
+            ``tl_pose``, concatenated.
     """
 
     pose: torch.Tensor
@@ -110,7 +111,7 @@ class MapContext:
     tl_valid: torch.Tensor
     tokens: torch.Tensor
     invalid: torch.Tensor
-    tl_onehot: torch.Tensor
+    tl_tokens: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -197,14 +198,16 @@ def build_map_context(
             t["nodes"].flatten(-2),
             t["nodes_valid"].float(),
             _MAP_EYE.to(dev)[t["map_class"]],
+            t["pose"],
         ],
         dim=-1,
     )
+    tl_pose = t["tl_pose"][:, :, None].expand(-1, -1, n_t, -1)
     return MapContext(
         **t,
         tokens=tokens,
         invalid=~t["valid"][:, None],
-        tl_onehot=_TL_EYE.to(dev)[t["tl_state"]],
+        tl_tokens=torch.cat([_TL_EYE.to(dev)[t["tl_state"]], tl_pose], dim=-1),
     )
 
 
@@ -271,7 +274,7 @@ def _nearest(
     top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
     if m < k:
         idx = idx.clamp(max=m - 1)
-    return idx, top <= radius
+    return idx, top <= const(radius, top)
 
 
 def observe(
@@ -297,17 +300,23 @@ def observe(
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
     """
     # One step is a few hundred tiny tensor operations, so this is written to use few: every
-    # agent's history is put in its own frame once (the observer's and its neighbours' are
-    # gathered from it), and the relative poses of all selected tokens are one computation.
-    bq = cached_arange(state.batch_size, state.device)[:, None]  # [B, 1]
-    bk = bq[..., None]  # [B, 1, 1]
-    me = state.pose[bq, observers]  # [B, Q, 3]
-    me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
+    # agent's history is put in its own frame once, everything an observation shows of an
+    # agent (or a map piece, a light) is one row gathered at once, and the relative poses of
+    # all selected tokens are one computation.
+    b_idx = cached_arange(state.batch_size, state.device)
+    bq, bk = b_idx[:, None], b_idx[:, None, None]  # [B, 1], [B, 1, 1]
+    h = history.valid.shape[-1]
     static = agent_static_features(state) if agent_static is None else agent_static
-    attrs = torch.cat([static, state.speed[..., None]], dim=-1)  # [B, N, 7]
     # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
     hist = _history_features(history.pose, history.speed, state.pose)
     hist = hist * history.valid[..., None]
+    # Per agent: history, history mask, attributes (static, speed), current pose: [B, N, F].
+    widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES, 3]
+    agents = torch.cat(
+        [hist.flatten(-2), history.valid.float(), static, state.speed[..., None], state.pose], -1
+    )
+    ego_hist, ego_valid, ego_attrs, me = agents[bq, observers].split_with_sizes(widths, -1)
+    me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
 
     # Nearest agents (other than the observer), map pieces and traffic lights.
     n = state.num_agents
@@ -321,24 +330,31 @@ def observe(
     t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me_xy, dim=-1)
     t_idx, t_mask = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
 
+    # The selected rows: [B, Q, K, features + pose].
+    nb_feat, nb_pose = agents[bk, a_idx].split_with_sizes([sum(widths[:3]), 3], -1)
+    m_feat, m_pose = ctx.tokens[bk, m_idx].split_with_sizes([ctx.tokens.shape[-1] - 3, 3], -1)
+    t_feat, t_pose = ctx.tl_tokens[bk, t_idx, t_now[..., None]].split_with_sizes(
+        [C.NUM_TL_STATES, 3], -1
+    )
     # Poses of all selected tokens relative to the observer, zero where masked.
-    sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
+    sizes = [cfg.num_agents, cfg.num_map, cfg.num_traffic_lights]
     mask = torch.cat([a_mask, m_mask, t_mask], -1).float()  # [B, Q, Ka + Km + Kt]
-    token_pose = torch.cat([state.pose[bk, a_idx], ctx.pose[bk, m_idx], ctx.tl_pose[bk, t_idx]], 2)
-    rel = relative_pose(me[:, :, None], token_pose) * mask[..., None]
-    a_pose, m_pose, t_pose = rel.split(sizes, 2)
-    a_f, m_f, t_f = mask.split(sizes, -1)
+    rel = relative_pose(me[:, :, None], torch.cat([nb_pose, m_pose, t_pose], 2))
+    a_pose, m_pose, t_pose = (rel * mask[..., None]).split_with_sizes(sizes, 2)
+    a_f, m_f, t_f = mask.split_with_sizes(sizes, -1)
 
+    nb_hist, nb_valid, nb_attrs = (nb_feat * a_f[..., None]).split_with_sizes(widths[:3], -1)
     p = cfg.tokens.piece_segments
-    m_tok = ctx.tokens[bk, m_idx] * m_f[..., None]  # [B, Q, Km, P * 4 + P + classes]
-    m_nodes, m_nodes_mask, m_class = m_tok.split((p * NODE_FEATURES, p, C.NUM_MAP_CLASSES), -1)
+    m_nodes, m_nodes_mask, m_class = (m_feat * m_f[..., None]).split_with_sizes(
+        [p * NODE_FEATURES, p, C.NUM_MAP_CLASSES], -1
+    )
     return {
-        "ego_history": hist[bq, observers],
-        "ego_history_mask": history.valid[bq, observers].float(),
-        "ego_attributes": attrs[bq, observers],
-        "agents": hist[bk, a_idx] * a_f[..., None, None],
-        "agents_history_mask": (history.valid[bk, a_idx] & a_mask[..., None]).float(),
-        "agents_attributes": attrs[bk, a_idx] * a_f[..., None],
+        "ego_history": ego_hist.unflatten(-1, (h, HISTORY_FEATURES)),
+        "ego_history_mask": ego_valid,
+        "ego_attributes": ego_attrs,
+        "agents": nb_hist.unflatten(-1, (h, HISTORY_FEATURES)),
+        "agents_history_mask": nb_valid,
+        "agents_attributes": nb_attrs,
         "agents_pose": a_pose,
         "agents_mask": a_f,
         "map": m_nodes.unflatten(-1, (p, NODE_FEATURES)),
@@ -346,7 +362,7 @@ def observe(
         "map_class": m_class,
         "map_pose": m_pose,
         "map_mask": m_f,
-        "traffic_lights": ctx.tl_onehot[bk, t_idx, t_now[..., None]] * t_f[..., None],
+        "traffic_lights": t_feat * t_f[..., None],
         "traffic_lights_pose": t_pose,
         "traffic_lights_mask": t_f,
     }
