@@ -48,6 +48,7 @@ from tbsim_env.observation import (
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
+from tbsim_env.sim.offroad import EdgeCandidates
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import torch_threads
 
@@ -223,6 +224,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
                     self._act_spaces[name] = gym.spaces.Box(-hi, hi, dtype=np.float32)
         self.agents: list[str] = []
         self._cache: dict[int, tuple[SimState, MapContext]] = {}
+        self._route_cache: dict[int, tuple[Route, EdgeCandidates | None]] = {}
         self._episode = -1
         self.np_random, _ = gym.utils.seeding.np_random(None)
         self._generator = torch.Generator(device="cpu")
@@ -316,7 +318,9 @@ class TrafficEnv(ParallelEnv, EzPickle):
         )
         self._history: History = init_history(self.state_, self.obs_config.history)
         self._agent_static = agent_static_features(self.state_)
-        self._route: Route = build_route(self.state_, self._ext_slots)
+        if k not in self._route_cache:
+            self._route_cache[k] = (build_route(self.state_, self._ext_slots), None)
+        self._route, self._edge_cache = self._route_cache[k]
         self._end = sc.num_steps - 1 if self.config.end_step is None else self.config.end_step
         self._end = min(self._end, sc.num_steps - 1)
         self.agents = list(self._ext_names)
@@ -326,7 +330,11 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self._goal_reached = torch.zeros_like(self._ext_slots, dtype=torch.bool)
         # Agents whose logged route is shorter than the goal radius have no goal to reach.
         self._has_goal = self._route.arc[..., -1] > self.config.reward.goal_radius
-        metrics, self._edge_cache = step_metrics(self.state_, self._ext_slots, self._route)
+        metrics, self._edge_cache = step_metrics(
+            self.state_, self._ext_slots, self._route, self._edge_cache
+        )
+        # Every episode of scenario k starts from the same state: keep its road-edge cache.
+        self._route_cache[k] = (self._route, self._route_cache[k][1] or self._edge_cache)
         self._progress = metrics.progress.clone()
         obs = self._observations(self.agents)
         columns, _, _ = self._info_columns(metrics)
@@ -421,7 +429,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self.obs_config,
             agent_static=self._agent_static,
         )
-        o = {k: v.cpu().numpy()[0] for k, v in o.items()}
+        o = {k: (v if v.device.type == "cpu" else v.cpu()).numpy()[0] for k, v in o.items()}
         return {n: {k: v[self._slot_of[n]] for k, v in o.items()} for n in names}
 
     def _info_columns(
