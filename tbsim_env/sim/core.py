@@ -29,14 +29,6 @@ def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     return out
 
 
-def _at_step(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-    """Gather ``x[b, n, step[b], ...]`` -> [B, N, ...] from a [B, N, T, ...] log tensor."""
-    idx = step.view(-1, 1, 1).expand(x.shape[0], x.shape[1], 1)
-    if x.dim() == 4:
-        return x.gather(2, idx[..., None].expand(-1, -1, 1, x.shape[-1]))[:, :, 0]
-    return x.gather(2, idx)[:, :, 0]
-
-
 def seen_before(state: SimState) -> torch.Tensor:
     """[B, N] bool: the agent was valid in the log at some step <= the current one."""
     return state.log.first_valid <= state.step[:, None]
