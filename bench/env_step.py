@@ -13,6 +13,7 @@ batch 64.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import time
 from pathlib import Path
@@ -22,13 +23,15 @@ import torch
 
 from tbsim_env.data import load_scenarios
 from tbsim_env.env import TrafficEnv
+from tbsim_env.env import parallel_env as pe
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
 
 
-def bench_env(scenarios, episodes: int) -> tuple[float, float]:
+def bench_env(scenarios, episodes: int) -> tuple[float, float, int]:
+    """(env steps/s, agent steps/s, steps) of ``episodes`` log-replay episodes (resets included)."""
     env = TrafficEnv(scenarios, controlled="sdc", npc_policy="log_replay")
     env.reset(seed=0)
     n_agents = int(env.sim_state.agents.mask.sum())
@@ -41,7 +44,41 @@ def bench_env(scenarios, episodes: int) -> tuple[float, float]:
             env.step({a: zero[a] for a in env.agents})
             steps += 1
     dt = time.perf_counter() - start
-    return steps / dt, steps * n_agents / dt
+    return steps / dt, steps * n_agents / dt, steps
+
+
+@contextlib.contextmanager
+def timed_parts(totals: dict[str, float]):
+    """Accumulate the seconds ``TrafficEnv`` spends in each part of a step into ``totals``.
+
+    Wraps the functions ``tbsim_env.env.parallel_env`` calls (restored on exit); what is not
+    in a part is the env's own Python glue (dicts, numpy conversion, infos).
+    """
+    parts = {
+        "core.step": (pe.core, "step"),
+        "step_metrics": (pe, "step_metrics"),
+        "reward": (pe, "reward_and_termination"),
+        "push_history": (pe, "push_history"),
+        "observe": (pe, "observe"),
+    }
+    saved = {name: getattr(mod, attr) for name, (mod, attr) in parts.items()}
+
+    def wrap(name, fn):
+        def timed(*args, **kwargs):
+            t = time.perf_counter()
+            out = fn(*args, **kwargs)
+            totals[name] = totals.get(name, 0.0) + time.perf_counter() - t
+            return out
+
+        return timed
+
+    for name, (mod, attr) in parts.items():
+        setattr(mod, attr, wrap(name, saved[name]))
+    try:
+        yield
+    finally:
+        for name, (mod, attr) in parts.items():
+            setattr(mod, attr, saved[name])
 
 
 def bench_core(scenarios, batch: int, steps: int) -> float:
@@ -79,10 +116,20 @@ def main() -> None:
 
         scenarios, label = default_scenarios(2), "generated scenes (no WOMD data found)"
     print(f"torch {torch.__version__}, {args.threads} threads, scenario: {label}")
-    env_sps, env_asps = bench_env(scenarios, args.episodes)
+    env_sps, env_asps, _ = bench_env(scenarios, args.episodes)
     print(
         f"(a) TrafficEnv, 1 controlled + log replay, obs: {env_sps:8.0f} env steps/s "
         f"({env_asps:,.0f} agent steps/s)   target >= 1,000 env steps/s"
+    )
+    totals: dict[str, float] = {}
+    with timed_parts(totals):
+        sps, _, steps = bench_env(scenarios, args.episodes)
+    per_step = {k: 1e3 * v / steps for k, v in totals.items()}
+    rest = 1e3 / sps - sum(per_step.values())
+    print(
+        f"    per step (separate timed run, {1e3 / sps:.3f} ms): "
+        + ", ".join(f"{k} {v:.3f}" for k, v in per_step.items())
+        + f", env glue and resets {rest:.3f} ms"
     )
     for b in (1, 16, 64):
         asps = bench_core(scenarios, b, 400)

@@ -36,8 +36,9 @@ from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local
+from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import cached_arange, const
 
 NUM_TYPE_FEATURES = 4
 """Type one-hot over (vehicle, pedestrian, cyclist, other)."""
@@ -92,6 +93,12 @@ class MapContext:
         tl_pose: [B, L, 3] pose of the controlled lane piece.
         tl_state: [B, L, T] int64 ``TLState`` from the log.
         tl_valid: [B, L, T] bool.
+        tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES + 3] float32, derived: what an
+            observation shows of a piece, concatenated (``nodes``, ``nodes_valid``, the
+            ``map_class`` one-hot, ``pose``), so that a step gathers it in one operation.
+        invalid: [B, 1, M] bool, derived: not ``valid`` (padding pieces).
+        tl_tokens: [B, L, T, NUM_TL_STATES + 3] float32, derived: one-hot of ``tl_state`` and
+            ``tl_pose``, concatenated.
     """
 
     pose: torch.Tensor
@@ -102,6 +109,9 @@ class MapContext:
     tl_pose: torch.Tensor
     tl_state: torch.Tensor
     tl_valid: torch.Tensor
+    tokens: torch.Tensor
+    invalid: torch.Tensor
+    tl_tokens: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -182,7 +192,23 @@ def build_map_context(
         for key in ("tl_pose", "tl_state", "tl_valid"):
             out[key][i, :lt] = p[key]
     dev = origins.device
-    return MapContext(**{k: torch.from_numpy(v).to(dev) for k, v in out.items()})
+    t = {k: torch.from_numpy(v).to(dev) for k, v in out.items()}
+    tokens = torch.cat(
+        [
+            t["nodes"].flatten(-2),
+            t["nodes_valid"].float(),
+            _MAP_EYE.to(dev)[t["map_class"]],
+            t["pose"],
+        ],
+        dim=-1,
+    )
+    tl_pose = t["tl_pose"][:, :, None].expand(-1, -1, n_t, -1)
+    return MapContext(
+        **t,
+        tokens=tokens,
+        invalid=~t["valid"][:, None],
+        tl_tokens=torch.cat([_TL_EYE.to(dev)[t["tl_state"]], tl_pose], dim=-1),
+    )
 
 
 def init_history(state: SimState, length: int) -> History:
@@ -211,9 +237,11 @@ def push_history(history: History, state: SimState) -> History:
 
 def _history_features(pose: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
     """[..., H, 5] history in ``frame`` ([..., 3]): x, y, cos, sin, speed."""
-    xy = to_local(pose[..., :2], frame[..., None, :])
-    c, s = cos_sin(pose[..., 2] - frame[..., None, 2])
-    return torch.cat([xy, c[..., None], s[..., None], speed[..., None]], -1)
+    x, y, yaw = pose.unbind(-1)
+    frame = frame.unsqueeze(-2)
+    lx, ly = to_local_xy(x, y, frame)
+    c, s = cos_sin(yaw - frame[..., 2])
+    return torch.stack([lx, ly, c, s, speed], -1)
 
 
 def agent_static_features(state: SimState) -> torch.Tensor:
@@ -232,19 +260,21 @@ def agent_static_features(state: SimState) -> torch.Tensor:
 
 
 def _nearest(
-    dist: torch.Tensor, valid: torch.Tensor, k: int, radius: float
+    dist: torch.Tensor, invalid: torch.Tensor, k: int, radius: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices [B, Q, k] of the k nearest valid targets and their mask (within radius).
 
     Args:
-        dist: [B, Q, M] distances; valid: [B, Q, M] bool (broadcastable).
+        dist: [B, Q, M] distances; invalid: [B, Q, M] bool (broadcastable), targets to skip.
     """
     m = dist.shape[-1]
-    d = dist.masked_fill(~valid, float("inf"))
+    d = dist.masked_fill(invalid, float("inf"))
     if m < k:
         d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
     top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
-    return idx.clamp(max=m - 1), top <= radius
+    if m < k:
+        idx = idx.clamp(max=m - 1)
+    return idx, top <= const(radius, top)
 
 
 def observe(
@@ -269,61 +299,70 @@ def observe(
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
     """
-    bq = torch.arange(state.batch_size, device=state.device)[:, None]  # [B, 1]
-    bk = bq[..., None]  # [B, 1, 1]
-    me = state.pose[bq, observers]  # [B, Q, 3]
+    # One step is a few hundred tiny tensor operations, so this is written to use few: every
+    # agent's history is put in its own frame once, everything an observation shows of an
+    # agent (or a map piece, a light) is one row gathered at once, and the relative poses of
+    # all selected tokens are one computation.
+    b_idx = cached_arange(state.batch_size, state.device)
+    bq, bk = b_idx[:, None], b_idx[:, None, None]  # [B, 1], [B, 1, 1]
+    h = history.valid.shape[-1]
     static = agent_static_features(state) if agent_static is None else agent_static
-    attrs = torch.cat([static, state.speed[..., None]], dim=-1)  # [B, N, 7]
-    ego_valid = history.valid[bq, observers]  # [B, Q, H]
-    ego_hist = _history_features(history.pose[bq, observers], history.speed[bq, observers], me)
-    ego_hist = ego_hist * ego_valid[..., None]  # [B, Q, H, 5]
-
-    # Agents.
-    dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
-    other = state.valid[:, None, :].clone().expand_as(dist).clone()
-    other[bq, torch.arange(observers.shape[1], device=state.device), observers] = False
-    a_idx, a_mask = _nearest(dist, other, cfg.num_agents, cfg.agent_radius)
-    a_f = a_mask.float()
-    nb_pose = state.pose[bk, a_idx]  # [B, Q, K, 3]
-    a_pose = relative_pose(me[:, :, None], nb_pose) * a_f[..., None]
-    # Each neighbour's history in its own current frame (only for the K gathered ones).
-    nb_valid = history.valid[bk, a_idx] & a_mask[..., None]  # [B, Q, K, H]
-    nb_hist = _history_features(history.pose[bk, a_idx], history.speed[bk, a_idx], nb_pose)
-    nb_hist = nb_hist * nb_valid[..., None]
-
-    # Map pieces.
-    m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
-    m_idx, m_mask = _nearest(m_dist, ctx.valid[:, None], cfg.num_map, cfg.map_radius)
-    m_f = m_mask.float()
-    m_pose = relative_pose(me[:, :, None], ctx.pose[bk, m_idx]) * m_f[..., None]
-
-    # Traffic lights at the current step.
-    t_now = state.step.clamp(max=ctx.tl_state.shape[-1] - 1)[:, None]  # [B, 1]
-    tl_state = ctx.tl_state[bq, :, t_now][:, 0]  # [B, L]
-    tl_valid = ctx.tl_valid[bq, :, t_now][:, 0]
-    t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
-    t_idx, t_mask = _nearest(
-        t_dist, tl_valid[:, None], cfg.num_traffic_lights, cfg.traffic_light_radius
+    # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
+    hist = _history_features(history.pose, history.speed, state.pose)
+    hist = hist * history.valid[..., None]
+    # Per agent: history, history mask, attributes (static, speed), current pose: [B, N, F].
+    widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES, 3]
+    agents = torch.cat(
+        [hist.flatten(-2), history.valid.float(), static, state.speed[..., None], state.pose], -1
     )
-    t_f = t_mask.float()
-    t_pose = relative_pose(me[:, :, None], ctx.tl_pose[bk, t_idx]) * t_f[..., None]
-    t_state = _TL_EYE.to(state.device)[tl_state[bk, t_idx]] * t_f[..., None]
+    ego_hist, ego_valid, ego_attrs, me = agents[bq, observers].split_with_sizes(widths, -1)
+    me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
 
+    # Nearest agents (other than the observer), map pieces and traffic lights.
+    n = state.num_agents
+    dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)  # [B, Q, N]
+    not_other = ~state.valid[:, None] | (cached_arange(n, state.device) == observers[..., None])
+    a_idx, a_mask = _nearest(dist, not_other, cfg.num_agents, cfg.agent_radius)
+    m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me_xy, dim=-1)
+    m_idx, m_mask = _nearest(m_dist, ctx.invalid, cfg.num_map, cfg.map_radius)
+    t_now = state.step.clamp(max=ctx.tl_state.shape[-1] - 1)[:, None]  # [B, 1]
+    tl_invalid = ~ctx.tl_valid[bq, :, t_now]  # [B, 1, L]
+    t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me_xy, dim=-1)
+    t_idx, t_mask = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
+
+    # The selected rows: [B, Q, K, features + pose].
+    nb_feat, nb_pose = agents[bk, a_idx].split_with_sizes([sum(widths[:3]), 3], -1)
+    m_feat, m_pose = ctx.tokens[bk, m_idx].split_with_sizes([ctx.tokens.shape[-1] - 3, 3], -1)
+    t_feat, t_pose = ctx.tl_tokens[bk, t_idx, t_now[..., None]].split_with_sizes(
+        [C.NUM_TL_STATES, 3], -1
+    )
+    # Poses of all selected tokens relative to the observer, zero where masked.
+    sizes = [cfg.num_agents, cfg.num_map, cfg.num_traffic_lights]
+    mask = torch.cat([a_mask, m_mask, t_mask], -1).float()  # [B, Q, Ka + Km + Kt]
+    rel = relative_pose(me[:, :, None], torch.cat([nb_pose, m_pose, t_pose], 2))
+    a_pose, m_pose, t_pose = (rel * mask[..., None]).split_with_sizes(sizes, 2)
+    a_f, m_f, t_f = mask.split_with_sizes(sizes, -1)
+
+    nb_hist, nb_valid, nb_attrs = (nb_feat * a_f[..., None]).split_with_sizes(widths[:3], -1)
+    p = cfg.tokens.piece_segments
+    m_nodes, m_nodes_mask, m_class = (m_feat * m_f[..., None]).split_with_sizes(
+        [p * NODE_FEATURES, p, C.NUM_MAP_CLASSES], -1
+    )
     return {
-        "ego_history": ego_hist,
-        "ego_history_mask": ego_valid.float(),
-        "ego_attributes": attrs[bq, observers],
-        "agents": nb_hist,
-        "agents_history_mask": nb_valid.float(),
-        "agents_attributes": attrs[bk, a_idx] * a_f[..., None],
+        "ego_history": ego_hist.unflatten(-1, (h, HISTORY_FEATURES)),
+        "ego_history_mask": ego_valid,
+        "ego_attributes": ego_attrs,
+        "agents": nb_hist.unflatten(-1, (h, HISTORY_FEATURES)),
+        "agents_history_mask": nb_valid,
+        "agents_attributes": nb_attrs,
         "agents_pose": a_pose,
         "agents_mask": a_f,
-        "map": ctx.nodes[bk, m_idx] * m_f[..., None, None],
-        "map_nodes_mask": ctx.nodes_valid[bk, m_idx] * m_f[..., None],
-        "map_class": _MAP_EYE.to(state.device)[ctx.map_class[bk, m_idx]] * m_f[..., None],
+        "map": m_nodes.unflatten(-1, (p, NODE_FEATURES)),
+        "map_nodes_mask": m_nodes_mask,
+        "map_class": m_class,
         "map_pose": m_pose,
         "map_mask": m_f,
-        "traffic_lights": t_state,
+        "traffic_lights": t_feat * t_f[..., None],
         "traffic_lights_pose": t_pose,
         "traffic_lights_mask": t_f,
     }

@@ -24,3 +24,44 @@ def torch_threads(n: int | None):
         yield
     finally:
         torch.set_num_threads(before)
+
+
+_ARANGE: dict[tuple[int, torch.device], torch.Tensor] = {}
+
+
+def cached_arange(n: int, device: torch.device | str) -> torch.Tensor:
+    """``torch.arange(n)`` (int64) on ``device``, built once per (n, device); never modify it.
+
+    Hot per-step code indexes with it (e.g. the batch index ``cached_arange(B)[:, None]``);
+    building it anew costs about as much as the indexing itself. It is made outside
+    inference mode so that autograd code may use it too.
+    """
+    key = (n, torch.device(device))
+    out = _ARANGE.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _ARANGE[key] = torch.arange(n, device=key[1])
+    return out
+
+
+_CONST: dict[tuple, torch.Tensor] = {}
+_CONST_DTYPES = (torch.float32, torch.float64)
+
+
+def const(value: float | tuple[float, ...], like: torch.Tensor) -> torch.Tensor | float:
+    """``value`` as a cached tensor of ``like``'s dtype and device, for hot arithmetic.
+
+    ``x * 0.5`` wraps the Python float into a new tensor on every call, which costs more than
+    the multiplication of a small tensor; ``x * const(0.5, x)`` gives the same bits (a
+    Python scalar takes a float32 / float64 operand's dtype) without that. A tuple gives a
+    1-d tensor. Other dtypes get ``value`` back unchanged. Never modify the returned tensor.
+    """
+    dtype = like.dtype
+    if dtype not in _CONST_DTYPES:
+        return value
+    key = (value, dtype, like.device)
+    out = _CONST.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _CONST[key] = torch.tensor(value, dtype=dtype, device=like.device)
+    return out

@@ -6,13 +6,14 @@ rewards and the ``infos`` of ``TrafficEnv``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
-from tbsim_env.sim.collision import collided
+from tbsim_env.sim.collision import collided_with_others
 from tbsim_env.sim.offroad import EdgeCandidates, box_offroad_distance
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import cached_arange
 
 
 @dataclass(frozen=True)
@@ -24,12 +25,27 @@ class Route:
         arc: [B, Q, T] cumulative arc length m.
         goal: [B, Q, 2] last valid logged position.
         valid: [B, Q] the agent has at least one valid logged position.
+        segments: [B, Q, T - 1, 2] derived from ``points`` when not given: segment vectors
+            (point t + 1 - point t) m.
+        segment_length2: [B, Q, T - 1] derived: squared segment lengths clamped at 1e-9 m^2.
+        segment_length: [B, Q, T - 1] derived: segment lengths m.
     """
 
     points: torch.Tensor
     arc: torch.Tensor
     goal: torch.Tensor
     valid: torch.Tensor
+    segments: torch.Tensor | None = field(default=None)
+    segment_length2: torch.Tensor | None = field(default=None)
+    segment_length: torch.Tensor | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        if self.segments is None:
+            ab = self.points[..., 1:, :] - self.points[..., :-1, :]
+            len2 = (ab * ab).sum(-1)
+            object.__setattr__(self, "segments", ab)
+            object.__setattr__(self, "segment_length2", len2.clamp_min(1e-9))
+            object.__setattr__(self, "segment_length", len2.clamp_min(0).sqrt())
 
 
 @dataclass(frozen=True)
@@ -79,15 +95,13 @@ def build_route(state: SimState, query: torch.Tensor) -> Route:
 
 def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
-    a, b = route.points[..., :-1, :], route.points[..., 1:, :]
-    ab = b - a
-    len2 = (ab * ab).sum(-1)
-    t = (((xy[..., None, :] - a) * ab).sum(-1) / len2.clamp_min(1e-9)).clamp(0.0, 1.0)
-    proj = a + t[..., None] * ab
-    d = torch.linalg.vector_norm(xy[..., None, :] - proj, dim=-1)
+    a, ab = route.points[..., :-1, :], route.segments
+    q = xy[..., None, :]
+    t = (((q - a) * ab).sum(-1) / route.segment_length2).clamp(0.0, 1.0)
+    d = torch.linalg.vector_norm(q - (a + t[..., None] * ab), dim=-1)
     best = d.argmin(-1, keepdim=True)
-    seg_len = len2.clamp_min(0).sqrt()
-    return (route.arc[..., :-1].gather(-1, best) + (t * seg_len).gather(-1, best))[..., 0]
+    along = t.gather(-1, best) * route.segment_length.gather(-1, best)
+    return (route.arc[..., :-1].gather(-1, best) + along)[..., 0]
 
 
 def step_metrics(
@@ -108,13 +122,12 @@ def step_metrics(
     Returns:
         (metrics, candidates for the next call).
     """
-    b_idx = torch.arange(state.batch_size, device=state.device)[:, None]
-    qmask = torch.zeros_like(state.valid)
-    qmask[b_idx, query] = True
-    coll = collided(state.pose, state.agents.size[..., :2], state.valid, qmask)[b_idx, query]
+    b_idx = cached_arange(state.batch_size, state.device)[:, None]
     pose = state.pose[b_idx, query]
     present = state.valid[b_idx, query]
     size = state.agents.size[b_idx, query, :2]
+    all_size = state.agents.size[..., :2]
+    coll = collided_with_others(query, pose, size, state.pose, all_size, state.valid)
     if candidates is None:
         candidates = EdgeCandidates.build(pose, state.road_edges)
     off_d, candidates = box_offroad_distance(pose, size, state.road_edges, candidates)

@@ -32,7 +32,7 @@ from tbsim_env import constants as C
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, step_metrics
-from tbsim_env.env.rewards import reward_and_termination
+from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     History,
@@ -48,6 +48,7 @@ from tbsim_env.observation import (
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
+from tbsim_env.sim.offroad import EdgeCandidates
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import torch_threads
 
@@ -223,6 +224,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
                     self._act_spaces[name] = gym.spaces.Box(-hi, hi, dtype=np.float32)
         self.agents: list[str] = []
         self._cache: dict[int, tuple[SimState, MapContext]] = {}
+        self._route_cache: dict[int, tuple[Route, EdgeCandidates | None]] = {}
         self._episode = -1
         self.np_random, _ = gym.utils.seeding.np_random(None)
         self._generator = torch.Generator(device="cpu")
@@ -316,18 +318,26 @@ class TrafficEnv(ParallelEnv, EzPickle):
         )
         self._history: History = init_history(self.state_, self.obs_config.history)
         self._agent_static = agent_static_features(self.state_)
-        self._route: Route = build_route(self.state_, self._ext_slots)
+        if k not in self._route_cache:
+            self._route_cache[k] = (build_route(self.state_, self._ext_slots), None)
+        self._route, self._edge_cache = self._route_cache[k]
         self._end = sc.num_steps - 1 if self.config.end_step is None else self.config.end_step
         self._end = min(self._end, sc.num_steps - 1)
         self.agents = list(self._ext_names)
-        self._alive = torch.ones(len(ext), dtype=torch.bool)
-        self._goal_reached = torch.zeros(len(ext), dtype=torch.bool)
+        self._action_rows = {n: int(ext[j]) for n, j in self._slot_of.items()}
+        self._track_ids = [int(sc.tracks.id[i]) for i in ext]
+        # [1, Q] like the metrics (the batch of one is kept until the per-agent dicts).
+        self._goal_reached = torch.zeros_like(self._ext_slots, dtype=torch.bool)
         # Agents whose logged route is shorter than the goal radius have no goal to reach.
-        self._has_goal = self._route.arc[0, :, -1].cpu() > self.config.reward.goal_radius
-        metrics, self._edge_cache = step_metrics(self.state_, self._ext_slots, self._route)
-        self._progress = metrics.progress[0].clone()
+        self._has_goal = self._route.arc[..., -1] > self.config.reward.goal_radius
+        metrics, self._edge_cache = step_metrics(
+            self.state_, self._ext_slots, self._route, self._edge_cache
+        )
+        # Every episode of scenario k starts from the same state: keep its road-edge cache.
+        self._route_cache[k] = (self._route, self._route_cache[k][1] or self._edge_cache)
+        self._progress = metrics.progress.clone()
         obs = self._observations(self.agents)
-        columns = self._info_columns(metrics)
+        columns, _, _ = self._info_columns(metrics)
         infos = {a: {k: v[self._slot_of[a]] for k, v in columns.items()} for a in self.agents}
         return obs, infos
 
@@ -341,7 +351,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         missing = [a for a in self.agents if a not in actions]
         if missing:
             raise ActionError(f"no action for active agents {missing}")
-        out = torch.zeros(1, self.state_.num_agents, 2)
+        out = np.zeros((1, self.state_.num_agents, 2), np.float32)
         for name, act in actions.items():
             arr = np.asarray(act, dtype=np.float64)
             if arr.shape != (2,):
@@ -351,8 +361,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
                 )
             if not np.isfinite(arr).all():
                 raise ActionError(f"action of {name!r} is not finite: {arr.tolist()}")
-            out[0, int(self._ext_slots[0, self._slot_of[name]]), :] = torch.from_numpy(arr)
-        return out.to(self.device)
+            out[0, self._action_rows[name]] = arr
+        return torch.from_numpy(out).to(self.device)
 
     def step(self, actions: dict[str, Any]):
         """Advance one step (0.1 s). See the module docstring for the action format."""
@@ -377,9 +387,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
             state, self._ext_slots, self._route, self._edge_cache
         )
         live_before = list(self.agents)
-        m = metrics
         outcome = reward_and_termination(
-            StepMetrics(**{f: getattr(m, f)[0] for f in StepMetrics.__dataclass_fields__}),
+            metrics,
             self._progress,
             self._goal_reached,
             self._has_goal,
@@ -387,22 +396,20 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self.config.termination,
         )
         self._progress = outcome.progress_best
-        self._goal_reached |= outcome.goal_now
-        reward, term = outcome.reward, outcome.terminated
-        truncated_all = int(state.step[0]) >= self._end
+        self._goal_reached = self._goal_reached | outcome.goal_now
         self.state_ = state
-        columns = self._info_columns(m)
-        reward_l, term_l = reward.tolist(), term.tolist()
+        columns, reward_l, term_l = self._info_columns(metrics, outcome)
+        truncated_all = columns["step"][0] >= self._end
         rewards, terms, truncs, infos = {}, {}, {}, {}
         for name in live_before:
             j = self._slot_of[name]
-            rewards[name] = float(reward_l[j])
-            terms[name] = bool(term_l[j])
+            rewards[name] = reward_l[j]
+            terms[name] = term_l[j]
             truncs[name] = truncated_all and not term_l[j]
             infos[name] = {k: v[j] for k, v in columns.items()}
         if self.config.remove_terminated and any(terms.values()):
             remove = torch.zeros_like(state.valid)
-            remove[0, self._ext_slots[0][term]] = True
+            remove[0, self._ext_slots[0][outcome.terminated[0]]] = True
             state = state.replace(valid=state.valid & ~remove)
         self.state_ = state
         self._history = push_history(self._history, state)
@@ -422,26 +429,47 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self.obs_config,
             agent_static=self._agent_static,
         )
-        o = {k: v[0].detach().cpu().numpy() for k, v in o.items()}
+        o = {k: (v if v.device.type == "cpu" else v.cpu()).numpy()[0] for k, v in o.items()}
         return {n: {k: v[self._slot_of[n]] for k, v in o.items()} for n in names}
 
-    def _info_columns(self, m: StepMetrics) -> dict[str, list]:
-        """Per-agent info values as lists indexed like ``self._ext_slots``."""
+    def _info_columns(
+        self, m: StepMetrics, outcome: RewardOutcome | None = None
+    ) -> tuple[dict[str, list], list[float], list[bool]]:
+        """Per-agent info values as lists indexed like ``self._ext_slots``.
+
+        Returns:
+            (info columns, rewards, terminations) where the last two are those of ``outcome``
+            (empty without one). All values come from two ``tolist`` calls.
+        """
         q = self._ext_slots.shape[1]
-        slots = self._ext_slots[0]
-        return {
+        b_idx = torch.zeros_like(self._ext_slots)
+        floats = [
+            m.offroad_distance,
+            m.progress,
+            m.goal_distance,
+            m.log_divergence,
+            self.state_.speed[b_idx, self._ext_slots],
+        ]
+        flags = [m.collision, m.offroad, self._goal_reached]
+        if outcome is not None:
+            floats.append(outcome.reward)
+            flags.append(outcome.terminated)
+        dist, progress, goal_d, log_d, speed, *reward = torch.stack(floats)[:, 0].tolist()
+        coll, off, reached, *term = torch.stack(flags)[:, 0].tolist()
+        columns = {
             "scenario_id": [self.scenario.scenario_id] * q,
-            "track_id": self.state_.agents.track_id[0, slots].tolist(),
+            "track_id": list(self._track_ids),
             "step": [int(self.state_.step[0])] * q,
-            "collision": m.collision[0].tolist(),
-            "offroad": m.offroad[0].tolist(),
-            "offroad_distance": m.offroad_distance[0].tolist(),
-            "progress": m.progress[0].tolist(),
-            "goal_distance": m.goal_distance[0].tolist(),
-            "goal_reached": self._goal_reached.tolist(),
-            "log_divergence": m.log_divergence[0].tolist(),
-            "speed": self.state_.speed[0, slots].tolist(),
+            "collision": coll,
+            "offroad": off,
+            "offroad_distance": dist,
+            "progress": progress,
+            "goal_distance": goal_d,
+            "goal_reached": reached,
+            "log_divergence": log_d,
+            "speed": speed,
         }
+        return columns, (reward or [[]])[0], (term or [[]])[0]
 
     @torch.inference_mode()
     def expert_actions(self) -> dict[str, np.ndarray]:

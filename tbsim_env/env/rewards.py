@@ -52,15 +52,24 @@ def reward_and_termination(
     gained = (metrics.progress - progress_best).clamp_min(0.0)
     goal_now = (metrics.goal_distance <= rc.goal_radius) & has_goal & ~goal_reached
     coll, off = metrics.collision, metrics.offroad
-    reward = (
-        rc.collision * coll
-        + rc.offroad * off
-        + rc.progress * gained
-        + rc.goal * goal_now
-        + rc.log_divergence * metrics.log_divergence
-        + rc.alive
+    # Terms with weight 0 are skipped: they add (+/-) 0 (the metrics are finite), and the
+    # final ``+ rc.alive`` turns a -0 sum into +0 exactly as the full sum would.
+    terms = (
+        (rc.collision, coll),
+        (rc.offroad, off),
+        (rc.progress, gained),
+        (rc.goal, goal_now),
+        (rc.log_divergence, metrics.log_divergence),
     )
-    term = (coll & tc.collision) | (off & tc.offroad) | (goal_now & tc.goal)
+    reward = None
+    for weight, value in terms:
+        if weight != 0.0:
+            reward = weight * value if reward is None else reward + weight * value
+    reward = (torch.zeros_like(gained) if reward is None else reward) + rc.alive
+    events = [x for on, x in ((tc.collision, coll), (tc.offroad, off), (tc.goal, goal_now)) if on]
+    term = torch.zeros_like(coll) if not events else events[0]
+    for x in events[1:]:
+        term = term | x
     return RewardOutcome(
         reward=reward.float(),
         terminated=term,

@@ -5,6 +5,22 @@ from __future__ import annotations
 import torch
 
 from tbsim_env.sim.geometry import cos_sin
+from tbsim_env.torch_utils import cached_arange, const
+
+_HALF_SIGNS_X = (0.5, -0.5, -0.5, 0.5)
+_HALF_SIGNS_Y = (0.5, 0.5, -0.5, -0.5)
+
+
+def box_corner_xy(
+    pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``box_corners`` as separate coordinates: (x [..., 4], y [..., 4])."""
+    x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [..., 1]
+    c, s = cos_sin(yaw)
+    # (+-0.5 * length) is exactly +-(0.5 * length).
+    lx = length.unsqueeze(-1) * const(_HALF_SIGNS_X, length)
+    ly = width.unsqueeze(-1) * const(_HALF_SIGNS_Y, width)
+    return x0 + c * lx - s * ly, y0 + s * lx + c * ly
 
 
 def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
@@ -18,14 +34,7 @@ def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -
     Returns:
         [..., 4, 2].
     """
-    c, s = cos_sin(pose[..., 2])
-    hl, hw = 0.5 * length, 0.5 * width
-    signs = torch.tensor([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]], device=pose.device)
-    lx = signs[:, 0] * hl[..., None]
-    ly = signs[:, 1] * hw[..., None]
-    x = pose[..., 0:1] + c[..., None] * lx - s[..., None] * ly
-    y = pose[..., 1:2] + s[..., None] * lx + c[..., None] * ly
-    return torch.stack([x, y], dim=-1)
+    return torch.stack(box_corner_xy(pose, length, width), dim=-1)
 
 
 def pairwise_overlap(
@@ -43,21 +52,56 @@ def pairwise_overlap(
     Returns:
         [..., Na, Nb] bool.
     """
-    d = pose_b[..., None, :, :2] - pose_a[..., :, None, :2]  # [..., Na, Nb, 2]
-    ya = pose_a[..., :, None, 2]
-    yb = pose_b[..., None, :, 2]
-    la, wa = 0.5 * size_a[..., :, None, 0], 0.5 * size_a[..., :, None, 1]
-    lb, wb = 0.5 * size_b[..., None, :, 0], 0.5 * size_b[..., None, :, 1]
-    cd, sd = cos_sin(yb - ya)
+    xa, ya, yaw_a = pose_a.unsqueeze(-2).unbind(-1)  # [..., Na, 1]
+    xb, yb, yaw_b = pose_b.unsqueeze(-3).unbind(-1)  # [..., 1, Nb]
+    dx, dy = xb - xa, yb - ya  # [..., Na, Nb]
+    half = const(0.5, size_a)
+    la, wa = (half * size_a).unsqueeze(-2).unbind(-1)
+    lb, wb = (half * size_b).unsqueeze(-3).unbind(-1)
+    cd, sd = cos_sin(yaw_b - yaw_a)
     cd, sd = cd.abs(), sd.abs()
-    ca, sa = cos_sin(ya)
-    cb, sb = cos_sin(yb)
+    ca, sa = cos_sin(yaw_a)
+    cb, sb = cos_sin(yaw_b)
+    ndx = -dx
     # Axes of a: (ca, sa) and (-sa, ca); axes of b likewise.
-    sep = (d[..., 0] * ca + d[..., 1] * sa).abs() > la + lb * cd + wb * sd
-    sep |= (-d[..., 0] * sa + d[..., 1] * ca).abs() > wa + lb * sd + wb * cd
-    sep |= (d[..., 0] * cb + d[..., 1] * sb).abs() > lb + la * cd + wa * sd
-    sep |= (-d[..., 0] * sb + d[..., 1] * cb).abs() > wb + la * sd + wa * cd
+    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
+    sep |= (ndx * sa + dy * ca).abs() > wa + lb * sd + wb * cd
+    sep |= (dx * cb + dy * sb).abs() > lb + la * cd + wa * sd
+    sep |= (ndx * sb + dy * cb).abs() > wb + la * sd + wa * cd
     return ~sep
+
+
+def collided_with_others(
+    query: torch.Tensor,
+    pose_q: torch.Tensor,
+    size_q: torch.Tensor,
+    pose: torch.Tensor,
+    size: torch.Tensor,
+    valid: torch.Tensor,
+) -> torch.Tensor:
+    """Collision flag of K query agents against every other valid agent (``collided``'s rule).
+
+    The bounding-circle prefilter and the box test of ``collided`` on the same values, laid
+    out as [B, K, N] instead of gathered per query, so the per-step cost is a few operations.
+    A query agent's own validity is not checked (the caller masks it).
+
+    Args:
+        query: [B, K] int64 agent slots; pose_q: [B, K, 3] and size_q: [B, K, 2] their
+            poses and (length, width).
+        pose: [B, N, 3]; size: [B, N, 2] (length, width); valid: [B, N] bool.
+
+    Returns:
+        [B, K] bool.
+    """
+    radius = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
+    radius_q = const(0.5, size_q) * torch.linalg.vector_norm(size_q, dim=-1)  # [B, K]
+    gap = torch.linalg.vector_norm(pose[:, None, :, :2] - pose_q[:, :, None, :2], dim=-1)
+    near = gap <= radius.unsqueeze(1) + radius_q.unsqueeze(-1)  # [B, K, N]
+    others = cached_arange(pose.shape[1], pose.device) != query.unsqueeze(-1)
+    near &= valid.unsqueeze(1) & others
+    if not bool(near.any()):
+        return torch.zeros_like(query, dtype=torch.bool)
+    return (pairwise_overlap(pose_q, size_q, pose, size) & near).any(-1)
 
 
 def collided(

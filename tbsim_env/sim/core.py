@@ -9,8 +9,9 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env.sim.dynamics import clip_action, unicycle_step
+from tbsim_env.sim.dynamics import unicycle_step
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import cached_arange
 
 
 def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -26,14 +27,6 @@ def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     for mask, action in pairs:
         out = torch.where(mask[..., None], action, out)
     return out
-
-
-def _at_step(x: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
-    """Gather ``x[b, n, step[b], ...]`` -> [B, N, ...] from a [B, N, T, ...] log tensor."""
-    idx = step.view(-1, 1, 1).expand(x.shape[0], x.shape[1], 1)
-    if x.dim() == 4:
-        return x.gather(2, idx[..., None].expand(-1, -1, 1, x.shape[-1]))[:, :, 0]
-    return x.gather(2, idx)[:, :, 0]
 
 
 def seen_before(state: SimState) -> torch.Tensor:
@@ -61,13 +54,16 @@ def step(state: SimState, action: torch.Tensor) -> SimState:
     """
     n_t = state.log.valid.shape[-1]
     nxt = (state.step + 1).clamp(max=n_t - 1)
-    log_valid = _at_step(state.log.valid, nxt) & state.agents.mask
-    log_pose = _at_step(state.log.pose, nxt)
-    log_speed = _at_step(state.log.speed, nxt)
-    fresh = ~seen_before(state)
+    # The log at nxt: [B, N] (one index per field, b-th row at nxt[b]).
+    at = (cached_arange(state.batch_size, state.device)[:, None], _agent_index(state), nxt[:, None])
+    log_valid = state.log.valid[at] & state.agents.mask
+    log_pose = state.log.pose[at]
+    log_speed = state.log.speed[at]
+    fresh = state.log.first_valid > state.step[:, None]  # not seen_before(state)
 
     moving = state.controlled & state.valid
-    act = clip_action(action, state.agents.object_type) * moving[..., None]
+    limit = state.agents.action_limit
+    act = torch.clamp(action, -limit, limit) * moving[..., None]  # clip_action
     sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
 
     spawn = state.controlled & ~state.valid & fresh & log_valid
@@ -79,3 +75,8 @@ def step(state: SimState, action: torch.Tensor) -> SimState:
     speed = torch.where(moving, sim_speed, torch.where(from_log, log_speed, state.speed))
     valid = moving | from_log
     return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
+
+
+def _agent_index(state: SimState) -> torch.Tensor:
+    """[N] agent-slot index of the state's device."""
+    return cached_arange(state.num_agents, state.device)

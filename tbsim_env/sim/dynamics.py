@@ -22,6 +22,7 @@ import torch
 
 from tbsim_env import constants as C
 from tbsim_env.sim.geometry import cos_sin, wrap_angle
+from tbsim_env.torch_utils import const
 
 
 def action_limits(object_type: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -94,14 +95,14 @@ def unicycle_step(
     Returns:
         (pose' [..., 3] with wrapped yaw, speed' [...]).
     """
-    acc, yaw_rate = action[..., 0], action[..., 1]
-    v_mid = speed + 0.5 * dt * acc
-    yaw_mid = pose[..., 2] + 0.5 * dt * yaw_rate
-    c, s = cos_sin(yaw_mid)
-    x = pose[..., 0] + dt * v_mid * c
-    y = pose[..., 1] + dt * v_mid * s
-    yaw = wrap_angle(pose[..., 2] + dt * yaw_rate)
-    return torch.stack([x, y, yaw], dim=-1), speed + dt * acc
+    acc, yaw_rate = action.unbind(-1)
+    x, y, yaw = pose.unbind(-1)
+    half_dt, dt_ = const(0.5 * dt, speed), const(dt, speed)
+    v_mid = speed + half_dt * acc
+    c, s = cos_sin(yaw + half_dt * yaw_rate)
+    step = dt_ * v_mid
+    yaw = wrap_angle(yaw + dt_ * yaw_rate)
+    return torch.stack([x + step * c, y + step * s, yaw], dim=-1), speed + dt_ * acc
 
 
 def signed_speed(velocity: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:

@@ -6,6 +6,8 @@ import math
 
 import torch
 
+from tbsim_env.torch_utils import const
+
 
 def cos_sin(angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(cos, sin) of ``angle``.
@@ -19,7 +21,8 @@ def cos_sin(angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
     """Wrap radians to [-pi, pi)."""
-    return torch.remainder(angle + math.pi, 2.0 * math.pi) - math.pi
+    pi = const(math.pi, angle)
+    return torch.remainder(angle + pi, const(2.0 * math.pi, angle)) - pi
 
 
 def rotate(xy: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
@@ -33,8 +36,18 @@ def rotate(xy: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
         [..., 2].
     """
     c, s = cos_sin(yaw)
-    x, y = xy[..., 0], xy[..., 1]
+    x, y = xy.unbind(-1)
     return torch.stack([c * x - s * y, s * x + c * y], dim=-1)
+
+
+def to_local_xy(
+    x: torch.Tensor, y: torch.Tensor, origin: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``to_local`` on separate coordinates: (x, y) [...] and ``origin`` [..., 3]."""
+    ox, oy, oyaw = origin.unbind(-1)
+    c, s = cos_sin(-oyaw)
+    dx, dy = x - ox, y - oy
+    return c * dx - s * dy, s * dx + c * dy
 
 
 def to_local(xy: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
@@ -47,7 +60,8 @@ def to_local(xy: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
     Returns:
         [..., 2] ``R(yaw)^T (xy - origin_xy)``.
     """
-    return rotate(xy - origin[..., :2], -origin[..., 2])
+    x, y = xy.unbind(-1)
+    return torch.stack(to_local_xy(x, y, origin), dim=-1)
 
 
 def relative_pose(query: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -60,6 +74,6 @@ def relative_pose(query: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     Returns:
         [..., 3].
     """
-    dxy = to_local(target[..., :2], query)
-    dyaw = wrap_angle(target[..., 2] - query[..., 2])
-    return torch.cat([dxy, dyaw[..., None]], dim=-1)
+    x, y, yaw = target.unbind(-1)
+    dx, dy = to_local_xy(x, y, query)
+    return torch.stack([dx, dy, wrap_angle(yaw - query[..., 2])], dim=-1)

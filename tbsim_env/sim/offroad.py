@@ -12,11 +12,19 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.sim.collision import box_corners
+from tbsim_env.sim.collision import box_corner_xy, box_corners
 from tbsim_env.sim.state import RoadEdges
+from tbsim_env.torch_utils import const
 
 NO_EDGE_DISTANCE = -1.0e10
 """Distance reported when a scenario has no road edge (always on-road)."""
+
+
+SIDE_FEATURES = 16
+"""Per candidate segment (``EdgeCandidates.sides``): start x, start y, direction x, direction y
+of the segment, its predecessor and its successor (3 each, in that order), then 0/1 flags:
+convex joint with the predecessor, convex joint with the successor, has a predecessor, has a
+successor."""
 
 
 @dataclass(frozen=True)
@@ -27,15 +35,29 @@ class EdgeCandidates:
     nearest candidate is at distance d, and which lies within s of ``center``, has its true
     nearest segment among the candidates whenever d + s <= reach (triangle inequality).
 
+    The candidates' own geometry is gathered once when the set is built, laid out for the
+    per-step distance (``box_offroad_distance``), which then needs no gather of segments.
+
     Attributes:
         index: [B, K, C] int64 segment indices.
         center: [B, K, 2] reference positions.
         reach: [B, K] distance of the C-th nearest segment from ``center`` (inf if fewer).
+        segments: [B, K, 5, 1, C] float32 rows: start x, start y, direction (end - start) x,
+            direction y (m), squared length (m^2, clamped at 1e-12; inf for a zero-length
+            segment, which makes its projection parameter 0 as in
+            ``point_segment_distance``).
+        invalid: [B, K, 1, C] bool, padding segments (never nearest).
+        sides: [B, K, C, SIDE_FEATURES] float32, what the sign at polyline joints needs.
+        no_edge: [B, 1, 1] bool, the scenario has no valid road edge.
     """
 
     index: torch.Tensor
     center: torch.Tensor
     reach: torch.Tensor
+    segments: torch.Tensor
+    invalid: torch.Tensor
+    sides: torch.Tensor
+    no_edge: torch.Tensor
 
     @staticmethod
     def build(pose: torch.Tensor, edges: RoadEdges, count: int = 256) -> EdgeCandidates:
@@ -44,7 +66,50 @@ class EdgeCandidates:
         c = min(count, dist.shape[-1])
         top, index = torch.topk(dist, c, dim=-1, largest=False, sorted=True)
         reach = top[..., -1] if c < dist.shape[-1] else torch.full_like(top[..., -1], float("inf"))
-        return EdgeCandidates(index=index, center=pose[..., :2].clone(), reach=reach)
+        return EdgeCandidates(
+            index=index,
+            center=pose[..., :2].clone(),
+            reach=reach,
+            **_candidate_geometry(edges, index),
+        )
+
+
+def _candidate_geometry(edges: RoadEdges, index: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The geometry fields of ``EdgeCandidates`` for the segments ``index`` [B, K, C].
+
+    Made with the operations of ``point_segment_distance`` and ``_signed_and_unsigned`` on the
+    same values, so distances and signs from the cache are bit-identical to theirs.
+    """
+    start = _gather_segments(edges.start, index)
+    direction = _gather_segments(edges.end, index) - start
+    length2 = (direction * direction).sum(-1)
+    length2 = torch.where(length2 > 0, length2.clamp_min(1e-12), float("inf"))
+    seg = torch.cat([start, direction, length2[..., None]], -1)  # [B, K, C, 5]
+    prev = _gather_segments(edges.prev_index, index)
+    nxt = _gather_segments(edges.next_index, index)
+    prev_start = _gather_segments(edges.start, prev)
+    prev_dir = _gather_segments(edges.end, prev) - prev_start
+    next_start = _gather_segments(edges.start, nxt)
+    next_dir = _gather_segments(edges.end, nxt) - next_start
+    flags = torch.stack(
+        [
+            _cross(prev_dir, direction) > 0,
+            _cross(direction, next_dir) > 0,
+            prev != index,
+            nxt != index,
+        ],
+        dim=-1,
+    ).to(start.dtype)
+    starts = torch.stack([start, prev_start, next_start], -1).flatten(-2)  # x x x y y y
+    dirs = torch.stack([direction, prev_dir, next_dir], -1).flatten(-2)
+    sides = torch.cat([starts, dirs, flags], -1)  # [B, K, C, 16]
+    valid = _gather_segments(edges.valid, index)
+    return {
+        "segments": seg.permute(0, 1, 3, 2)[:, :, :, None].contiguous(),
+        "invalid": ~valid[:, :, None],
+        "sides": sides.contiguous(),
+        "no_edge": ~edges.valid.any(-1)[:, None, None],
+    }
 
 
 def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -144,6 +209,52 @@ def _signed_and_unsigned(
     return torch.where(has_edge, out, torch.full_like(out, NO_EDGE_DISTANCE)), d
 
 
+_JOINT_SCALE = (-1.0, 1.0)
+_JOINT_LIMIT = (0.0, 1.0)
+"""``t * scale > limit``: (t < 0, t > 1), the projection falls before / after the segment."""
+
+
+def _candidate_signed_and_unsigned(
+    x: torch.Tensor, y: torch.Tensor, cand: EdgeCandidates
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_signed_and_unsigned`` of P points per query box over its cached candidates.
+
+    The reference arithmetic on the same values (bit-identical results), on the candidates'
+    precomputed geometry broadcast over the points instead of gathered per point.
+
+    Args:
+        x, y: [B, K, P, 1] m, point coordinates (e.g. the box corners).
+        cand: the candidates of the K boxes.
+
+    Returns:
+        (signed distance [B, K, P, 1] m, unsigned distance to the nearest candidate
+        [B, K, P, 1]).
+    """
+    ax, ay, abx, aby, length2 = cand.segments.unbind(2)  # [B, K, 1, C] each
+    dx, dy = x - ax, y - ay
+    t = (dx * abx + dy * aby) / length2  # [B, K, P, C]
+    tc = t.clamp(0.0, 1.0)
+    offset = torch.stack([x - (ax + tc * abx), y - (ay + tc * aby)], -1)
+    dist = torch.linalg.vector_norm(offset, dim=-1).masked_fill_(cand.invalid, float("inf"))
+    local = dist.argmin(-1, keepdim=True)  # [B, K, P, 1]
+    d = dist.gather(-1, local)
+    t_best = t.gather(-1, local)
+    row = cand.sides.gather(2, local.expand(-1, -1, -1, SIDE_FEATURES))  # [B, K, P, 16]
+    sx, sy, vx, vy, flags = row.split_with_sizes([3, 3, 3, 3, 4], -1)
+    # Side of the nearest segment, its predecessor and its successor: [B, K, P, 3].
+    n3 = torch.sign((x - sx) * vy - (y - sy) * vx)
+    n, n_pn = n3.split_with_sizes([1, 2], -1)
+    convex, has = (flags > const(0.5, flags)).split_with_sizes([2, 2], -1)
+    joint = torch.where(convex, torch.maximum(n, n_pn), torch.minimum(n, n_pn))
+    # (t < 0 and a predecessor, t > 1 and a successor).
+    use = (t_best * const(_JOINT_SCALE, t) > const(_JOINT_LIMIT, t)) & has
+    use_prev, use_next = use.split_with_sizes([1, 1], -1)
+    joint_prev, joint_next = joint.split_with_sizes([1, 1], -1)
+    sign = torch.where(use_next, joint_next, torch.where(use_prev, joint_prev, n))
+    out = (sign * d).masked_fill_(cand.no_edge.unsqueeze(-1), NO_EDGE_DISTANCE)
+    return out, d
+
+
 def box_offroad_distance(
     pose: torch.Tensor,
     size: torch.Tensor,
@@ -161,23 +272,23 @@ def box_offroad_distance(
     Returns:
         ([B, K] m, the candidates to pass next time, or None when none were given).
     """
-    corners = box_corners(pose, size[..., 0], size[..., 1])  # [B, K, 4, 2]
+    length, width = size.unbind(-1)
     bsz, k = pose.shape[:2]
-    flat = corners.reshape(bsz, k * 4, 2)
     if candidates is None:
+        flat = box_corners(pose, length, width).reshape(bsz, k * 4, 2)
         return signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1), None
-    half_diag = 0.5 * torch.linalg.vector_norm(size, dim=-1)
+    x, y = box_corner_xy(pose, length, width)
+    x, y = x.unsqueeze(-1), y.unsqueeze(-1)  # [B, K, 4, 1]
+    half_diag = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)
     stale = torch.linalg.vector_norm(pose[..., :2] - candidates.center, dim=-1) + half_diag
-    idx = candidates.index.repeat_interleave(4, dim=1)  # [B, K*4, C]
-    signed, nearest = _signed_and_unsigned(flat, edges, idx)
+    signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
     # Exact while every segment that could be nearest to a corner is in the candidate set.
-    if bool((nearest.view(bsz, k, 4).amax(-1) + stale > candidates.reach).any()):
+    if bool((nearest.amax((-2, -1)) + stale > candidates.reach).any()):
         candidates = EdgeCandidates.build(pose, edges, candidates.index.shape[-1])
-        idx = candidates.index.repeat_interleave(4, dim=1)
-        signed, nearest = _signed_and_unsigned(flat, edges, idx)
-        if bool((nearest.view(bsz, k, 4).amax(-1) + half_diag > candidates.reach).any()):
+        signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
+        if bool((nearest.amax((-2, -1)) + half_diag > candidates.reach).any()):
             # The cache cannot vouch for these boxes (e.g. far from every edge): use all.
+            flat = torch.stack([x, y], -1).reshape(bsz, k * 4, 2)
             full = signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1)
             return full, candidates
-    dist = signed.view(bsz, k, 4).amax(-1)
-    return dist, candidates
+    return signed.amax((-2, -1)), candidates

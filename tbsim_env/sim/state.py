@@ -8,7 +8,7 @@ Positions are in each scenario's frame shifted by ``origin`` (no rotation), floa
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -24,6 +24,8 @@ class AgentInfo:
         size: [B, N, 3] float32, (length, width, height) m, at the current step (or last valid).
         role: [B, N, 3] bool, (is SDC, object of interest, track to predict).
         mask: [B, N] bool, False for padding slots.
+        action_limit: [B, N, 2] float32 (max |acceleration| m/s^2, max |yaw rate| rad/s) of the
+            object type; derived from ``object_type`` when not given.
     """
 
     track_id: torch.Tensor
@@ -32,6 +34,14 @@ class AgentInfo:
     size: torch.Tensor
     role: torch.Tensor
     mask: torch.Tensor
+    action_limit: torch.Tensor | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        if self.action_limit is None:
+            from tbsim_env.sim.dynamics import action_limits
+
+            limit = torch.stack(action_limits(self.object_type), dim=-1)
+            object.__setattr__(self, "action_limit", limit)
 
 
 @dataclass(frozen=True)
