@@ -1,6 +1,10 @@
 """Plot the scalars of a training run (``<run>/metrics.jsonl``) to a PNG.
 
-python scripts/plot_training.py runs/small_v1 docs/model_card/loss_curve.png
+Several run folders (stages of one run, each resuming the previous) are joined in step order; a
+step logged twice (a segment resumed from an earlier checkpoint) keeps its last value, and a
+dashed line marks where each later stage starts.
+
+python scripts/plot_training.py runs/small_v1 [runs/small_v2 ...] docs/model_card/loss_curve.png
 """
 
 from __future__ import annotations
@@ -29,9 +33,22 @@ def smooth(y: np.ndarray, k: int = 5) -> np.ndarray:
     return np.convolve(y, np.ones(k) / k, mode="valid")
 
 
+def load_rows(runs: list[Path]) -> tuple[list[dict], list[int]]:
+    """Rows of all runs by step (later logs of a step win) and the first step of each later run."""
+    by_step: dict[int, dict] = {}
+    starts = []
+    for k, run in enumerate(runs):
+        rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+        if k > 0 and rows:
+            starts.append(min(r["step"] for r in rows))
+        for r in rows:
+            by_step[r["step"]] = r
+    return [by_step[s] for s in sorted(by_step)], starts
+
+
 def main() -> None:
-    run, out = Path(sys.argv[1]), Path(sys.argv[2])
-    rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    *runs, out = (Path(a) for a in sys.argv[1:])
+    rows, starts = load_rows(runs)
     steps = np.array([r["step"] for r in rows])
     fig, axes = plt.subplots(1, len(KEYS), figsize=(4 * len(KEYS), 3.2))
     for ax, (key, label) in zip(axes, KEYS):
@@ -39,6 +56,8 @@ def main() -> None:
         ax.plot(steps, y, alpha=0.3, color="tab:blue")
         ys = smooth(y)
         ax.plot(steps[len(steps) - len(ys) :], ys, color="tab:blue")
+        for s0 in starts:
+            ax.axvline(s0, color="gray", ls="--", lw=1)
         ax.set_title(label)
         ax.set_xlabel("optimiser step")
     fig.tight_layout()
