@@ -26,6 +26,7 @@ from tbsim_env.data.generator.roads import (
     connector_conflicts,
 )
 from tbsim_env.data.generator.routes import build_routes
+from tbsim_env.data.generator.scenes import MAP_MARGIN_M
 from tbsim_env.data.scenario import Scenario, wrap_angle_np
 from tests.test_generator import box_corners, boxes_overlap, signed_edge_distance
 
@@ -39,6 +40,27 @@ def scene(layout: str, seed: int) -> Scenario:
     """The generated scene moved back into its layout's frame (junction at the origin)."""
     dx, dy = frame_offset(layout, seed)
     return generate_scenario(layout, seed).translated((-dx, -dy))
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_roads_run_past_the_observed_area(layout: str) -> None:
+    """Tracks are observed inside [-E, E]^2; the lanes go on MAP_MARGIN_M beyond, so a
+    simulated agent ahead of its log still has road (no map end to stop at)."""
+    sc = scene(layout, 2)
+    extent = LAYOUT_BUILDERS[layout]().half_extent
+    t = sc.tracks
+    assert (np.abs(t.xyz[..., :2][t.valid]) <= extent + 1e-9).all()
+    lanes = np.concatenate(
+        [sc.road_map.polylines[k][:, :2] for k in sc.road_map.indices_of(MapFeatureType.LANE)]
+    )
+    assert np.abs(lanes).max() >= extent + 0.9 * MAP_MARGIN_M
+    # Vehicles still enter and leave the observed area during the log.
+    enter = leave = False
+    for seed in range(2, 10):  # all-way-stop traffic is slow: few leave within 9 s
+        v = scene(layout, seed).tracks.valid[vehicles(scene(layout, seed))]
+        enter |= bool((~v[:, 0] & v[:, -1]).any())
+        leave |= bool((v[:, 0] & ~v[:, -1]).any())
+    assert enter and leave
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)

@@ -84,6 +84,14 @@ anything that reads the log blindly (log replay in WOSAC scoring) would park dep
 the junction. Real WOMD scenes lie far from (0, 0), so the generated ones are moved there too."""
 
 
+MAP_MARGIN_M: float = 60.0
+"""The roads run this far past the observed area ([-E, E]^2 with E the layout's default extent);
+objects are valid (observed) only inside it. As in WOMD, where the map reaches beyond the
+tracks, a simulated agent that is faster than its log or takes another exit still finds road
+ahead instead of a map end: with the roads ending at the border, policies learn to stop there
+and the followers run into them."""
+
+
 def _rng(layout: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(layout.encode())])
 
@@ -168,11 +176,24 @@ def _vehicle_tracks(
     return keep, xy, heading, vel, valid
 
 
+def _clip_to_box(a: np.ndarray, b: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
+    """The part of segment a-b [2] inside [-half, half]^2 (slab clipping; a, b if none)."""
+    d = b - a
+    lo, hi = 0.0, 1.0
+    for k in range(2):
+        if abs(d[k]) < 1e-12:
+            continue
+        t0, t1 = sorted(((-half - a[k]) / d[k], (half - a[k]) / d[k]))
+        lo, hi = max(lo, t0), min(hi, t1)
+    return (a + lo * d, a + hi * d) if hi > lo else (a, b)
+
+
 def _pedestrians(
-    net: RoadNetwork, n: int, rng: np.random.Generator
+    net: RoadNetwork, n: int, rng: np.random.Generator, observed: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pedestrians walking along sidewalks at constant speed: (size [P,3], xy, heading, vel,
-    valid), arrays over the logged steps; they become invalid past the sidewalk ends."""
+    """Pedestrians walking along the observed part ([-observed, observed]^2) of the sidewalks
+    at constant speed: (size [P,3], xy, heading, vel, valid), arrays over the logged steps;
+    they become invalid past its ends."""
     t = DT * np.arange(NUM_STEPS)
     size = np.zeros((n, 3))
     xy = np.zeros((n, NUM_STEPS, 2))
@@ -183,7 +204,7 @@ def _pedestrians(
         return size[:0], xy[:0], heading[:0], vel[:0], valid[:0]
     for k in range(n):
         walk = net.sidewalks[rng.integers(len(net.sidewalks))]
-        a, b = walk[0], walk[-1]
+        a, b = _clip_to_box(walk[0], walk[-1], observed)
         total = float(np.linalg.norm(b - a))
         d = (b - a) / total
         sign = 1.0 if rng.random() < 0.5 else -1.0
@@ -235,7 +256,8 @@ def generate_scenario(
     traffic = TRAFFIC[layout]
     cfg = traffic.driver
     rng = _rng(layout, seed)
-    net = LAYOUT_BUILDERS[layout]()
+    observed = LAYOUT_BUILDERS[layout]().half_extent
+    net = LAYOUT_BUILDERS[layout](observed + MAP_MARGIN_M)
     routes = build_routes(net)
     weights = _route_weights(routes)
     sources = np.unique(routes.source)
@@ -246,6 +268,7 @@ def generate_scenario(
         weights = weights * boost[np.searchsorted(sources, routes.source)]
     lo, hi = traffic.initial_vehicles
     n_init = int(rng.integers(lo, hi + 1)) if num_vehicles is None else int(num_vehicles)
+    n_init = int(round(n_init * net.half_extent / observed))  # same density on longer roads
     warm = int(round(cfg.warmup_s / DT))
     total_steps = warm + NUM_STEPS
     n_src = int(np.unique(routes.source).size)
@@ -277,7 +300,7 @@ def generate_scenario(
     window = slice(warm, warm + NUM_STEPS)
     slot, vxy, vhead, vvel, vvalid = _vehicle_tracks(routes, log, window)
     n_ped = traffic.pedestrians if num_pedestrians is None else num_pedestrians
-    psize, pxy, phead, pvel, pvalid = _pedestrians(net, n_ped, rng)
+    psize, pxy, phead, pvel, pvalid = _pedestrians(net, n_ped, rng, observed)
 
     n_veh = slot.size
     vsize = np.broadcast_to(log.fleet.size[slot, None, :], (n_veh, NUM_STEPS, 3))
@@ -285,10 +308,13 @@ def generate_scenario(
     xy = np.concatenate([vxy, pxy])
     heading = np.concatenate([vhead, phead])
     vel = np.concatenate([vvel, pvel])
-    valid = np.concatenate([vvalid, pvalid])
+    valid = np.concatenate([vvalid, pvalid]) & (np.abs(xy) <= observed).all(axis=-1)
     otype = np.concatenate(
         [np.full(n_veh, int(ObjectType.VEHICLE)), np.full(n_ped, int(ObjectType.PEDESTRIAN))]
     )
+    seen = valid.any(axis=1)  # objects that never enter the observed area are not tracks
+    n_veh, n_ped = int(seen[:n_veh].sum()), int(seen[n_veh:].sum())
+    size, xy, heading, vel, valid, otype = (a[seen] for a in (size, xy, heading, vel, valid, otype))
     z = 0.5 * size[..., 2:3]
     xyz = np.concatenate([xy, z], axis=-1)
 
