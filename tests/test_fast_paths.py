@@ -18,12 +18,13 @@ from tbsim_env.config import RewardConfig, TerminationConfig
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
-from tbsim_env.env.agent_metrics import StepMetrics
+from tbsim_env.env.agent_metrics import StepMetrics, build_route, step_metrics
 from tbsim_env.env.rewards import reward_and_termination
 from tbsim_env.observation import observe
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
-from tbsim_env.sim.collision import box_corners, collided, collided_with_others
+from tbsim_env.sim.collision import box_corners, collided, collided_with_others, near_limits
+from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import (
     EdgeCandidates,
     _candidate_signed_and_unsigned,
@@ -188,6 +189,13 @@ def test_collided_with_others_matches_collided(scenes, name):
         ref = collided(pose, size, valid)[0, query[0]][None]
         got = collided_with_others(query, pose[0, query], size[0, query], pose, size, valid)
         assert torch.equal(got & valid[0, query[0]][None], ref)
+        # With the per-episode prefilter limits and the query's cos / sin precomputed.
+        limit = near_limits(query, size[0, query], size)
+        trig = cos_sin(pose[0, query][..., 2:])
+        got = collided_with_others(
+            query, pose[0, query], size[0, query], pose, size, valid, limit, trig
+        )
+        assert torch.equal(got & valid[0, query[0]][None], ref)
         hits += int(ref.sum())
     assert hits > 0
 
@@ -283,3 +291,39 @@ def test_reward_matches_the_full_sum():
             assert torch.equal(out.reward, ref)
             assert torch.equal(out.reward.signbit(), ref.signbit())
             assert torch.equal(out.terminated, term) and torch.equal(out.goal_now, goal_now)
+
+
+def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
+    """A batch of two (indexed log reads) equals each row alone (the batch-of-one path), and a
+    route without the per-episode fields gives the same metrics as one from ``build_route``."""
+    from dataclasses import fields, replace
+
+    scs = [scenes["real"], scenes["generated"]]
+    state = build_sim_state(scs)
+    gen = torch.Generator().manual_seed(4)
+    query = torch.stack([torch.randperm(int(m.sum()), generator=gen)[:3] for m in state.valid])
+    route = build_route(state, query)
+    rows = [build_sim_state([sc]) for sc in scs]
+    for step in range(12):
+        pose = state.pose + torch.randn(state.pose.shape, generator=gen) * 0.3
+        st = state.replace(pose=pose, step=state.step + step)
+        got, _ = step_metrics(st, query, route)
+        # core.step's indexed log reads (B > 1) against the reference.
+        controlled = torch.rand(st.valid.shape, generator=gen) > 0.5
+        cs = st.replace(controlled=controlled, valid=st.valid & (torch.rand(2, 1) > 0.3))
+        action = torch.randn(*pose.shape[:2], 2, generator=gen) * 4
+        nxt = core.step(cs, action)
+        ref_step, ref_pose, ref_speed, ref_valid = _reference_core_step(cs, action)
+        assert torch.equal(nxt.step, ref_step) and torch.equal(nxt.valid, ref_valid)
+        assert torch.equal(nxt.pose, ref_pose) and torch.equal(nxt.speed, ref_speed)
+        for b, row in enumerate(rows):
+            n = row.num_agents
+            sub = row.replace(pose=pose[b : b + 1, :n], step=st.step[b : b + 1])
+            one, _ = step_metrics(sub, query[b : b + 1], build_route(row, query[b : b + 1]))
+            bare = build_route(row, query[b : b + 1])
+            bare = replace(bare, **{f.name: None for f in fields(bare)[7:]})
+            two, _ = step_metrics(sub, query[b : b + 1], bare)
+            for f in fields(got):
+                x = getattr(got, f.name)[b : b + 1]
+                assert torch.equal(x, getattr(one, f.name)), f.name
+                assert torch.equal(x, getattr(two, f.name)), f.name

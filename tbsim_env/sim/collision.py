@@ -16,10 +16,29 @@ def box_corner_xy(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``box_corners`` as separate coordinates: (x [..., 4], y [..., 4])."""
     x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [..., 1]
-    c, s = cos_sin(yaw)
+    return corners_from_offsets(x0, y0, cos_sin(yaw), corner_offsets(length, width))
+
+
+def corner_offsets(length: torch.Tensor, width: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Box corners in the box frame, counter-clockwise from front-left: (along [..., 4],
+    across [..., 4]) m, from ``length`` and ``width`` [...]."""
     # (+-0.5 * length) is exactly +-(0.5 * length).
-    lx = length.unsqueeze(-1) * const(_HALF_SIGNS_X, length)
-    ly = width.unsqueeze(-1) * const(_HALF_SIGNS_Y, width)
+    return (
+        length.unsqueeze(-1) * const(_HALF_SIGNS_X, length),
+        width.unsqueeze(-1) * const(_HALF_SIGNS_Y, width),
+    )
+
+
+def corners_from_offsets(
+    x0: torch.Tensor,
+    y0: torch.Tensor,
+    cos_sin_yaw: tuple[torch.Tensor, torch.Tensor],
+    offsets: tuple[torch.Tensor, torch.Tensor],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Corners (x [..., 4], y [..., 4]) of boxes at centres ``x0``, ``y0`` [..., 1] with heading
+    (cos, sin) [..., 1], from their ``corner_offsets``."""
+    c, s = cos_sin_yaw
+    lx, ly = offsets
     return x0 + c * lx - s * ly, y0 + s * lx + c * ly
 
 
@@ -42,12 +61,14 @@ def pairwise_overlap(
     size_a: torch.Tensor,
     pose_b: torch.Tensor,
     size_b: torch.Tensor,
+    cos_sin_a: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Whether each box of set a overlaps each box of set b (touching counts as overlap).
 
     Args:
         pose_a: [..., Na, 3] (x, y, yaw); size_a: [..., Na, 2] (length, width).
         pose_b: [..., Nb, 3]; size_b: [..., Nb, 2].
+        cos_sin_a: optional ``cos_sin`` of a's yaw, [..., Na, 1] each (computed when None).
 
     Returns:
         [..., Na, Nb] bool.
@@ -60,7 +81,7 @@ def pairwise_overlap(
     lb, wb = (half * size_b).unsqueeze(-3).unbind(-1)
     cd, sd = cos_sin(yaw_b - yaw_a)
     cd, sd = cd.abs(), sd.abs()
-    ca, sa = cos_sin(yaw_a)
+    ca, sa = cos_sin(yaw_a) if cos_sin_a is None else cos_sin_a
     cb, sb = cos_sin(yaw_b)
     ndx = -dx
     # Axes of a: (ca, sa) and (-sa, ca); axes of b likewise.
@@ -71,6 +92,24 @@ def pairwise_overlap(
     return ~sep
 
 
+def near_limits(query: torch.Tensor, size_q: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """Bounding-circle prefilter distances of K query agents to every agent slot.
+
+    Args:
+        query: [B, K] int64 agent slots; size_q: [B, K, 2] their (length, width).
+        size: [B, N, 2] (length, width) of every slot.
+
+    Returns:
+        [B, K, N] m: the sum of the two bounding-circle radii (half diagonals), -inf for the
+        query agent itself (so that no distance passes the prefilter).
+    """
+    radius = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
+    radius_q = const(0.5, size_q) * torch.linalg.vector_norm(size_q, dim=-1)  # [B, K]
+    limit = radius.unsqueeze(1) + radius_q.unsqueeze(-1)
+    itself = cached_arange(size.shape[1], size.device) == query.unsqueeze(-1)
+    return limit.masked_fill(itself, float("-inf"))
+
+
 def collided_with_others(
     query: torch.Tensor,
     pose_q: torch.Tensor,
@@ -78,6 +117,8 @@ def collided_with_others(
     pose: torch.Tensor,
     size: torch.Tensor,
     valid: torch.Tensor,
+    near_limit: torch.Tensor | None = None,
+    cos_sin_q: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """Collision flag of K query agents against every other valid agent (``collided``'s rule).
 
@@ -89,19 +130,19 @@ def collided_with_others(
         query: [B, K] int64 agent slots; pose_q: [B, K, 3] and size_q: [B, K, 2] their
             poses and (length, width).
         pose: [B, N, 3]; size: [B, N, 2] (length, width); valid: [B, N] bool.
+        near_limit: optional ``near_limits(query, size_q, size)`` (fixed while the sizes are).
+        cos_sin_q: optional ``cos_sin`` of the query yaws, [B, K, 1] each.
 
     Returns:
         [B, K] bool.
     """
-    radius = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
-    radius_q = const(0.5, size_q) * torch.linalg.vector_norm(size_q, dim=-1)  # [B, K]
+    if near_limit is None:
+        near_limit = near_limits(query, size_q, size)
     gap = torch.linalg.vector_norm(pose[:, None, :, :2] - pose_q[:, :, None, :2], dim=-1)
-    near = gap <= radius.unsqueeze(1) + radius_q.unsqueeze(-1)  # [B, K, N]
-    others = cached_arange(pose.shape[1], pose.device) != query.unsqueeze(-1)
-    near &= valid.unsqueeze(1) & others
+    near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
     if not bool(near.any()):
         return torch.zeros_like(query, dtype=torch.bool)
-    return (pairwise_overlap(pose_q, size_q, pose, size) & near).any(-1)
+    return (pairwise_overlap(pose_q, size_q, pose, size, cos_sin_q) & near).any(-1)
 
 
 def collided(
