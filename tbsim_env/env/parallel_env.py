@@ -301,6 +301,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         state, self._ctx = self._initial(k)
         ext = self._controlled[k]
         self._ext_slots = torch.tensor([ext], dtype=torch.int64, device=self.device)
+        self._ext_index = self._ext_slots[0]
         self._ext_names = [agent_name(sc.tracks.id[i]) for i in ext]
         self._slot_of = {n: j for j, n in enumerate(self._ext_names)}
         external = torch.zeros_like(state.controlled)
@@ -429,7 +430,10 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self.obs_config,
             agent_static=self._agent_static,
         )
-        o = {k: (v if v.device.type == "cpu" else v.cpu()).numpy()[0] for k, v in o.items()}
+        if self.device.type == "cpu":
+            o = {k: v.numpy()[0] for k, v in o.items()}
+        else:
+            o = {k: v.cpu().numpy()[0] for k, v in o.items()}
         return {n: {k: v[self._slot_of[n]] for k, v in o.items()} for n in names}
 
     def _info_columns(
@@ -442,24 +446,24 @@ class TrafficEnv(ParallelEnv, EzPickle):
             (empty without one). All values come from two ``tolist`` calls.
         """
         q = self._ext_slots.shape[1]
-        b_idx = torch.zeros_like(self._ext_slots)
         floats = [
             m.offroad_distance,
             m.progress,
             m.goal_distance,
             m.log_divergence,
-            self.state_.speed[b_idx, self._ext_slots],
+            self.state_.speed.index_select(1, self._ext_index),
         ]
         flags = [m.collision, m.offroad, self._goal_reached]
         if outcome is not None:
             floats.append(outcome.reward)
             flags.append(outcome.terminated)
-        dist, progress, goal_d, log_d, speed, *reward = torch.stack(floats)[:, 0].tolist()
-        coll, off, reached, *term = torch.stack(flags)[:, 0].tolist()
+        # [field][batch of one][agent] lists.
+        dist, progress, goal_d, log_d, speed, *reward = (x[0] for x in torch.stack(floats).tolist())
+        coll, off, reached, *term = (x[0] for x in torch.stack(flags).tolist())
         columns = {
             "scenario_id": [self.scenario.scenario_id] * q,
             "track_id": list(self._track_ids),
-            "step": [int(self.state_.step[0])] * q,
+            "step": [int(self.state_.step.item())] * q,
             "collision": coll,
             "offroad": off,
             "offroad_distance": dist,
