@@ -23,7 +23,13 @@ from tbsim_env.env.rewards import reward_and_termination
 from tbsim_env.observation import observe
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
-from tbsim_env.sim.collision import box_corners, collided, collided_with_others, near_limits
+from tbsim_env.sim.collision import (
+    box_corners,
+    collided,
+    collided_with_others,
+    near_limits,
+    pairwise_overlap,
+)
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import (
     EdgeCandidates,
@@ -117,6 +123,22 @@ def _reference_observe(state, history, ctx, observers, cfg, static):
     }
 
 
+def _reference_overlap(pose_a, size_a, pose_b, size_b):
+    """Separating axis theorem on the 4 box axes, one axis after the other."""
+    xa, ya, yaw_a = (pose_a[..., :, None, i] for i in range(3))
+    xb, yb, yaw_b = (pose_b[..., None, :, i] for i in range(3))
+    dx, dy = xb - xa, yb - ya
+    la, wa = 0.5 * size_a[..., :, None, 0], 0.5 * size_a[..., :, None, 1]
+    lb, wb = 0.5 * size_b[..., None, :, 0], 0.5 * size_b[..., None, :, 1]
+    cd, sd = torch.cos(yaw_b - yaw_a).abs(), torch.sin(yaw_b - yaw_a).abs()
+    ca, sa, cb, sb = torch.cos(yaw_a), torch.sin(yaw_a), torch.cos(yaw_b), torch.sin(yaw_b)
+    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
+    sep = sep | ((-dx * sa + dy * ca).abs() > wa + lb * sd + wb * cd)
+    sep = sep | ((dx * cb + dy * sb).abs() > lb + la * cd + wa * sd)
+    sep = sep | ((-dx * sb + dy * cb).abs() > wb + la * sd + wa * cd)
+    return ~sep
+
+
 def _reference_core_step(state, action):
     """``core.step`` as its docstring says, with per-field gathers and the plain unicycle."""
     n_t = state.log.valid.shape[-1]
@@ -187,6 +209,15 @@ def test_collided_with_others_matches_collided(scenes, name):
         valid = torch.rand(1, n, generator=gen) > 0.2
         query = torch.randperm(n, generator=gen)[: min(n, 9)][None]
         ref = collided(pose, size, valid)[0, query[0]][None]
+        overlap = _reference_overlap(pose[0, query], size[0, query], pose, size)
+        assert torch.equal(pairwise_overlap(pose[0, query], size[0, query], pose, size), overlap)
+        near = torch.linalg.vector_norm(
+            pose[:, None, :, :2] - pose[0, query][:, :, None, :2], dim=-1
+        )
+        radius = 0.5 * torch.linalg.vector_norm(size, dim=-1)
+        near = (near <= radius[:, None] + radius[0, query][..., None]) & valid[:, None]
+        near &= torch.arange(n) != query[..., None]
+        assert torch.equal((overlap & near).any(-1) & valid[0, query[0]][None], ref)
         got = collided_with_others(query, pose[0, query], size[0, query], pose, size, valid)
         assert torch.equal(got & valid[0, query[0]][None], ref)
         # With the per-episode prefilter limits and the query's cos / sin precomputed.

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 from tbsim_env.sim.geometry import cos_sin
@@ -56,23 +58,25 @@ def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -
     return torch.stack(box_corner_xy(pose, length, width), dim=-1)
 
 
-def pairwise_overlap(
-    pose_a: torch.Tensor,
-    size_a: torch.Tensor,
-    pose_b: torch.Tensor,
-    size_b: torch.Tensor,
-    cos_sin_a: tuple[torch.Tensor, torch.Tensor] | None = None,
-) -> torch.Tensor:
-    """Whether each box of set a overlaps each box of set b (touching counts as overlap).
+class _BoxPairs(NamedTuple):
+    """What the separating-axis tests of boxes a against boxes b share, [..., Na, Nb]."""
 
-    Args:
-        pose_a: [..., Na, 3] (x, y, yaw); size_a: [..., Na, 2] (length, width).
-        pose_b: [..., Nb, 3]; size_b: [..., Nb, 2].
-        cos_sin_a: optional ``cos_sin`` of a's yaw, [..., Na, 1] each (computed when None).
+    dx: torch.Tensor  # centre offset b - a, x
+    dy: torch.Tensor
+    ndx: torch.Tensor  # -dx
+    la: torch.Tensor  # half length / width of a [..., Na, 1] and of b [..., 1, Nb]
+    wa: torch.Tensor
+    lb: torch.Tensor
+    wb: torch.Tensor
+    cd: torch.Tensor  # |cos|, |sin| of yaw_b - yaw_a
+    sd: torch.Tensor
+    yaw_b: torch.Tensor  # [..., 1, Nb]
 
-    Returns:
-        [..., Na, Nb] bool.
-    """
+
+def _box_pairs(
+    pose_a: torch.Tensor, size_a: torch.Tensor, pose_b: torch.Tensor, size_b: torch.Tensor
+) -> tuple[_BoxPairs, torch.Tensor]:
+    """(``_BoxPairs`` of the boxes of ``pairwise_overlap``, yaw of a [..., Na, 1])."""
     xa, ya, yaw_a = pose_a.unsqueeze(-2).unbind(-1)  # [..., Na, 1]
     xb, yb, yaw_b = pose_b.unsqueeze(-3).unbind(-1)  # [..., 1, Nb]
     dx, dy = xb - xa, yb - ya  # [..., Na, Nb]
@@ -80,16 +84,44 @@ def pairwise_overlap(
     la, wa = (half * size_a).unsqueeze(-2).unbind(-1)
     lb, wb = (half * size_b).unsqueeze(-3).unbind(-1)
     cd, sd = cos_sin(yaw_b - yaw_a)
-    cd, sd = cd.abs(), sd.abs()
-    ca, sa = cos_sin(yaw_a) if cos_sin_a is None else cos_sin_a
-    cb, sb = cos_sin(yaw_b)
-    ndx = -dx
-    # Axes of a: (ca, sa) and (-sa, ca); axes of b likewise.
-    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
-    sep |= (ndx * sa + dy * ca).abs() > wa + lb * sd + wb * cd
-    sep |= (dx * cb + dy * sb).abs() > lb + la * cd + wa * sd
-    sep |= (ndx * sb + dy * cb).abs() > wb + la * sd + wa * cd
-    return ~sep
+    return _BoxPairs(dx, dy, -dx, la, wa, lb, wb, cd.abs(), sd.abs(), yaw_b), yaw_a
+
+
+def _separated_on_axes_of_a(p: _BoxPairs, ca: torch.Tensor, sa: torch.Tensor) -> torch.Tensor:
+    """[..., Na, Nb] bool: a's length or width axis (ca, sa), (-sa, ca) separates the pair."""
+    sep = (p.dx * ca + p.dy * sa).abs() > p.la + p.lb * p.cd + p.wb * p.sd
+    sep |= (p.ndx * sa + p.dy * ca).abs() > p.wa + p.lb * p.sd + p.wb * p.cd
+    return sep
+
+
+def _separated_on_axes_of_b(p: _BoxPairs) -> torch.Tensor:
+    """[..., Na, Nb] bool: b's length or width axis separates the pair."""
+    cb, sb = cos_sin(p.yaw_b)
+    sep = (p.dx * cb + p.dy * sb).abs() > p.lb + p.la * p.cd + p.wa * p.sd
+    sep |= (p.ndx * sb + p.dy * cb).abs() > p.wb + p.la * p.sd + p.wa * p.cd
+    return sep
+
+
+def pairwise_overlap(
+    pose_a: torch.Tensor,
+    size_a: torch.Tensor,
+    pose_b: torch.Tensor,
+    size_b: torch.Tensor,
+) -> torch.Tensor:
+    """Whether each box of set a overlaps each box of set b (touching counts as overlap).
+
+    Separating axis theorem: no axis of a or b separates the pair.
+
+    Args:
+        pose_a: [..., Na, 3] (x, y, yaw); size_a: [..., Na, 2] (length, width).
+        pose_b: [..., Nb, 3]; size_b: [..., Nb, 2].
+
+    Returns:
+        [..., Na, Nb] bool.
+    """
+    pairs, yaw_a = _box_pairs(pose_a, size_a, pose_b, size_b)
+    sep = _separated_on_axes_of_a(pairs, *cos_sin(yaw_a))
+    return ~(sep | _separated_on_axes_of_b(pairs))
 
 
 def near_limits(query: torch.Tensor, size_q: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
@@ -142,7 +174,12 @@ def collided_with_others(
     near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
     if not bool(near.any()):
         return torch.zeros_like(query, dtype=torch.bool)
-    return (pairwise_overlap(pose_q, size_q, pose, size, cos_sin_q) & near).any(-1)
+    # ``pairwise_overlap & near``, b's axes only tested when a's leave a near pair unseparated.
+    pairs, yaw_q = _box_pairs(pose_q, size_q, pose, size)
+    near = near & ~_separated_on_axes_of_a(pairs, *(cos_sin_q or cos_sin(yaw_q)))
+    if not bool(near.any()):
+        return torch.zeros_like(query, dtype=torch.bool)
+    return (near & ~_separated_on_axes_of_b(pairs)).any(-1)
 
 
 def collided(
