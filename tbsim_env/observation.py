@@ -238,9 +238,9 @@ def init_history(state: SimState, length: int) -> History:
 def push_history(history: History, state: SimState) -> History:
     """Drop the oldest step and append the state's current one."""
     return History(
-        pose=torch.cat([history.pose[:, :, 1:], state.pose[:, :, None]], dim=2),
-        speed=torch.cat([history.speed[:, :, 1:], state.speed[:, :, None]], dim=2),
-        valid=torch.cat([history.valid[:, :, 1:], state.valid[:, :, None]], dim=2),
+        pose=torch.cat([history.pose[:, :, 1:], state.pose.unsqueeze(2)], dim=2),
+        speed=torch.cat([history.speed[:, :, 1:], state.speed.unsqueeze(2)], dim=2),
+        valid=torch.cat([history.valid[:, :, 1:], state.valid.unsqueeze(2)], dim=2),
     )
 
 
@@ -322,7 +322,7 @@ def observe(
     static = agent_static_features(state) if agent_static is None else agent_static
     # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
     hist = _history_features(history.pose, history.speed, state.pose)
-    hist = hist * history.valid[..., None]
+    hist = hist * history.valid.unsqueeze(-1)
     # Per agent: history, history mask, attributes (static, speed), current pose: [B, N, F].
     widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES, 3]
     agents = torch.cat(
@@ -334,7 +334,9 @@ def observe(
     # Nearest agents (other than the observer), map pieces and traffic lights.
     n = state.num_agents
     dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)  # [B, Q, N]
-    not_other = ~state.valid[:, None] | (cached_arange(n, state.device) == observers[..., None])
+    # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
+    itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
+    not_other = state.valid.unsqueeze(1) <= itself
     a_idx, a_top = _nearest(dist, not_other, cfg.num_agents)
     m_dist, t_dist = torch.linalg.vector_norm(ctx.knn_xy - me_xy, dim=-1).split_with_sizes(
         [ctx.pose.shape[1], ctx.tl_pose.shape[1]], -1

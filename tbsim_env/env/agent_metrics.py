@@ -26,7 +26,7 @@ from tbsim_env.torch_utils import cached_arange, const
 @dataclass(frozen=True)
 class Route:
     """The logged route of each query agent, and what ``step_metrics`` needs of it that does not
-    change in an episode (the ``build_route`` fields after ``segment_length``; None in a route
+    change in an episode (the ``build_route`` fields after ``segment_arc``; None in a route
     built by hand, then ``step_metrics`` derives them on every call).
 
     Attributes:
@@ -38,6 +38,8 @@ class Route:
             (point t + 1 - point t) m.
         segment_length2: [B, Q, T - 1] derived: squared segment lengths clamped at 1e-9 m^2.
         segment_length: [B, Q, T - 1] derived: segment lengths m.
+        segment_start: [B, Q, T - 1, 2] derived: ``points[..., :-1, :]``.
+        segment_arc: [B, Q, T - 1] derived: ``arc[..., :-1]``.
         size: [B, Q, 2] (length, width) m of the agent.
         radius: [B, Q] m, half diagonal (bounding-circle radius) of its box.
         near_limit: [B, Q, N] m, ``collision.near_limits`` of the agent against every slot.
@@ -54,6 +56,8 @@ class Route:
     segments: torch.Tensor | None = field(default=None)
     segment_length2: torch.Tensor | None = field(default=None)
     segment_length: torch.Tensor | None = field(default=None)
+    segment_start: torch.Tensor | None = field(default=None)
+    segment_arc: torch.Tensor | None = field(default=None)
     size: torch.Tensor | None = field(default=None)
     radius: torch.Tensor | None = field(default=None)
     near_limit: torch.Tensor | None = field(default=None)
@@ -69,6 +73,9 @@ class Route:
             object.__setattr__(self, "segments", ab)
             object.__setattr__(self, "segment_length2", len2.clamp_min(1e-9))
             object.__setattr__(self, "segment_length", len2.clamp_min(0).sqrt())
+        if self.segment_start is None:
+            object.__setattr__(self, "segment_start", self.points[..., :-1, :])
+            object.__setattr__(self, "segment_arc", self.arc[..., :-1])
 
 
 @dataclass(frozen=True)
@@ -123,7 +130,7 @@ def build_route(state: SimState, query: torch.Tensor) -> Route:
 
 
 def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The per-episode fields of ``Route`` after ``segment_length`` for the query agents."""
+    """The per-episode fields of ``Route`` after ``segment_arc`` for the query agents."""
     b_idx = torch.arange(state.batch_size, device=state.device)[:, None]
     size = state.agents.size[b_idx, query, :2]
     length, width = size.unbind(-1)
@@ -141,13 +148,13 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
 
 def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
-    a, ab = route.points[..., :-1, :], route.segments
-    q = xy[..., None, :]
+    a, ab = route.segment_start, route.segments
+    q = xy.unsqueeze(-2)
     t = (((q - a) * ab).sum(-1) / route.segment_length2).clamp(0.0, 1.0)
-    d = torch.linalg.vector_norm(q - (a + t[..., None] * ab), dim=-1)
+    d = torch.linalg.vector_norm(q - (a + t.unsqueeze(-1) * ab), dim=-1)
     best = d.argmin(-1, keepdim=True)
     along = t.gather(-1, best) * route.segment_length.gather(-1, best)
-    return (route.arc[..., :-1].gather(-1, best) + along)[..., 0]
+    return (route.segment_arc.gather(-1, best) + along).squeeze(-1)
 
 
 def step_metrics(

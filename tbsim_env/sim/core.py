@@ -56,10 +56,10 @@ def step(state: SimState, action: torch.Tensor) -> SimState:
     nxt = (state.step + 1).clamp(max=n_t - 1)
     log_valid, log_pose, log_speed = _log_at(state, nxt)
     log_valid = log_valid & state.agents.mask
-    fresh = state.log.first_valid > state.step[:, None]  # not seen_before(state)
+    fresh = state.log.first_valid > state.step.unsqueeze(1)  # not seen_before(state)
 
     moving = state.controlled & state.valid
-    moving_ = moving[..., None]
+    moving_ = moving.unsqueeze(-1)
     limit = state.agents.action_limit
     act = torch.clamp(action, -limit, limit) * moving_  # clip_action
     sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
@@ -68,7 +68,8 @@ def step(state: SimState, action: torch.Tensor) -> SimState:
     # not seen before) where the log has the agent. For a moving agent ``from_log`` may be
     # anything: ``moving`` wins below. (``valid > controlled`` is ``valid & ~controlled``.)
     from_log = log_valid & (fresh | (state.valid > state.controlled))
-    pose = torch.where(moving_, sim_pose, torch.where(from_log[..., None], log_pose, state.pose))
+    from_log_ = from_log.unsqueeze(-1)
+    pose = torch.where(moving_, sim_pose, torch.where(from_log_, log_pose, state.pose))
     speed = torch.where(moving, sim_speed, torch.where(from_log, log_speed, state.speed))
     valid = moving | from_log
     return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
