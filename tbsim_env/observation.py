@@ -297,6 +297,7 @@ def observe(
     observers: torch.Tensor,
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
+    agent_distance: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Observations of the ``observers`` agents.
 
@@ -308,6 +309,9 @@ def observe(
         cfg: observation sizes.
         agent_static: optional precomputed ``agent_static_features(state)`` (it does not
             change within an episode).
+        agent_distance: optional [B, Q, N] centre distances of the observers to every agent
+            slot at the current poses (``StepMetrics.agent_distance`` with the observers as
+            query); computed when None.
 
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
@@ -333,7 +337,9 @@ def observe(
 
     # Nearest agents (other than the observer), map pieces and traffic lights.
     n = state.num_agents
-    dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)  # [B, Q, N]
+    dist = agent_distance  # [B, Q, N]
+    if dist is None:
+        dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)
     # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
     itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
     not_other = state.valid.unsqueeze(1) <= itself

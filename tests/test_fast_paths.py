@@ -24,6 +24,7 @@ from tbsim_env.observation import observe
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.collision import (
+    agent_distances,
     box_corners,
     collided,
     collided_with_others,
@@ -183,8 +184,13 @@ def test_observe_and_core_step_match_references(scenes, name):
             ref = _reference_observe(
                 s, env._history, env._ctx, env._ext_slots, env.obs_config, env._agent_static
             )
+            dist = agent_distances(s.pose[0, env._ext_slots], s.pose)
+            shared = observe(
+                s, env._history, env._ctx, env._ext_slots, env.obs_config, env._agent_static, dist
+            )
             for key in ref:
                 assert torch.equal(got[key], ref[key]), key
+                assert torch.equal(shared[key], ref[key]), key
             action = torch.from_numpy(rng.uniform(-8, 8, (1, s.num_agents, 2)).astype(np.float32))
             nxt = core.step(s, action)
             step, pose, speed, valid = _reference_core_step(s, action)
@@ -356,6 +362,8 @@ def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
             two, _ = step_metrics(sub, query[b : b + 1], bare)
             for f in fields(got):
                 x = getattr(got, f.name)[b : b + 1]
+                if f.name == "agent_distance":
+                    x = x[..., :n]  # the batch pads the agent slots
                 assert torch.equal(x, getattr(one, f.name)), f.name
                 assert torch.equal(x, getattr(two, f.name)), f.name
 

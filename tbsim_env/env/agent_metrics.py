@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import torch
 
 from tbsim_env.sim.collision import (
+    agent_distances,
     collided_with_others,
     corner_offsets,
     corners_from_offsets,
@@ -90,6 +91,8 @@ class StepMetrics:
         goal_distance: m, to the last valid logged position.
         log_divergence: m, distance to the logged position at this step (0 if no log).
         log_valid: bool, the log has the agent at this step.
+        agent_distance: [B, Q, N] m, centre distance to every agent slot (``observe`` of the
+            same poses can reuse it); None when not computed.
     """
 
     collision: torch.Tensor
@@ -99,6 +102,7 @@ class StepMetrics:
     goal_distance: torch.Tensor
     log_divergence: torch.Tensor
     log_valid: torch.Tensor
+    agent_distance: torch.Tensor | None = None
 
 
 def build_route(state: SimState, query: torch.Tensor) -> Route:
@@ -184,8 +188,9 @@ def step_metrics(
     x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [B, Q, 1]
     trig = cos_sin(yaw)
     all_size = state.agents.size[..., :2]
+    gap = agent_distances(pose, state.pose)
     coll = collided_with_others(
-        query, pose, size, state.pose, all_size, state.valid, route.near_limit, trig
+        query, pose, size, state.pose, all_size, state.valid, route.near_limit, trig, gap
     )
     if candidates is None:
         candidates = EdgeCandidates.build(pose, state.road_edges)
@@ -195,15 +200,16 @@ def step_metrics(
     )
     log_valid, log_xy = _log_at(route, state.step)
     xy = pose[..., :2]
-    gap = torch.linalg.vector_norm(xy - log_xy, dim=-1) * log_valid
+    log_gap = torch.linalg.vector_norm(xy - log_xy, dim=-1) * log_valid
     metrics = StepMetrics(
         collision=coll & present,
         offroad=(off_d > const(0.0, off_d)) & present,
         offroad_distance=off_d,
         progress=progress_along(route, xy),
         goal_distance=torch.linalg.vector_norm(xy - route.goal, dim=-1),
-        log_divergence=gap,
+        log_divergence=log_gap,
         log_valid=log_valid,
+        agent_distance=gap,
     )
     return metrics, candidates
 

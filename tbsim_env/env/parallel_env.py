@@ -337,7 +337,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         # Every episode of scenario k starts from the same state: keep its road-edge cache.
         self._route_cache[k] = (self._route, self._route_cache[k][1] or self._edge_cache)
         self._progress = metrics.progress.clone()
-        obs = self._observations(self.agents)
+        obs = self._observations(self.agents, metrics.agent_distance)
         columns, _, _ = self._info_columns(metrics)
         infos = {a: {k: v[self._slot_of[a]] for k, v in columns.items()} for a in self.agents}
         return obs, infos
@@ -414,12 +414,15 @@ class TrafficEnv(ParallelEnv, EzPickle):
             state = state.replace(valid=state.valid & ~remove)
         self.state_ = state
         self._history = push_history(self._history, state)
-        obs = self._observations(live_before)
+        # Removing terminated agents leaves every pose as step_metrics saw it.
+        obs = self._observations(live_before, metrics.agent_distance)
         self.agents = [a for a in live_before if not (terms[a] or truncs[a])]
         return obs, rewards, terms, truncs, infos
 
     # ------------------------------------------------------------------ helpers
-    def _observations(self, names: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    def _observations(
+        self, names: list[str], agent_distance: torch.Tensor | None = None
+    ) -> dict[str, dict[str, np.ndarray]]:
         if not names:
             return {}
         o = observe(
@@ -429,6 +432,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self._ext_slots,
             self.obs_config,
             agent_static=self._agent_static,
+            agent_distance=agent_distance,
         )
         if self.device.type == "cpu":
             o = {k: v.numpy()[0] for k, v in o.items()}

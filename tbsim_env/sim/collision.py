@@ -142,6 +142,11 @@ def near_limits(query: torch.Tensor, size_q: torch.Tensor, size: torch.Tensor) -
     return limit.masked_fill(itself, float("-inf"))
 
 
+def agent_distances(pose_q: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """[B, K, N] m centre distances of K query poses [B, K, 3] to every pose [B, N, 3]."""
+    return torch.linalg.vector_norm(pose[:, None, :, :2] - pose_q[:, :, None, :2], dim=-1)
+
+
 def collided_with_others(
     query: torch.Tensor,
     pose_q: torch.Tensor,
@@ -151,6 +156,7 @@ def collided_with_others(
     valid: torch.Tensor,
     near_limit: torch.Tensor | None = None,
     cos_sin_q: tuple[torch.Tensor, torch.Tensor] | None = None,
+    gap: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Collision flag of K query agents against every other valid agent (``collided``'s rule).
 
@@ -164,13 +170,15 @@ def collided_with_others(
         pose: [B, N, 3]; size: [B, N, 2] (length, width); valid: [B, N] bool.
         near_limit: optional ``near_limits(query, size_q, size)`` (fixed while the sizes are).
         cos_sin_q: optional ``cos_sin`` of the query yaws, [B, K, 1] each.
+        gap: optional ``agent_distances(pose_q, pose)`` [B, K, N].
 
     Returns:
         [B, K] bool.
     """
     if near_limit is None:
         near_limit = near_limits(query, size_q, size)
-    gap = torch.linalg.vector_norm(pose[:, None, :, :2] - pose_q[:, :, None, :2], dim=-1)
+    if gap is None:
+        gap = agent_distances(pose_q, pose)
     near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
     if not bool(near.any()):
         return torch.zeros_like(query, dtype=torch.bool)
