@@ -124,12 +124,26 @@ class History:
     """The last H simulated states of every agent slot (oldest first).
 
     Attributes:
-        pose: [B, N, H, 3]; speed: [B, N, H]; valid: [B, N, H] bool.
+        data: [B, N, H, 5] float32 (x m, y m, yaw rad, speed m/s, valid 0/1), packed so that
+            a step appends with one concatenation.
     """
 
-    pose: torch.Tensor
-    speed: torch.Tensor
-    valid: torch.Tensor
+    data: torch.Tensor
+
+    @property
+    def pose(self) -> torch.Tensor:
+        """[B, N, H, 3] (x, y, yaw) (a view)."""
+        return self.data[..., :3]
+
+    @property
+    def speed(self) -> torch.Tensor:
+        """[B, N, H] m/s (a view)."""
+        return self.data[..., 3]
+
+    @property
+    def valid(self) -> torch.Tensor:
+        """[B, N, H] bool."""
+        return self.data[..., 4] != 0
 
 
 def _scene_map_numpy(scenario: Scenario, origin: np.ndarray, cfg: TokenConfig) -> dict:
@@ -232,21 +246,25 @@ def init_history(state: SimState, length: int) -> History:
     valid[..., -1] = state.valid
     pose[..., -1, :] = state.pose
     speed[..., -1] = state.speed
-    return History(pose=pose, speed=speed, valid=valid)
+    return History(data=torch.cat([pose, speed[..., None], valid[..., None].float()], -1))
+
+
+def _history_row(state: SimState) -> torch.Tensor:
+    """[B, N, 1, 5] the state's current step as a ``History.data`` entry."""
+    row = [state.pose, state.speed.unsqueeze(-1), state.valid.unsqueeze(-1).float()]
+    return torch.cat(row, -1).unsqueeze(2)
 
 
 def push_history(history: History, state: SimState) -> History:
     """Drop the oldest step and append the state's current one."""
-    return History(
-        pose=torch.cat([history.pose[:, :, 1:], state.pose.unsqueeze(2)], dim=2),
-        speed=torch.cat([history.speed[:, :, 1:], state.speed.unsqueeze(2)], dim=2),
-        valid=torch.cat([history.valid[:, :, 1:], state.valid.unsqueeze(2)], dim=2),
-    )
+    return History(data=torch.cat([history.data[:, :, 1:], _history_row(state)], dim=2))
 
 
-def _history_features(pose: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
-    """[..., H, 5] history in ``frame`` ([..., 3]): x, y, cos, sin, speed."""
-    x, y, yaw = pose.unbind(-1)
+def _history_features(
+    x: torch.Tensor, y: torch.Tensor, yaw: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor
+) -> torch.Tensor:
+    """[..., H, 5] history (x, y, yaw, speed [..., H]) in ``frame`` ([..., 3]): x, y, cos, sin,
+    speed."""
     frame = frame.unsqueeze(-2)
     lx, ly = to_local_xy(x, y, frame)
     c, s = cos_sin(yaw - frame[..., 2])
@@ -322,16 +340,15 @@ def observe(
     # all selected tokens are one computation.
     b_idx = cached_arange(state.batch_size, state.device)
     bq, bk = b_idx[:, None], b_idx[:, None, None]  # [B, 1], [B, 1, 1]
-    h = history.valid.shape[-1]
+    h = history.data.shape[2]
     static = agent_static_features(state) if agent_static is None else agent_static
     # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
-    hist = _history_features(history.pose, history.speed, state.pose)
-    hist = hist * history.valid.unsqueeze(-1)
+    x, y, yaw, speed, valid = history.data.unbind(-1)  # [B, N, H], valid as 0 / 1
+    hist = _history_features(x, y, yaw, speed, state.pose)
+    hist = hist * valid.unsqueeze(-1)
     # Per agent: history, history mask, attributes (static, speed), current pose: [B, N, F].
     widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES, 3]
-    agents = torch.cat(
-        [hist.flatten(-2), history.valid.float(), static, state.speed[..., None], state.pose], -1
-    )
+    agents = torch.cat([hist.flatten(-2), valid, static, state.speed[..., None], state.pose], -1)
     ego_hist, ego_valid, ego_attrs, me = agents[bq, observers].split_with_sizes(widths, -1)
     me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
 
