@@ -390,3 +390,23 @@ def test_observe_batch_of_two_matches_reference(scenes):
         ref = _reference_observe(st, hist, ctx, observers, cfg, static)
         for key in ref:
             assert torch.equal(got[key], ref[key]), key
+
+
+def test_reset_reuses_the_start_of_a_scenario_without_sharing_outputs(scenes):
+    """Resets of a scenario return what a fresh env returns, whatever the caller did with the
+    previous episode's arrays and dicts."""
+    env = TrafficEnv([scenes["real"]], controlled="tracks_to_predict", npc_policy="log_replay")
+    fresh = TrafficEnv([scenes["real"]], controlled="tracks_to_predict", npc_policy="log_replay")
+    obs, infos = env.reset(seed=0)
+    for o in obs.values():
+        for v in o.values():
+            v += 1.0
+    for info in infos.values():
+        info["progress"] = -1.0
+    env.step({a: np.ones(2, np.float32) for a in env.agents})
+    obs, infos = env.reset()
+    ref_obs, ref_infos = fresh.reset(seed=0)
+    assert infos == ref_infos and list(obs) == list(ref_obs)
+    for a in obs:
+        for key in obs[a]:
+            np.testing.assert_array_equal(obs[a][key], ref_obs[a][key], key)

@@ -225,6 +225,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.agents: list[str] = []
         self._cache: dict[int, tuple[SimState, MapContext]] = {}
         self._route_cache: dict[int, tuple[Route, EdgeCandidates | None]] = {}
+        self._start_cache: dict[int, tuple] = {}
         self._episode = -1
         self.np_random, _ = gym.utils.seeding.np_random(None)
         self._generator = torch.Generator(device="cpu")
@@ -317,8 +318,6 @@ class TrafficEnv(ParallelEnv, EzPickle):
             if self._has_npc
             else None
         )
-        self._history: History = init_history(self.state_, self.obs_config.history)
-        self._agent_static = agent_static_features(self.state_)
         if k not in self._route_cache:
             self._route_cache[k] = (build_route(self.state_, self._ext_slots), None)
         self._route, self._edge_cache = self._route_cache[k]
@@ -331,16 +330,28 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self._goal_reached = torch.zeros_like(self._ext_slots, dtype=torch.bool)
         # Agents whose logged route is shorter than the goal radius have no goal to reach.
         self._has_goal = self._route.arc[..., -1] > self.config.reward.goal_radius
-        metrics, self._edge_cache = step_metrics(
-            self.state_, self._ext_slots, self._route, self._edge_cache
-        )
-        # Every episode of scenario k starts from the same state: keep its road-edge cache.
-        self._route_cache[k] = (self._route, self._route_cache[k][1] or self._edge_cache)
-        self._progress = metrics.progress.clone()
+        # Every episode of scenario k starts from the same state, so what follows from it
+        # alone is computed once (the returned arrays and dicts are copies).
+        if k not in self._start_cache:
+            self._start_cache[k] = self._start(k)
+        history, static, self._edge_cache, progress, obs, infos = self._start_cache[k]
+        self._history: History = history
+        self._agent_static = static
+        self._progress = progress.clone()
+        obs = {a: {key: v.copy() for key, v in o.items()} for a, o in obs.items()}
+        return obs, {a: dict(info) for a, info in infos.items()}
+
+    def _start(self, k: int) -> tuple:
+        """History, static features, road-edge cache, progress, observations and infos of the
+        first state of scenario ``k`` (set up by ``_reset``)."""
+        self._history = init_history(self.state_, self.obs_config.history)
+        self._agent_static = agent_static_features(self.state_)
+        metrics, edges = step_metrics(self.state_, self._ext_slots, self._route, self._edge_cache)
+        self._route_cache[k] = (self._route, self._route_cache[k][1] or edges)
         obs = self._observations(self.agents, metrics.agent_distance)
         columns, _, _ = self._info_columns(metrics)
-        infos = {a: {k: v[self._slot_of[a]] for k, v in columns.items()} for a in self.agents}
-        return obs, infos
+        infos = {a: {c: v[self._slot_of[a]] for c, v in columns.items()} for a in self.agents}
+        return self._history, self._agent_static, edges, metrics.progress, obs, infos
 
     # ------------------------------------------------------------------ step
     def _action_tensor(self, actions: dict[str, Any]) -> torch.Tensor:
