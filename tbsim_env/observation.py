@@ -97,8 +97,11 @@ class MapContext:
             observation shows of a piece, concatenated (``nodes``, ``nodes_valid``, the
             ``map_class`` one-hot, ``pose``), so that a step gathers it in one operation.
         invalid: [B, 1, M] bool, derived: not ``valid`` (padding pieces).
-        tl_tokens: [B, L, T, NUM_TL_STATES + 3] float32, derived: one-hot of ``tl_state`` and
-            ``tl_pose``, concatenated.
+        tl_tokens: [B, T, L, NUM_TL_STATES + 3] float32, derived: one-hot of ``tl_state`` and
+            ``tl_pose``, concatenated (step-major, so that a step's lights are one view).
+        tl_invalid: [B, T, 1, L] bool, derived: not ``tl_valid``, step-major.
+        knn_xy: [B, 1, M + L, 2] float32, derived: the positions the nearest-token searches
+            measure to (piece starts, +inf for padding pieces, then light poses).
     """
 
     pose: torch.Tensor
@@ -112,6 +115,8 @@ class MapContext:
     tokens: torch.Tensor
     invalid: torch.Tensor
     tl_tokens: torch.Tensor
+    tl_invalid: torch.Tensor
+    knn_xy: torch.Tensor
 
 
 @dataclass(frozen=True)
@@ -119,12 +124,26 @@ class History:
     """The last H simulated states of every agent slot (oldest first).
 
     Attributes:
-        pose: [B, N, H, 3]; speed: [B, N, H]; valid: [B, N, H] bool.
+        data: [B, N, H, 5] float32 (x m, y m, yaw rad, speed m/s, valid 0/1), packed so that
+            a step appends with one concatenation.
     """
 
-    pose: torch.Tensor
-    speed: torch.Tensor
-    valid: torch.Tensor
+    data: torch.Tensor
+
+    @property
+    def pose(self) -> torch.Tensor:
+        """[B, N, H, 3] (x, y, yaw) (a view)."""
+        return self.data[..., :3]
+
+    @property
+    def speed(self) -> torch.Tensor:
+        """[B, N, H] m/s (a view)."""
+        return self.data[..., 3]
+
+    @property
+    def valid(self) -> torch.Tensor:
+        """[B, N, H] bool."""
+        return self.data[..., 4] != 0
 
 
 def _scene_map_numpy(scenario: Scenario, origin: np.ndarray, cfg: TokenConfig) -> dict:
@@ -203,11 +222,15 @@ def build_map_context(
         dim=-1,
     )
     tl_pose = t["tl_pose"][:, :, None].expand(-1, -1, n_t, -1)
+    tl_tokens = torch.cat([_TL_EYE.to(dev)[t["tl_state"]], tl_pose], dim=-1)
+    map_xy = t["pose"][..., :2].masked_fill(~t["valid"][..., None], float("inf"))
     return MapContext(
         **t,
         tokens=tokens,
         invalid=~t["valid"][:, None],
-        tl_tokens=torch.cat([_TL_EYE.to(dev)[t["tl_state"]], tl_pose], dim=-1),
+        tl_tokens=tl_tokens.transpose(1, 2).contiguous(),
+        tl_invalid=~t["tl_valid"].transpose(1, 2)[:, :, None].contiguous(),
+        knn_xy=torch.cat([map_xy, t["tl_pose"][..., :2]], 1)[:, None].contiguous(),
     )
 
 
@@ -223,21 +246,25 @@ def init_history(state: SimState, length: int) -> History:
     valid[..., -1] = state.valid
     pose[..., -1, :] = state.pose
     speed[..., -1] = state.speed
-    return History(pose=pose, speed=speed, valid=valid)
+    return History(data=torch.cat([pose, speed[..., None], valid[..., None].float()], -1))
+
+
+def _history_row(state: SimState) -> torch.Tensor:
+    """[B, N, 1, 5] the state's current step as a ``History.data`` entry."""
+    row = [state.pose, state.speed.unsqueeze(-1), state.valid.unsqueeze(-1).float()]
+    return torch.cat(row, -1).unsqueeze(2)
 
 
 def push_history(history: History, state: SimState) -> History:
     """Drop the oldest step and append the state's current one."""
-    return History(
-        pose=torch.cat([history.pose[:, :, 1:], state.pose[:, :, None]], dim=2),
-        speed=torch.cat([history.speed[:, :, 1:], state.speed[:, :, None]], dim=2),
-        valid=torch.cat([history.valid[:, :, 1:], state.valid[:, :, None]], dim=2),
-    )
+    return History(data=torch.cat([history.data[:, :, 1:], _history_row(state)], dim=2))
 
 
-def _history_features(pose: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor) -> torch.Tensor:
-    """[..., H, 5] history in ``frame`` ([..., 3]): x, y, cos, sin, speed."""
-    x, y, yaw = pose.unbind(-1)
+def _history_features(
+    x: torch.Tensor, y: torch.Tensor, yaw: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor
+) -> torch.Tensor:
+    """[..., H, 5] history (x, y, yaw, speed [..., H]) in ``frame`` ([..., 3]): x, y, cos, sin,
+    speed."""
     frame = frame.unsqueeze(-2)
     lx, ly = to_local_xy(x, y, frame)
     c, s = cos_sin(yaw - frame[..., 2])
@@ -260,21 +287,25 @@ def agent_static_features(state: SimState) -> torch.Tensor:
 
 
 def _nearest(
-    dist: torch.Tensor, invalid: torch.Tensor, k: int, radius: float
+    dist: torch.Tensor, invalid: torch.Tensor | None, k: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices [B, Q, k] of the k nearest valid targets and their mask (within radius).
+    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k].
 
     Args:
-        dist: [B, Q, M] distances; invalid: [B, Q, M] bool (broadcastable), targets to skip.
+        dist: [B, Q, M] distances; invalid: [B, Q, M] bool (broadcastable), targets to skip
+            (None: none, e.g. distances already +inf where invalid).
+
+    Returns:
+        (indices, distances: +inf where there is no valid target).
     """
     m = dist.shape[-1]
-    d = dist.masked_fill(invalid, float("inf"))
+    d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
     if m < k:
         d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
     top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
     if m < k:
         idx = idx.clamp(max=m - 1)
-    return idx, top <= const(radius, top)
+    return idx, top
 
 
 def observe(
@@ -284,6 +315,7 @@ def observe(
     observers: torch.Tensor,
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
+    agent_distance: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
     """Observations of the ``observers`` agents.
 
@@ -295,6 +327,9 @@ def observe(
         cfg: observation sizes.
         agent_static: optional precomputed ``agent_static_features(state)`` (it does not
             change within an episode).
+        agent_distance: optional [B, Q, N] centre distances of the observers to every agent
+            slot at the current poses (``StepMetrics.agent_distance`` with the observers as
+            query); computed when None.
 
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
@@ -305,40 +340,44 @@ def observe(
     # all selected tokens are one computation.
     b_idx = cached_arange(state.batch_size, state.device)
     bq, bk = b_idx[:, None], b_idx[:, None, None]  # [B, 1], [B, 1, 1]
-    h = history.valid.shape[-1]
+    h = history.data.shape[2]
     static = agent_static_features(state) if agent_static is None else agent_static
     # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
-    hist = _history_features(history.pose, history.speed, state.pose)
-    hist = hist * history.valid[..., None]
+    x, y, yaw, speed, valid = history.data.unbind(-1)  # [B, N, H], valid as 0 / 1
+    hist = _history_features(x, y, yaw, speed, state.pose)
+    hist = hist * valid.unsqueeze(-1)
     # Per agent: history, history mask, attributes (static, speed), current pose: [B, N, F].
     widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES, 3]
-    agents = torch.cat(
-        [hist.flatten(-2), history.valid.float(), static, state.speed[..., None], state.pose], -1
-    )
+    agents = torch.cat([hist.flatten(-2), valid, static, state.speed[..., None], state.pose], -1)
     ego_hist, ego_valid, ego_attrs, me = agents[bq, observers].split_with_sizes(widths, -1)
     me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
 
     # Nearest agents (other than the observer), map pieces and traffic lights.
     n = state.num_agents
-    dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)  # [B, Q, N]
-    not_other = ~state.valid[:, None] | (cached_arange(n, state.device) == observers[..., None])
-    a_idx, a_mask = _nearest(dist, not_other, cfg.num_agents, cfg.agent_radius)
-    m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me_xy, dim=-1)
-    m_idx, m_mask = _nearest(m_dist, ctx.invalid, cfg.num_map, cfg.map_radius)
-    t_now = state.step.clamp(max=ctx.tl_state.shape[-1] - 1)[:, None]  # [B, 1]
-    tl_invalid = ~ctx.tl_valid[bq, :, t_now]  # [B, 1, L]
-    t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me_xy, dim=-1)
-    t_idx, t_mask = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
+    dist = agent_distance  # [B, Q, N]
+    if dist is None:
+        dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)
+    # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
+    itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
+    not_other = state.valid.unsqueeze(1) <= itself
+    a_idx, a_top = _nearest(dist, not_other, cfg.num_agents)
+    m_dist, t_dist = torch.linalg.vector_norm(ctx.knn_xy - me_xy, dim=-1).split_with_sizes(
+        [ctx.pose.shape[1], ctx.tl_pose.shape[1]], -1
+    )  # [B, Q, M] (+inf for padding), [B, Q, L]
+    m_idx, m_top = _nearest(m_dist, None, cfg.num_map)
+    tl_invalid, tl_tokens = _lights_at(ctx, state.step)  # [B, 1, L], [B, L, F]
+    t_idx, t_top = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights)
 
     # The selected rows: [B, Q, K, features + pose].
     nb_feat, nb_pose = agents[bk, a_idx].split_with_sizes([sum(widths[:3]), 3], -1)
     m_feat, m_pose = ctx.tokens[bk, m_idx].split_with_sizes([ctx.tokens.shape[-1] - 3, 3], -1)
-    t_feat, t_pose = ctx.tl_tokens[bk, t_idx, t_now[..., None]].split_with_sizes(
-        [C.NUM_TL_STATES, 3], -1
-    )
+    t_feat, t_pose = tl_tokens[bk, t_idx].split_with_sizes([C.NUM_TL_STATES, 3], -1)
     # Poses of all selected tokens relative to the observer, zero where masked.
     sizes = [cfg.num_agents, cfg.num_map, cfg.num_traffic_lights]
-    mask = torch.cat([a_mask, m_mask, t_mask], -1).float()  # [B, Q, Ka + Km + Kt]
+    radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]
+    radii += (cfg.traffic_light_radius,) * sizes[2]
+    top = torch.cat([a_top, m_top, t_top], -1)  # [B, Q, Ka + Km + Kt]
+    mask = (top <= const(radii, top)).float()
     rel = relative_pose(me[:, :, None], torch.cat([nb_pose, m_pose, t_pose], 2))
     a_pose, m_pose, t_pose = (rel * mask[..., None]).split_with_sizes(sizes, 2)
     a_f, m_f, t_f = mask.split_with_sizes(sizes, -1)
@@ -366,6 +405,19 @@ def observe(
         "traffic_lights_pose": t_pose,
         "traffic_lights_mask": t_f,
     }
+
+
+def _lights_at(ctx: MapContext, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lights at ``step`` [B] (clamped to T - 1): (invalid [B, 1, L], tokens [B, L, F]).
+
+    A batch of one on the CPU reads the step as a number (views instead of indexing).
+    """
+    n_t = ctx.tl_tokens.shape[1]
+    if step.shape[0] == 1 and step.device.type == "cpu":
+        t = min(int(step.item()), n_t - 1)
+        return ctx.tl_invalid[:, t], ctx.tl_tokens[:, t]
+    at = (cached_arange(step.shape[0], step.device), step.clamp(max=n_t - 1))
+    return ctx.tl_invalid[at], ctx.tl_tokens[at]
 
 
 _MAP_EYE = torch.eye(C.NUM_MAP_CLASSES)

@@ -18,12 +18,20 @@ from tbsim_env.config import RewardConfig, TerminationConfig
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
-from tbsim_env.env.agent_metrics import StepMetrics
+from tbsim_env.env.agent_metrics import StepMetrics, build_route, step_metrics
 from tbsim_env.env.rewards import reward_and_termination
 from tbsim_env.observation import observe
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
-from tbsim_env.sim.collision import box_corners, collided, collided_with_others
+from tbsim_env.sim.collision import (
+    agent_distances,
+    box_corners,
+    collided,
+    collided_with_others,
+    near_limits,
+    pairwise_overlap,
+)
+from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import (
     EdgeCandidates,
     _candidate_signed_and_unsigned,
@@ -116,6 +124,22 @@ def _reference_observe(state, history, ctx, observers, cfg, static):
     }
 
 
+def _reference_overlap(pose_a, size_a, pose_b, size_b):
+    """Separating axis theorem on the 4 box axes, one axis after the other."""
+    xa, ya, yaw_a = (pose_a[..., :, None, i] for i in range(3))
+    xb, yb, yaw_b = (pose_b[..., None, :, i] for i in range(3))
+    dx, dy = xb - xa, yb - ya
+    la, wa = 0.5 * size_a[..., :, None, 0], 0.5 * size_a[..., :, None, 1]
+    lb, wb = 0.5 * size_b[..., None, :, 0], 0.5 * size_b[..., None, :, 1]
+    cd, sd = torch.cos(yaw_b - yaw_a).abs(), torch.sin(yaw_b - yaw_a).abs()
+    ca, sa, cb, sb = torch.cos(yaw_a), torch.sin(yaw_a), torch.cos(yaw_b), torch.sin(yaw_b)
+    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
+    sep = sep | ((-dx * sa + dy * ca).abs() > wa + lb * sd + wb * cd)
+    sep = sep | ((dx * cb + dy * sb).abs() > lb + la * cd + wa * sd)
+    sep = sep | ((-dx * sb + dy * cb).abs() > wb + la * sd + wa * cd)
+    return ~sep
+
+
 def _reference_core_step(state, action):
     """``core.step`` as its docstring says, with per-field gathers and the plain unicycle."""
     n_t = state.log.valid.shape[-1]
@@ -160,8 +184,13 @@ def test_observe_and_core_step_match_references(scenes, name):
             ref = _reference_observe(
                 s, env._history, env._ctx, env._ext_slots, env.obs_config, env._agent_static
             )
+            dist = agent_distances(s.pose[0, env._ext_slots], s.pose)
+            shared = observe(
+                s, env._history, env._ctx, env._ext_slots, env.obs_config, env._agent_static, dist
+            )
             for key in ref:
                 assert torch.equal(got[key], ref[key]), key
+                assert torch.equal(shared[key], ref[key]), key
             action = torch.from_numpy(rng.uniform(-8, 8, (1, s.num_agents, 2)).astype(np.float32))
             nxt = core.step(s, action)
             step, pose, speed, valid = _reference_core_step(s, action)
@@ -186,7 +215,23 @@ def test_collided_with_others_matches_collided(scenes, name):
         valid = torch.rand(1, n, generator=gen) > 0.2
         query = torch.randperm(n, generator=gen)[: min(n, 9)][None]
         ref = collided(pose, size, valid)[0, query[0]][None]
+        overlap = _reference_overlap(pose[0, query], size[0, query], pose, size)
+        assert torch.equal(pairwise_overlap(pose[0, query], size[0, query], pose, size), overlap)
+        near = torch.linalg.vector_norm(
+            pose[:, None, :, :2] - pose[0, query][:, :, None, :2], dim=-1
+        )
+        radius = 0.5 * torch.linalg.vector_norm(size, dim=-1)
+        near = (near <= radius[:, None] + radius[0, query][..., None]) & valid[:, None]
+        near &= torch.arange(n) != query[..., None]
+        assert torch.equal((overlap & near).any(-1) & valid[0, query[0]][None], ref)
         got = collided_with_others(query, pose[0, query], size[0, query], pose, size, valid)
+        assert torch.equal(got & valid[0, query[0]][None], ref)
+        # With the per-episode prefilter limits and the query's cos / sin precomputed.
+        limit = near_limits(query, size[0, query], size)
+        trig = cos_sin(pose[0, query][..., 2:])
+        got = collided_with_others(
+            query, pose[0, query], size[0, query], pose, size, valid, limit, trig
+        )
         assert torch.equal(got & valid[0, query[0]][None], ref)
         hits += int(ref.sum())
     assert hits > 0
@@ -283,3 +328,85 @@ def test_reward_matches_the_full_sum():
             assert torch.equal(out.reward, ref)
             assert torch.equal(out.reward.signbit(), ref.signbit())
             assert torch.equal(out.terminated, term) and torch.equal(out.goal_now, goal_now)
+
+
+def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
+    """A batch of two (indexed log reads) equals each row alone (the batch-of-one path), and a
+    route without the per-episode fields gives the same metrics as one from ``build_route``."""
+    from dataclasses import fields, replace
+
+    scs = [scenes["real"], scenes["generated"]]
+    state = build_sim_state(scs)
+    gen = torch.Generator().manual_seed(4)
+    query = torch.stack([torch.randperm(int(m.sum()), generator=gen)[:3] for m in state.valid])
+    route = build_route(state, query)
+    rows = [build_sim_state([sc]) for sc in scs]
+    for step in range(12):
+        pose = state.pose + torch.randn(state.pose.shape, generator=gen) * 0.3
+        st = state.replace(pose=pose, step=state.step + step)
+        got, _ = step_metrics(st, query, route)
+        # core.step's indexed log reads (B > 1) against the reference.
+        controlled = torch.rand(st.valid.shape, generator=gen) > 0.5
+        cs = st.replace(controlled=controlled, valid=st.valid & (torch.rand(2, 1) > 0.3))
+        action = torch.randn(*pose.shape[:2], 2, generator=gen) * 4
+        nxt = core.step(cs, action)
+        ref_step, ref_pose, ref_speed, ref_valid = _reference_core_step(cs, action)
+        assert torch.equal(nxt.step, ref_step) and torch.equal(nxt.valid, ref_valid)
+        assert torch.equal(nxt.pose, ref_pose) and torch.equal(nxt.speed, ref_speed)
+        for b, row in enumerate(rows):
+            n = row.num_agents
+            sub = row.replace(pose=pose[b : b + 1, :n], step=st.step[b : b + 1])
+            one, _ = step_metrics(sub, query[b : b + 1], build_route(row, query[b : b + 1]))
+            bare = build_route(row, query[b : b + 1])
+            bare = replace(bare, **{f.name: None for f in fields(bare)[9:]})
+            two, _ = step_metrics(sub, query[b : b + 1], bare)
+            for f in fields(got):
+                x = getattr(got, f.name)[b : b + 1]
+                if f.name == "agent_distance":
+                    x = x[..., :n]  # the batch pads the agent slots
+                assert torch.equal(x, getattr(one, f.name)), f.name
+                assert torch.equal(x, getattr(two, f.name)), f.name
+
+
+def test_observe_batch_of_two_matches_reference(scenes):
+    """The indexed reads of a batch (lights at each row's step) against the reference."""
+    from tbsim_env.observation import (
+        ObsConfig,
+        agent_static_features,
+        build_map_context,
+        init_history,
+    )
+
+    scs = [scenes["real"], scenes["generated"]]
+    state = build_sim_state(scs)
+    cfg = ObsConfig()
+    ctx = build_map_context(scs, state.origin, cfg)
+    static = agent_static_features(state)
+    observers = torch.tensor([[0, 1, 2], [2, 1, 0]])
+    for shift in ([0, 0], [5, 30], [80, 2]):
+        st = state.replace(step=torch.tensor(shift))
+        hist = init_history(st, cfg.history)
+        got = observe(st, hist, ctx, observers, cfg, static)
+        ref = _reference_observe(st, hist, ctx, observers, cfg, static)
+        for key in ref:
+            assert torch.equal(got[key], ref[key]), key
+
+
+def test_reset_reuses_the_start_of_a_scenario_without_sharing_outputs(scenes):
+    """Resets of a scenario return what a fresh env returns, whatever the caller did with the
+    previous episode's arrays and dicts."""
+    env = TrafficEnv([scenes["real"]], controlled="tracks_to_predict", npc_policy="log_replay")
+    fresh = TrafficEnv([scenes["real"]], controlled="tracks_to_predict", npc_policy="log_replay")
+    obs, infos = env.reset(seed=0)
+    for o in obs.values():
+        for v in o.values():
+            v += 1.0
+    for info in infos.values():
+        info["progress"] = -1.0
+    env.step({a: np.ones(2, np.float32) for a in env.agents})
+    obs, infos = env.reset()
+    ref_obs, ref_infos = fresh.reset(seed=0)
+    assert infos == ref_infos and list(obs) == list(ref_obs)
+    for a in obs:
+        for key in obs[a]:
+            np.testing.assert_array_equal(obs[a][key], ref_obs[a][key], key)

@@ -6,19 +6,29 @@ rewards and the ``infos`` of ``TrafficEnv``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import torch
 
-from tbsim_env.sim.collision import collided_with_others
+from tbsim_env.sim.collision import (
+    agent_distances,
+    collided_with_others,
+    corner_offsets,
+    corners_from_offsets,
+    near_limits,
+)
+from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import EdgeCandidates, box_offroad_distance
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange
+from tbsim_env.torch_utils import cached_arange, const
 
 
 @dataclass(frozen=True)
 class Route:
-    """The logged route of each query agent.
+    """The logged route of each query agent, and what ``step_metrics`` needs of it that does not
+    change in an episode (the ``build_route`` fields after ``segment_arc``; None in a route
+    built by hand, then ``step_metrics`` derives them on every call).
 
     Attributes:
         points: [B, Q, T, 2] logged positions (invalid steps repeat the previous valid one).
@@ -29,6 +39,15 @@ class Route:
             (point t + 1 - point t) m.
         segment_length2: [B, Q, T - 1] derived: squared segment lengths clamped at 1e-9 m^2.
         segment_length: [B, Q, T - 1] derived: segment lengths m.
+        segment_start: [B, Q, T - 1, 2] derived: ``points[..., :-1, :]``.
+        segment_arc: [B, Q, T - 1] derived: ``arc[..., :-1]``.
+        size: [B, Q, 2] (length, width) m of the agent.
+        radius: [B, Q] m, half diagonal (bounding-circle radius) of its box.
+        near_limit: [B, Q, N] m, ``collision.near_limits`` of the agent against every slot.
+        corner_along: [B, Q, 4] m, its box corners along the heading (``corner_offsets``).
+        corner_across: [B, Q, 4] m, across the heading.
+        log_xy: [B, Q, T, 2] logged positions (not filled), m.
+        log_valid: [B, Q, T] bool, the log has the agent.
     """
 
     points: torch.Tensor
@@ -38,6 +57,15 @@ class Route:
     segments: torch.Tensor | None = field(default=None)
     segment_length2: torch.Tensor | None = field(default=None)
     segment_length: torch.Tensor | None = field(default=None)
+    segment_start: torch.Tensor | None = field(default=None)
+    segment_arc: torch.Tensor | None = field(default=None)
+    size: torch.Tensor | None = field(default=None)
+    radius: torch.Tensor | None = field(default=None)
+    near_limit: torch.Tensor | None = field(default=None)
+    corner_along: torch.Tensor | None = field(default=None)
+    corner_across: torch.Tensor | None = field(default=None)
+    log_xy: torch.Tensor | None = field(default=None)
+    log_valid: torch.Tensor | None = field(default=None)
 
     def __post_init__(self) -> None:
         if self.segments is None:
@@ -46,6 +74,9 @@ class Route:
             object.__setattr__(self, "segments", ab)
             object.__setattr__(self, "segment_length2", len2.clamp_min(1e-9))
             object.__setattr__(self, "segment_length", len2.clamp_min(0).sqrt())
+        if self.segment_start is None:
+            object.__setattr__(self, "segment_start", self.points[..., :-1, :])
+            object.__setattr__(self, "segment_arc", self.arc[..., :-1])
 
 
 @dataclass(frozen=True)
@@ -60,6 +91,8 @@ class StepMetrics:
         goal_distance: m, to the last valid logged position.
         log_divergence: m, distance to the logged position at this step (0 if no log).
         log_valid: bool, the log has the agent at this step.
+        agent_distance: [B, Q, N] m, centre distance to every agent slot (``observe`` of the
+            same poses can reuse it); None when not computed.
     """
 
     collision: torch.Tensor
@@ -69,6 +102,7 @@ class StepMetrics:
     goal_distance: torch.Tensor
     log_divergence: torch.Tensor
     log_valid: torch.Tensor
+    agent_distance: torch.Tensor | None = None
 
 
 def build_route(state: SimState, query: torch.Tensor) -> Route:
@@ -90,18 +124,41 @@ def build_route(state: SimState, query: torch.Tensor) -> Route:
     filled = pts.gather(2, idx[..., None].expand(-1, -1, -1, 2))
     seg = torch.linalg.vector_norm(filled[..., 1:, :] - filled[..., :-1, :], dim=-1)
     arc = torch.cat([torch.zeros_like(seg[..., :1]), seg.cumsum(-1)], dim=-1)
-    return Route(points=filled, arc=arc, goal=filled[..., -1, :], valid=valid.any(-1))
+    return Route(
+        points=filled,
+        arc=arc,
+        goal=filled[..., -1, :],
+        valid=valid.any(-1),
+        **_query_fields(state, query),
+    )
+
+
+def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The per-episode fields of ``Route`` after ``segment_arc`` for the query agents."""
+    b_idx = torch.arange(state.batch_size, device=state.device)[:, None]
+    size = state.agents.size[b_idx, query, :2]
+    length, width = size.unbind(-1)
+    along, across = corner_offsets(length, width)
+    return {
+        "size": size,
+        "radius": const(0.5, size) * torch.linalg.vector_norm(size, dim=-1),
+        "near_limit": near_limits(query, size, state.agents.size[..., :2]),
+        "corner_along": along,
+        "corner_across": across,
+        "log_xy": state.log.pose[b_idx, query, :, :2],
+        "log_valid": state.log.valid[b_idx, query],
+    }
 
 
 def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
-    a, ab = route.points[..., :-1, :], route.segments
-    q = xy[..., None, :]
+    a, ab = route.segment_start, route.segments
+    q = xy.unsqueeze(-2)
     t = (((q - a) * ab).sum(-1) / route.segment_length2).clamp(0.0, 1.0)
-    d = torch.linalg.vector_norm(q - (a + t[..., None] * ab), dim=-1)
+    d = torch.linalg.vector_norm(q - (a + t.unsqueeze(-1) * ab), dim=-1)
     best = d.argmin(-1, keepdim=True)
     along = t.gather(-1, best) * route.segment_length.gather(-1, best)
-    return (route.arc[..., :-1].gather(-1, best) + along)[..., 0]
+    return (route.segment_arc.gather(-1, best) + along).squeeze(-1)
 
 
 def step_metrics(
@@ -122,27 +179,53 @@ def step_metrics(
     Returns:
         (metrics, candidates for the next call).
     """
+    if route.near_limit is None:
+        route = dataclasses.replace(route, **_query_fields(state, query))
     b_idx = cached_arange(state.batch_size, state.device)[:, None]
     pose = state.pose[b_idx, query]
     present = state.valid[b_idx, query]
-    size = state.agents.size[b_idx, query, :2]
+    size = route.size
+    x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [B, Q, 1]
+    trig = cos_sin(yaw)
     all_size = state.agents.size[..., :2]
-    coll = collided_with_others(query, pose, size, state.pose, all_size, state.valid)
+    gap = agent_distances(pose, state.pose)
+    coll = collided_with_others(
+        query, pose, size, state.pose, all_size, state.valid, route.near_limit, trig, gap
+    )
     if candidates is None:
         candidates = EdgeCandidates.build(pose, state.road_edges)
-    off_d, candidates = box_offroad_distance(pose, size, state.road_edges, candidates)
-    n_t = state.log.valid.shape[-1]
-    t = state.step.clamp(max=n_t - 1)[:, None].expand_as(query)
-    log_valid = state.log.valid[b_idx, query, t]
-    log_xy = state.log.pose[b_idx, query, t, :2]
-    gap = torch.linalg.vector_norm(pose[..., :2] - log_xy, dim=-1) * log_valid
+    corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
+    off_d, candidates = box_offroad_distance(
+        pose, size, state.road_edges, candidates, corners, route.radius
+    )
+    log_valid, log_xy = _log_at(route, state.step)
+    xy = pose[..., :2]
+    log_gap = torch.linalg.vector_norm(xy - log_xy, dim=-1) * log_valid
     metrics = StepMetrics(
         collision=coll & present,
-        offroad=(off_d > 0) & present,
+        offroad=(off_d > const(0.0, off_d)) & present,
         offroad_distance=off_d,
-        progress=progress_along(route, pose[..., :2]),
-        goal_distance=torch.linalg.vector_norm(pose[..., :2] - route.goal, dim=-1),
-        log_divergence=gap,
+        progress=progress_along(route, xy),
+        goal_distance=torch.linalg.vector_norm(xy - route.goal, dim=-1),
+        log_divergence=log_gap,
         log_valid=log_valid,
+        agent_distance=gap,
     )
     return metrics, candidates
+
+
+def _log_at(route: Route, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(log_valid [B, Q], log_xy [B, Q, 2]) of the query agents at ``step`` [B] (clamped to T - 1).
+
+    A batch of one on the CPU reads the step as a number (views instead of indexing).
+    """
+    n_t = route.log_valid.shape[-1]
+    if step.shape[0] == 1 and step.device.type == "cpu":
+        t = min(int(step.item()), n_t - 1)
+        return route.log_valid[:, :, t], route.log_xy[:, :, t]
+    at = (
+        cached_arange(step.shape[0], step.device)[:, None],
+        cached_arange(route.log_valid.shape[1], step.device),
+        step.clamp(max=n_t - 1)[:, None],
+    )
+    return route.log_valid[at], route.log_xy[at]

@@ -225,6 +225,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.agents: list[str] = []
         self._cache: dict[int, tuple[SimState, MapContext]] = {}
         self._route_cache: dict[int, tuple[Route, EdgeCandidates | None]] = {}
+        self._start_cache: dict[int, tuple] = {}
         self._episode = -1
         self.np_random, _ = gym.utils.seeding.np_random(None)
         self._generator = torch.Generator(device="cpu")
@@ -301,6 +302,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         state, self._ctx = self._initial(k)
         ext = self._controlled[k]
         self._ext_slots = torch.tensor([ext], dtype=torch.int64, device=self.device)
+        self._ext_index = self._ext_slots[0]
         self._ext_names = [agent_name(sc.tracks.id[i]) for i in ext]
         self._slot_of = {n: j for j, n in enumerate(self._ext_names)}
         external = torch.zeros_like(state.controlled)
@@ -316,8 +318,6 @@ class TrafficEnv(ParallelEnv, EzPickle):
             if self._has_npc
             else None
         )
-        self._history: History = init_history(self.state_, self.obs_config.history)
-        self._agent_static = agent_static_features(self.state_)
         if k not in self._route_cache:
             self._route_cache[k] = (build_route(self.state_, self._ext_slots), None)
         self._route, self._edge_cache = self._route_cache[k]
@@ -330,16 +330,28 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self._goal_reached = torch.zeros_like(self._ext_slots, dtype=torch.bool)
         # Agents whose logged route is shorter than the goal radius have no goal to reach.
         self._has_goal = self._route.arc[..., -1] > self.config.reward.goal_radius
-        metrics, self._edge_cache = step_metrics(
-            self.state_, self._ext_slots, self._route, self._edge_cache
-        )
-        # Every episode of scenario k starts from the same state: keep its road-edge cache.
-        self._route_cache[k] = (self._route, self._route_cache[k][1] or self._edge_cache)
-        self._progress = metrics.progress.clone()
-        obs = self._observations(self.agents)
+        # Every episode of scenario k starts from the same state, so what follows from it
+        # alone is computed once (the returned arrays and dicts are copies).
+        if k not in self._start_cache:
+            self._start_cache[k] = self._start(k)
+        history, static, self._edge_cache, progress, obs, infos = self._start_cache[k]
+        self._history: History = history
+        self._agent_static = static
+        self._progress = progress.clone()
+        obs = {a: {key: v.copy() for key, v in o.items()} for a, o in obs.items()}
+        return obs, {a: dict(info) for a, info in infos.items()}
+
+    def _start(self, k: int) -> tuple:
+        """History, static features, road-edge cache, progress, observations and infos of the
+        first state of scenario ``k`` (set up by ``_reset``)."""
+        self._history = init_history(self.state_, self.obs_config.history)
+        self._agent_static = agent_static_features(self.state_)
+        metrics, edges = step_metrics(self.state_, self._ext_slots, self._route, self._edge_cache)
+        self._route_cache[k] = (self._route, self._route_cache[k][1] or edges)
+        obs = self._observations(self.agents, metrics.agent_distance)
         columns, _, _ = self._info_columns(metrics)
-        infos = {a: {k: v[self._slot_of[a]] for k, v in columns.items()} for a in self.agents}
-        return obs, infos
+        infos = {a: {c: v[self._slot_of[a]] for c, v in columns.items()} for a in self.agents}
+        return self._history, self._agent_static, edges, metrics.progress, obs, infos
 
     # ------------------------------------------------------------------ step
     def _action_tensor(self, actions: dict[str, Any]) -> torch.Tensor:
@@ -413,12 +425,15 @@ class TrafficEnv(ParallelEnv, EzPickle):
             state = state.replace(valid=state.valid & ~remove)
         self.state_ = state
         self._history = push_history(self._history, state)
-        obs = self._observations(live_before)
+        # Removing terminated agents leaves every pose as step_metrics saw it.
+        obs = self._observations(live_before, metrics.agent_distance)
         self.agents = [a for a in live_before if not (terms[a] or truncs[a])]
         return obs, rewards, terms, truncs, infos
 
     # ------------------------------------------------------------------ helpers
-    def _observations(self, names: list[str]) -> dict[str, dict[str, np.ndarray]]:
+    def _observations(
+        self, names: list[str], agent_distance: torch.Tensor | None = None
+    ) -> dict[str, dict[str, np.ndarray]]:
         if not names:
             return {}
         o = observe(
@@ -428,8 +443,12 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self._ext_slots,
             self.obs_config,
             agent_static=self._agent_static,
+            agent_distance=agent_distance,
         )
-        o = {k: (v if v.device.type == "cpu" else v.cpu()).numpy()[0] for k, v in o.items()}
+        if self.device.type == "cpu":
+            o = {k: v.numpy()[0] for k, v in o.items()}
+        else:
+            o = {k: v.cpu().numpy()[0] for k, v in o.items()}
         return {n: {k: v[self._slot_of[n]] for k, v in o.items()} for n in names}
 
     def _info_columns(
@@ -442,24 +461,24 @@ class TrafficEnv(ParallelEnv, EzPickle):
             (empty without one). All values come from two ``tolist`` calls.
         """
         q = self._ext_slots.shape[1]
-        b_idx = torch.zeros_like(self._ext_slots)
         floats = [
             m.offroad_distance,
             m.progress,
             m.goal_distance,
             m.log_divergence,
-            self.state_.speed[b_idx, self._ext_slots],
+            self.state_.speed.index_select(1, self._ext_index),
         ]
         flags = [m.collision, m.offroad, self._goal_reached]
         if outcome is not None:
             floats.append(outcome.reward)
             flags.append(outcome.terminated)
-        dist, progress, goal_d, log_d, speed, *reward = torch.stack(floats)[:, 0].tolist()
-        coll, off, reached, *term = torch.stack(flags)[:, 0].tolist()
+        # [field][batch of one][agent] lists.
+        dist, progress, goal_d, log_d, speed, *reward = (x[0] for x in torch.stack(floats).tolist())
+        coll, off, reached, *term = (x[0] for x in torch.stack(flags).tolist())
         columns = {
             "scenario_id": [self.scenario.scenario_id] * q,
             "track_id": list(self._track_ids),
-            "step": [int(self.state_.step[0])] * q,
+            "step": [int(self.state_.step.item())] * q,
             "collision": coll,
             "offroad": off,
             "offroad_distance": dist,

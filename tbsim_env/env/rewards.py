@@ -8,6 +8,7 @@ import torch
 
 from tbsim_env.config import RewardConfig, TerminationConfig
 from tbsim_env.env.agent_metrics import StepMetrics
+from tbsim_env.torch_utils import const
 
 
 @dataclass(frozen=True)
@@ -49,8 +50,12 @@ def reward_and_termination(
         termination_config: termination events.
     """
     rc, tc = reward_config, termination_config
+    # Weights as cached float32 constants: the same bits as Python floats (which become
+    # float32 scalars here), without wrapping a new tensor per operation. Zeros stay Python
+    # floats (the constant cache does not tell 0.0 from -0.0).
+    w = lambda value: value if value == 0 else const(float(value), progress_best)  # noqa: E731
     gained = (metrics.progress - progress_best).clamp_min(0.0)
-    goal_now = (metrics.goal_distance <= rc.goal_radius) & has_goal & ~goal_reached
+    goal_now = (metrics.goal_distance <= w(rc.goal_radius)) & has_goal & ~goal_reached
     coll, off = metrics.collision, metrics.offroad
     # Terms with weight 0 are skipped: they add (+/-) 0 (the metrics are finite), and the
     # final ``+ rc.alive`` turns a -0 sum into +0 exactly as the full sum would.
@@ -64,8 +69,8 @@ def reward_and_termination(
     reward = None
     for weight, value in terms:
         if weight != 0.0:
-            reward = weight * value if reward is None else reward + weight * value
-    reward = (torch.zeros_like(gained) if reward is None else reward) + rc.alive
+            reward = w(weight) * value if reward is None else reward + w(weight) * value
+    reward = (torch.zeros_like(gained) if reward is None else reward) + w(rc.alive)
     events = [x for on, x in ((tc.collision, coll), (tc.offroad, off), (tc.goal, goal_now)) if on]
     term = torch.zeros_like(coll) if not events else events[0]
     for x in events[1:]:

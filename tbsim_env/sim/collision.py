@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 from tbsim_env.sim.geometry import cos_sin
@@ -16,10 +18,29 @@ def box_corner_xy(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``box_corners`` as separate coordinates: (x [..., 4], y [..., 4])."""
     x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [..., 1]
-    c, s = cos_sin(yaw)
+    return corners_from_offsets(x0, y0, cos_sin(yaw), corner_offsets(length, width))
+
+
+def corner_offsets(length: torch.Tensor, width: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Box corners in the box frame, counter-clockwise from front-left: (along [..., 4],
+    across [..., 4]) m, from ``length`` and ``width`` [...]."""
     # (+-0.5 * length) is exactly +-(0.5 * length).
-    lx = length.unsqueeze(-1) * const(_HALF_SIGNS_X, length)
-    ly = width.unsqueeze(-1) * const(_HALF_SIGNS_Y, width)
+    return (
+        length.unsqueeze(-1) * const(_HALF_SIGNS_X, length),
+        width.unsqueeze(-1) * const(_HALF_SIGNS_Y, width),
+    )
+
+
+def corners_from_offsets(
+    x0: torch.Tensor,
+    y0: torch.Tensor,
+    cos_sin_yaw: tuple[torch.Tensor, torch.Tensor],
+    offsets: tuple[torch.Tensor, torch.Tensor],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Corners (x [..., 4], y [..., 4]) of boxes at centres ``x0``, ``y0`` [..., 1] with heading
+    (cos, sin) [..., 1], from their ``corner_offsets``."""
+    c, s = cos_sin_yaw
+    lx, ly = offsets
     return x0 + c * lx - s * ly, y0 + s * lx + c * ly
 
 
@@ -37,6 +58,50 @@ def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -
     return torch.stack(box_corner_xy(pose, length, width), dim=-1)
 
 
+class _BoxPairs(NamedTuple):
+    """What the separating-axis tests of boxes a against boxes b share, [..., Na, Nb]."""
+
+    dx: torch.Tensor  # centre offset b - a, x
+    dy: torch.Tensor
+    ndx: torch.Tensor  # -dx
+    la: torch.Tensor  # half length / width of a [..., Na, 1] and of b [..., 1, Nb]
+    wa: torch.Tensor
+    lb: torch.Tensor
+    wb: torch.Tensor
+    cd: torch.Tensor  # |cos|, |sin| of yaw_b - yaw_a
+    sd: torch.Tensor
+    yaw_b: torch.Tensor  # [..., 1, Nb]
+
+
+def _box_pairs(
+    pose_a: torch.Tensor, size_a: torch.Tensor, pose_b: torch.Tensor, size_b: torch.Tensor
+) -> tuple[_BoxPairs, torch.Tensor]:
+    """(``_BoxPairs`` of the boxes of ``pairwise_overlap``, yaw of a [..., Na, 1])."""
+    xa, ya, yaw_a = pose_a.unsqueeze(-2).unbind(-1)  # [..., Na, 1]
+    xb, yb, yaw_b = pose_b.unsqueeze(-3).unbind(-1)  # [..., 1, Nb]
+    dx, dy = xb - xa, yb - ya  # [..., Na, Nb]
+    half = const(0.5, size_a)
+    la, wa = (half * size_a).unsqueeze(-2).unbind(-1)
+    lb, wb = (half * size_b).unsqueeze(-3).unbind(-1)
+    cd, sd = cos_sin(yaw_b - yaw_a)
+    return _BoxPairs(dx, dy, -dx, la, wa, lb, wb, cd.abs(), sd.abs(), yaw_b), yaw_a
+
+
+def _separated_on_axes_of_a(p: _BoxPairs, ca: torch.Tensor, sa: torch.Tensor) -> torch.Tensor:
+    """[..., Na, Nb] bool: a's length or width axis (ca, sa), (-sa, ca) separates the pair."""
+    sep = (p.dx * ca + p.dy * sa).abs() > p.la + p.lb * p.cd + p.wb * p.sd
+    sep |= (p.ndx * sa + p.dy * ca).abs() > p.wa + p.lb * p.sd + p.wb * p.cd
+    return sep
+
+
+def _separated_on_axes_of_b(p: _BoxPairs) -> torch.Tensor:
+    """[..., Na, Nb] bool: b's length or width axis separates the pair."""
+    cb, sb = cos_sin(p.yaw_b)
+    sep = (p.dx * cb + p.dy * sb).abs() > p.lb + p.la * p.cd + p.wa * p.sd
+    sep |= (p.ndx * sb + p.dy * cb).abs() > p.wb + p.la * p.sd + p.wa * p.cd
+    return sep
+
+
 def pairwise_overlap(
     pose_a: torch.Tensor,
     size_a: torch.Tensor,
@@ -45,6 +110,8 @@ def pairwise_overlap(
 ) -> torch.Tensor:
     """Whether each box of set a overlaps each box of set b (touching counts as overlap).
 
+    Separating axis theorem: no axis of a or b separates the pair.
+
     Args:
         pose_a: [..., Na, 3] (x, y, yaw); size_a: [..., Na, 2] (length, width).
         pose_b: [..., Nb, 3]; size_b: [..., Nb, 2].
@@ -52,23 +119,32 @@ def pairwise_overlap(
     Returns:
         [..., Na, Nb] bool.
     """
-    xa, ya, yaw_a = pose_a.unsqueeze(-2).unbind(-1)  # [..., Na, 1]
-    xb, yb, yaw_b = pose_b.unsqueeze(-3).unbind(-1)  # [..., 1, Nb]
-    dx, dy = xb - xa, yb - ya  # [..., Na, Nb]
-    half = const(0.5, size_a)
-    la, wa = (half * size_a).unsqueeze(-2).unbind(-1)
-    lb, wb = (half * size_b).unsqueeze(-3).unbind(-1)
-    cd, sd = cos_sin(yaw_b - yaw_a)
-    cd, sd = cd.abs(), sd.abs()
-    ca, sa = cos_sin(yaw_a)
-    cb, sb = cos_sin(yaw_b)
-    ndx = -dx
-    # Axes of a: (ca, sa) and (-sa, ca); axes of b likewise.
-    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
-    sep |= (ndx * sa + dy * ca).abs() > wa + lb * sd + wb * cd
-    sep |= (dx * cb + dy * sb).abs() > lb + la * cd + wa * sd
-    sep |= (ndx * sb + dy * cb).abs() > wb + la * sd + wa * cd
-    return ~sep
+    pairs, yaw_a = _box_pairs(pose_a, size_a, pose_b, size_b)
+    sep = _separated_on_axes_of_a(pairs, *cos_sin(yaw_a))
+    return ~(sep | _separated_on_axes_of_b(pairs))
+
+
+def near_limits(query: torch.Tensor, size_q: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """Bounding-circle prefilter distances of K query agents to every agent slot.
+
+    Args:
+        query: [B, K] int64 agent slots; size_q: [B, K, 2] their (length, width).
+        size: [B, N, 2] (length, width) of every slot.
+
+    Returns:
+        [B, K, N] m: the sum of the two bounding-circle radii (half diagonals), -inf for the
+        query agent itself (so that no distance passes the prefilter).
+    """
+    radius = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
+    radius_q = const(0.5, size_q) * torch.linalg.vector_norm(size_q, dim=-1)  # [B, K]
+    limit = radius.unsqueeze(1) + radius_q.unsqueeze(-1)
+    itself = cached_arange(size.shape[1], size.device) == query.unsqueeze(-1)
+    return limit.masked_fill(itself, float("-inf"))
+
+
+def agent_distances(pose_q: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """[B, K, N] m centre distances of K query poses [B, K, 3] to every pose [B, N, 3]."""
+    return torch.linalg.vector_norm(pose[:, None, :, :2] - pose_q[:, :, None, :2], dim=-1)
 
 
 def collided_with_others(
@@ -78,6 +154,9 @@ def collided_with_others(
     pose: torch.Tensor,
     size: torch.Tensor,
     valid: torch.Tensor,
+    near_limit: torch.Tensor | None = None,
+    cos_sin_q: tuple[torch.Tensor, torch.Tensor] | None = None,
+    gap: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Collision flag of K query agents against every other valid agent (``collided``'s rule).
 
@@ -89,19 +168,26 @@ def collided_with_others(
         query: [B, K] int64 agent slots; pose_q: [B, K, 3] and size_q: [B, K, 2] their
             poses and (length, width).
         pose: [B, N, 3]; size: [B, N, 2] (length, width); valid: [B, N] bool.
+        near_limit: optional ``near_limits(query, size_q, size)`` (fixed while the sizes are).
+        cos_sin_q: optional ``cos_sin`` of the query yaws, [B, K, 1] each.
+        gap: optional ``agent_distances(pose_q, pose)`` [B, K, N].
 
     Returns:
         [B, K] bool.
     """
-    radius = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
-    radius_q = const(0.5, size_q) * torch.linalg.vector_norm(size_q, dim=-1)  # [B, K]
-    gap = torch.linalg.vector_norm(pose[:, None, :, :2] - pose_q[:, :, None, :2], dim=-1)
-    near = gap <= radius.unsqueeze(1) + radius_q.unsqueeze(-1)  # [B, K, N]
-    others = cached_arange(pose.shape[1], pose.device) != query.unsqueeze(-1)
-    near &= valid.unsqueeze(1) & others
+    if near_limit is None:
+        near_limit = near_limits(query, size_q, size)
+    if gap is None:
+        gap = agent_distances(pose_q, pose)
+    near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
     if not bool(near.any()):
         return torch.zeros_like(query, dtype=torch.bool)
-    return (pairwise_overlap(pose_q, size_q, pose, size) & near).any(-1)
+    # ``pairwise_overlap & near``, b's axes only tested when a's leave a near pair unseparated.
+    pairs, yaw_q = _box_pairs(pose_q, size_q, pose, size)
+    near = near & ~_separated_on_axes_of_a(pairs, *(cos_sin_q or cos_sin(yaw_q)))
+    if not bool(near.any()):
+        return torch.zeros_like(query, dtype=torch.bool)
+    return (near & ~_separated_on_axes_of_b(pairs)).any(-1)
 
 
 def collided(

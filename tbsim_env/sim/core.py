@@ -54,27 +54,39 @@ def step(state: SimState, action: torch.Tensor) -> SimState:
     """
     n_t = state.log.valid.shape[-1]
     nxt = (state.step + 1).clamp(max=n_t - 1)
-    # The log at nxt: [B, N] (one index per field, b-th row at nxt[b]).
-    at = (cached_arange(state.batch_size, state.device)[:, None], _agent_index(state), nxt[:, None])
-    log_valid = state.log.valid[at] & state.agents.mask
-    log_pose = state.log.pose[at]
-    log_speed = state.log.speed[at]
-    fresh = state.log.first_valid > state.step[:, None]  # not seen_before(state)
+    log_valid, log_pose, log_speed = _log_at(state, nxt)
+    log_valid = log_valid & state.agents.mask
+    fresh = state.log.first_valid > state.step.unsqueeze(1)  # not seen_before(state)
 
     moving = state.controlled & state.valid
+    moving_ = moving.unsqueeze(-1)
     limit = state.agents.action_limit
-    act = torch.clamp(action, -limit, limit) * moving[..., None]  # clip_action
+    act = torch.clamp(action, -limit, limit) * moving_  # clip_action
     sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
 
-    spawn = state.controlled & ~state.valid & fresh & log_valid
-    replay_valid = ~state.controlled & log_valid & (state.valid | fresh)
-    from_log = spawn | replay_valid
-    pose = torch.where(
-        moving[..., None], sim_pose, torch.where(from_log[..., None], log_pose, state.pose)
-    )
+    # Spawn (controlled, not present, not seen before) or replay (not controlled, present or
+    # not seen before) where the log has the agent. For a moving agent ``from_log`` may be
+    # anything: ``moving`` wins below. (``valid > controlled`` is ``valid & ~controlled``.)
+    from_log = log_valid & (fresh | (state.valid > state.controlled))
+    from_log_ = from_log.unsqueeze(-1)
+    pose = torch.where(moving_, sim_pose, torch.where(from_log_, log_pose, state.pose))
     speed = torch.where(moving, sim_speed, torch.where(from_log, log_speed, state.speed))
     valid = moving | from_log
     return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
+
+
+def _log_at(state: SimState, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """The log at step ``t`` [B] of each scenario: (valid [B, N], pose [B, N, 3], speed [B, N]).
+
+    A batch of one on the CPU reads the step as a number (a view per field instead of an
+    indexing operation); otherwise one index per field, b-th row at t[b].
+    """
+    log = state.log
+    if state.batch_size == 1 and t.device.type == "cpu":
+        i = int(t.item())
+        return log.valid[:, :, i], log.pose[:, :, i], log.speed[:, :, i]
+    at = (cached_arange(state.batch_size, state.device)[:, None], _agent_index(state), t[:, None])
+    return log.valid[at], log.pose[at], log.speed[at]
 
 
 def _agent_index(state: SimState) -> torch.Tensor:

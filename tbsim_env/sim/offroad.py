@@ -260,6 +260,8 @@ def box_offroad_distance(
     size: torch.Tensor,
     edges: RoadEdges,
     candidates: EdgeCandidates | None = None,
+    corners: tuple[torch.Tensor, torch.Tensor] | None = None,
+    half_diag: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, EdgeCandidates | None]:
     """Max signed road-edge distance over the 4 box corners (positive: a corner is off-road).
 
@@ -268,18 +270,23 @@ def box_offroad_distance(
         edges: road edges.
         candidates: optional cached candidate segments of these K boxes (``EdgeCandidates``);
             refreshed where the cache cannot guarantee the exact answer.
+        corners: optional ``box_corner_xy(pose, length, width)`` (x, y [B, K, 4]), used with
+            ``candidates``.
+        half_diag: optional [B, K] ``0.5 * |size|`` m, used with ``candidates``.
 
     Returns:
         ([B, K] m, the candidates to pass next time, or None when none were given).
     """
-    length, width = size.unbind(-1)
     bsz, k = pose.shape[:2]
+    if candidates is None or corners is None:
+        length, width = size.unbind(-1)
     if candidates is None:
         flat = box_corners(pose, length, width).reshape(bsz, k * 4, 2)
         return signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1), None
-    x, y = box_corner_xy(pose, length, width)
+    x, y = box_corner_xy(pose, length, width) if corners is None else corners
     x, y = x.unsqueeze(-1), y.unsqueeze(-1)  # [B, K, 4, 1]
-    half_diag = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)
+    if half_diag is None:
+        half_diag = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)
     stale = torch.linalg.vector_norm(pose[..., :2] - candidates.center, dim=-1) + half_diag
     signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
     # Exact while every segment that could be nearest to a corner is in the candidate set.

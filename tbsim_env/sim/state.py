@@ -144,7 +144,18 @@ class SimState:
         return self.pose.device
 
     def replace(self, **changes) -> SimState:
-        return dataclasses.replace(self, **changes)
+        """A copy with ``changes`` (field name: value), like ``dataclasses.replace``.
+
+        Copies the instance dictionary instead of calling ``__init__`` (a step replaces the
+        state once or twice; ``dataclasses.replace`` costs more than several tensor ops).
+        """
+        unknown = changes.keys() - _SIM_STATE_FIELDS
+        if unknown:
+            raise TypeError(f"SimState has no field(s) {sorted(unknown)}")
+        new = object.__new__(SimState)
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
 
     def tl_state_now(self) -> tuple[torch.Tensor, torch.Tensor]:
         """([B, S] TLState, [B, S] valid) at the current step."""
@@ -154,3 +165,6 @@ class SimState:
             self.signals.state.gather(2, idx)[..., 0],
             self.signals.valid.gather(2, idx)[..., 0],
         )
+
+
+_SIM_STATE_FIELDS = frozenset(f.name for f in dataclasses.fields(SimState))
