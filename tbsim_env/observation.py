@@ -289,7 +289,8 @@ def agent_static_features(state: SimState) -> torch.Tensor:
 def _nearest(
     dist: torch.Tensor, invalid: torch.Tensor | None, k: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k].
+    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k]; ties
+    go to the lower index.
 
     Args:
         dist: [B, Q, M] distances; invalid: [B, Q, M] bool (broadcastable), targets to skip
@@ -302,7 +303,10 @@ def _nearest(
     d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
     if m < k:
         d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
-    top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
+    # A stable sort, not topk: equal distances (lane pieces branching from one point) keep
+    # index order, so the choice does not depend on padding (batched envs) or the device.
+    top, idx = torch.sort(d, dim=-1, stable=True)
+    top, idx = top[..., :k], idx[..., :k]
     if m < k:
         idx = idx.clamp(max=m - 1)
     return idx, top

@@ -75,7 +75,12 @@ def _nearest(dist, valid, k, radius):
     d = dist.masked_fill(~valid, float("inf"))
     if m < k:
         d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
-    top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
+    # k nearest, ties to the lower index: lexicographic order of (distance, index).
+    dn = d.numpy()
+    index = np.broadcast_to(np.arange(dn.shape[-1]), dn.shape)
+    order = np.lexsort((index, dn), axis=-1)[..., :k]
+    idx = torch.from_numpy(order.copy())
+    top = torch.gather(d, -1, idx)
     return idx.clamp(max=m - 1), top <= radius
 
 
@@ -410,3 +415,18 @@ def test_reset_reuses_the_start_of_a_scenario_without_sharing_outputs(scenes):
     for a in obs:
         for key in obs[a]:
             np.testing.assert_array_equal(obs[a][key], ref_obs[a][key], key)
+
+
+def test_nearest_breaks_ties_by_index_whatever_the_padding() -> None:
+    """Lane pieces branching from one point are equally far; the pick must not depend on how
+    far the distance row is padded (batched envs pad to the largest scene) or on the device."""
+    from tbsim_env.observation import _nearest as nearest
+
+    gen = torch.Generator().manual_seed(0)
+    d = torch.randint(0, 4, (2, 3, 40), generator=gen).float()  # many exact ties
+    idx, top = nearest(d, None, 16)
+    lex = np.lexsort((np.broadcast_to(np.arange(40), d.shape), d.numpy()), axis=-1)[..., :16]
+    assert torch.equal(idx, torch.from_numpy(lex.copy()))
+    padded = torch.nn.functional.pad(d, (0, 300), value=float("inf"))
+    idx_p, top_p = nearest(padded, None, 16)
+    assert torch.equal(idx_p, idx) and torch.equal(top_p, top)
