@@ -286,11 +286,16 @@ def agent_static_features(state: SimState) -> torch.Tensor:
     return torch.cat([state.agents.size[..., :2], onehot], dim=-1)
 
 
+_SORT_MAX_ELEMENTS = 4096
+"""Up to this many distances, ``_nearest`` sorts; above, it runs topk on packed int64 keys
+(same result; 1 thread: 15 vs 19 us at 648 distances, 4.2 vs 0.6 ms at 64 x 1000)."""
+
+
 def _nearest(
     dist: torch.Tensor, invalid: torch.Tensor | None, k: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k]; ties
-    go to the lower index.
+    go to the lower index. Distances must be >= 0 or +inf (the packed key orders float bits).
 
     Args:
         dist: [B, Q, M] distances; invalid: [B, Q, M] bool (broadcastable), targets to skip
@@ -303,10 +308,17 @@ def _nearest(
     d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
     if m < k:
         d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
-    # A stable sort, not topk: equal distances (lane pieces branching from one point) keep
-    # index order, so the choice does not depend on padding (batched envs) or the device.
-    top, idx = torch.sort(d, dim=-1, stable=True)
-    top, idx = top[..., :k], idx[..., :k]
+    # Equal distances (lane pieces branching from one point) go to the lower index, so the
+    # choice does not depend on padding (batched envs) or the device; plain topk does not say.
+    if d.numel() <= _SORT_MAX_ELEMENTS:  # small rows: one stable sort is the cheapest
+        top, idx = torch.sort(d, dim=-1, stable=True)
+        top, idx = top[..., :k], idx[..., :k]
+    else:  # large batches: topk over (distance bits, index) packed in one int64 key
+        key = ((d + 0.0).view(torch.int32).to(torch.int64) << 32) | torch.arange(
+            d.shape[-1], device=d.device
+        )
+        idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
+        top = torch.gather(d, -1, idx)
     if m < k:
         idx = idx.clamp(max=m - 1)
     return idx, top

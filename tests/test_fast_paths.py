@@ -417,13 +417,18 @@ def test_reset_reuses_the_start_of_a_scenario_without_sharing_outputs(scenes):
             np.testing.assert_array_equal(obs[a][key], ref_obs[a][key], key)
 
 
-def test_nearest_breaks_ties_by_index_whatever_the_padding() -> None:
+@pytest.mark.parametrize("path", ["sort", "packed_topk"])
+def test_nearest_breaks_ties_by_index_whatever_the_padding(path, monkeypatch) -> None:
     """Lane pieces branching from one point are equally far; the pick must not depend on how
     far the distance row is padded (batched envs pad to the largest scene) or on the device."""
+    import tbsim_env.observation as obs_mod
     from tbsim_env.observation import _nearest as nearest
 
+    monkeypatch.setattr(obs_mod, "_SORT_MAX_ELEMENTS", 10**9 if path == "sort" else 0)
+
     gen = torch.Generator().manual_seed(0)
-    d = torch.randint(0, 4, (2, 3, 40), generator=gen).float()  # many exact ties
+    d = torch.randint(0, 4, (2, 3, 40), generator=gen).float() * 0.7  # many exact ties
+    d[0, 0, 5] = float("inf")  # an invalid target
     idx, top = nearest(d, None, 16)
     lex = np.lexsort((np.broadcast_to(np.arange(40), d.shape), d.numpy()), axis=-1)[..., :16]
     assert torch.equal(idx, torch.from_numpy(lex.copy()))
