@@ -1,0 +1,85 @@
+"""Where do the shipped NPC's off-road and collision events happen? (docs/MODEL_CARD.md)
+
+Samples TrafficBots rollouts on one generated scene and prints, per evaluated object, its logged
+turn, its off-road and collision rates over the rollouts, and where the first off-road step of
+a rollout lies (layout frame: the junction is at the origin) next to the logged position.
+
+    python scripts/diagnose_npc_events.py intersection 10000 [--rollouts 16] [--checkpoint P]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from policies.trafficbots.wosac import trafficbots_rollout_fn
+from tbsim_env.data.generator import frame_offset, generate_scenario
+from tbsim_env.metrics.wosac.features import compute_metric_features
+from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_light_map
+from tbsim_env.metrics.wosac.trajectories import (
+    concat_rollouts,
+    log_trajectories,
+    select_objects,
+    simulated_trajectories,
+)
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("layout")
+    p.add_argument("seed", type=int)
+    p.add_argument("--rollouts", type=int, default=16)
+    p.add_argument("--checkpoint", default=None)
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    sc = generate_scenario(args.layout, args.seed)
+    fn = trafficbots_rollout_fn(checkpoint=args.checkpoint, num_samples=args.rollouts)
+    rollouts = fn(sc, args.rollouts, 0)
+    obj = select_objects(sc)
+    log = log_trajectories(sc, obj, "cpu")
+    sim = simulated_trajectories(log, obj, rollouts, sc.current_index)
+    first = sc.current_index + 1
+    feats = compute_metric_features(
+        concat_rollouts(log, sim),
+        road_edge_segments(sc, "cpu"),
+        traffic_light_map(sc, "cpu"),
+        first,
+    )
+    valid = log.valid[0, : obj.num_eval, first:]
+    off = feats.offroad_per_step[1:] & valid  # [R, E, T], row 0 is the log
+    coll = feats.collision_per_step[1:] & valid
+    dx, dy = frame_offset(args.layout, args.seed)
+    t = sc.tracks
+    for e in range(obj.num_eval):
+        idx = int(np.flatnonzero(t.id == obj.object_id[e])[0])
+        head = t.heading[idx][t.valid[idx]]
+        turn = np.degrees(np.angle(np.exp(1j * (head[-1] - head[0]))))
+        line = (
+            f"object {int(obj.object_id[e]):4d}: logged turn {turn:6.1f} deg, "
+            f"off-road {off[:, e].any(-1).float().mean():.2f}, "
+            f"collision {coll[:, e].any(-1).float().mean():.2f}"
+        )
+        hits = [r for r in range(off.shape[0]) if off[r, e].any()]
+        if hits:
+            r = hits[0]
+            k = int(off[r, e].int().argmax())
+            s, lg = (
+                (sim.x[r, e, first + k], sim.y[r, e, first + k]),
+                (
+                    log.x[0, e, first + k],
+                    log.y[0, e, first + k],
+                ),
+            )
+            line += (
+                f"; rollout {r} leaves the road at step {first + k}: sim "
+                f"({float(s[0]) - dx:.1f}, {float(s[1]) - dy:.1f}), log "
+                f"({float(lg[0]) - dx:.1f}, {float(lg[1]) - dy:.1f}), "
+                f"{float(feats.distance_to_road_edge[1 + r, e, k]):.2f} m past the edge"
+            )
+        print(line)
+
+
+if __name__ == "__main__":
+    main()
