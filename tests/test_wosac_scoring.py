@@ -9,7 +9,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from tbsim_env.metrics.wosac.evaluate import score_submission_file
 from tbsim_env.metrics.wosac.report import scores_table, scores_to_json
@@ -64,13 +63,7 @@ SHARED_LIKELIHOODS = {
 LOG_REPLAY_META = {"wosac2024": 0.8070, "wosac2025": 0.8266}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """One intra-op thread: on the shared 2-core machine this is several times faster."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 @pytest.fixture(scope="module")
