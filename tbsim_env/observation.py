@@ -314,8 +314,8 @@ def _nearest(
         top, idx = torch.sort(d, dim=-1, stable=True)
         top, idx = top[..., :k], idx[..., :k]
     else:  # large batches: topk over (distance bits, index) packed in one int64 key
-        key = ((d + 0.0).view(torch.int32).to(torch.int64) << 32) | torch.arange(
-            d.shape[-1], device=d.device
+        key = ((d + 0.0).view(torch.int32).to(torch.int64) << 32) | cached_arange(
+            d.shape[-1], d.device
         )
         idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
         top = torch.gather(d, -1, idx)

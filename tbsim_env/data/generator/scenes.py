@@ -177,15 +177,14 @@ def _vehicle_tracks(
 
 
 def _clip_to_box(a: np.ndarray, b: np.ndarray, half: float) -> tuple[np.ndarray, np.ndarray]:
-    """The part of segment a-b [2] inside [-half, half]^2 (slab clipping; a, b if none)."""
-    d = b - a
-    lo, hi = 0.0, 1.0
-    for k in range(2):
-        if abs(d[k]) < 1e-12:
-            continue
-        t0, t1 = sorted(((-half - a[k]) / d[k], (half - a[k]) / d[k]))
-        lo, hi = max(lo, t0), min(hi, t1)
-    return (a + lo * d, a + hi * d) if hi > lo else (a, b)
+    """The part of segment a-b [2] inside [-half, half]^2 (a, b if none is)."""
+    import shapely
+
+    part = shapely.clip_by_rect(shapely.LineString([a, b]), -half, -half, half, half)
+    if part.is_empty:
+        return a, b
+    xy = np.asarray(part.coords)
+    return xy[0], xy[-1]
 
 
 def _pedestrians(
