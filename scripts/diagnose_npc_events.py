@@ -16,14 +16,7 @@ import torch
 
 from policies.trafficbots.wosac import trafficbots_rollout_fn
 from tbsim_env.data.generator import frame_offset, generate_scenario
-from tbsim_env.metrics.wosac.features import compute_metric_features
-from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_light_map
-from tbsim_env.metrics.wosac.trajectories import (
-    concat_rollouts,
-    log_trajectories,
-    select_objects,
-    simulated_trajectories,
-)
+from tbsim_env.metrics.wosac import scenario_features
 
 
 def main() -> None:
@@ -37,19 +30,11 @@ def main() -> None:
     sc = generate_scenario(args.layout, args.seed)
     fn = trafficbots_rollout_fn(checkpoint=args.checkpoint, num_samples=args.rollouts)
     rollouts = fn(sc, args.rollouts, 0)
-    obj = select_objects(sc)
-    log = log_trajectories(sc, obj, "cpu")
-    sim = simulated_trajectories(log, obj, rollouts, sc.current_index)
+    f = scenario_features(sc, rollouts)
+    obj, log, sim, feats, valid = f.objects, f.log, f.sim, f.sim_features, f.log_valid
     first = sc.current_index + 1
-    feats = compute_metric_features(
-        concat_rollouts(log, sim),
-        road_edge_segments(sc, "cpu"),
-        traffic_light_map(sc, "cpu"),
-        first,
-    )
-    valid = log.valid[0, : obj.num_eval, first:]
-    off = feats.offroad_per_step[1:] & valid  # [R, E, T], row 0 is the log
-    coll = feats.collision_per_step[1:] & valid
+    off = feats.offroad_per_step & valid  # [R, E, T]
+    coll = feats.collision_per_step & valid
     dx, dy = frame_offset(args.layout, args.seed)
     t = sc.tracks
     for e in range(obj.num_eval):
@@ -76,7 +61,7 @@ def main() -> None:
                 f"; rollout {r} leaves the road at step {first + k}: sim "
                 f"({float(s[0]) - dx:.1f}, {float(s[1]) - dy:.1f}), log "
                 f"({float(lg[0]) - dx:.1f}, {float(lg[1]) - dy:.1f}), "
-                f"{float(feats.distance_to_road_edge[1 + r, e, k]):.2f} m past the edge"
+                f"{float(feats.distance_to_road_edge[r, e, k]):.2f} m past the edge"
             )
         print(line)
 

@@ -24,6 +24,7 @@ from tbsim_env.metrics.wosac.scoring import (
     ScenarioScores,
     ScoringError,
     aggregate,
+    scenario_features,
     score_scenario,
 )
 from tbsim_env.metrics.wosac.submission import (
@@ -58,6 +59,7 @@ __all__ = [
     "read_submission",
     "rollouts_from_proto",
     "rollouts_to_proto",
+    "scenario_features",
     "score_scenario",
     "score_submission_file",
     "scores_table",

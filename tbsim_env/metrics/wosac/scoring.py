@@ -35,6 +35,7 @@ from tbsim_env.metrics.wosac.features_kinematic import acceleration_validity, sp
 from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_light_map
 from tbsim_env.metrics.wosac.rollouts import Rollouts
 from tbsim_env.metrics.wosac.trajectories import (
+    MetricObjects,
     ObjectTrajectories,
     concat_rollouts,
     log_trajectories,
@@ -209,26 +210,36 @@ def _displacement(log: ObjectTrajectories, sim: ObjectTrajectories) -> tuple[flo
     return float(per_object.mean()), float(per_object.mean(1).min())
 
 
-def score_scenario(
-    scenario: Scenario,
-    rollouts: Rollouts,
-    version: MetricVersion | str = DEFAULT_VERSION,
-    device: torch.device | str | None = None,
-) -> ScenarioScores:
-    """WOSAC scores of simulated rollouts against the logged scenario.
+@dataclass(frozen=True)
+class ScenarioFeatures:
+    """The inputs of a scenario's scores: who is scored and every per-step feature.
 
-    Args:
-        scenario: the logged scenario (WOMD: 91 steps, current index 10).
-        rollouts: R simulated futures of every sim agent (extra objects are ignored; validate
-            a submission first with ``validate_scenario_rollouts`` for the server's checks).
-        version: "wosac2025" (default) or "wosac2024".
-        device: where to compute (default: the rollouts' device).
+    Attributes:
+        objects: the sim agents (evaluated first).
+        log: [1, N, T] logged trajectories.
+        sim: [R, N, T] simulated trajectories (history from the log).
+        log_features: [1, E, F] features of the log over the future steps.
+        sim_features: [R, E, F] features of the rollouts over the future steps.
+        log_valid: [E, F] bool, log validity of the evaluated objects at the future steps.
+    """
+
+    objects: MetricObjects
+    log: ObjectTrajectories
+    sim: ObjectTrajectories
+    log_features: MetricFeatures
+    sim_features: MetricFeatures
+    log_valid: torch.Tensor
+
+
+def scenario_features(
+    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None = None
+) -> ScenarioFeatures:
+    """Check the rollouts against the scenario and compute every WOSAC feature of both.
 
     Raises:
         ScoringError: wrong scenario id, missing sim agents, or a step count that does not fit.
         MapFeatureError: the scenario has no road edge.
     """
-    config = get_config(version)
     device = rollouts.x.device if device is None else torch.device(device)
     if rollouts.scenario_id != scenario.scenario_id:
         raise ScoringError(
@@ -253,7 +264,39 @@ def score_scenario(
     lights = traffic_light_map(scenario, device)
     both = compute_metric_features(concat_rollouts(log, sim), edges, lights, first)
     log_feat, sim_feat = _split_first_rollout(both)
-    log_valid = log.valid[0, : objects.num_eval, first:]
+    return ScenarioFeatures(
+        objects=objects,
+        log=log,
+        sim=sim,
+        log_features=log_feat,
+        sim_features=sim_feat,
+        log_valid=log.valid[0, : objects.num_eval, first:],
+    )
+
+
+def score_scenario(
+    scenario: Scenario,
+    rollouts: Rollouts,
+    version: MetricVersion | str = DEFAULT_VERSION,
+    device: torch.device | str | None = None,
+) -> ScenarioScores:
+    """WOSAC scores of simulated rollouts against the logged scenario.
+
+    Args:
+        scenario: the logged scenario (WOMD: 91 steps, current index 10).
+        rollouts: R simulated futures of every sim agent (extra objects are ignored; validate
+            a submission first with ``validate_scenario_rollouts`` for the server's checks).
+        version: "wosac2025" (default) or "wosac2024".
+        device: where to compute (default: the rollouts' device).
+
+    Raises:
+        ScoringError: wrong scenario id, missing sim agents, or a step count that does not fit.
+        MapFeatureError: the scenario has no road edge.
+    """
+    config = get_config(version)
+    f = scenario_features(scenario, rollouts, device)
+    objects, log, sim, log_feat, sim_feat = f.objects, f.log, f.sim, f.log_features, f.sim_features
+    log_valid = f.log_valid
     is_vehicle = log.evaluated(log.object_type) == int(ObjectType.VEHICLE)
     lik = _likelihoods(config, log_feat, sim_feat, log_valid, is_vehicle)
     ade, min_ade = _displacement(log, sim)
