@@ -12,7 +12,6 @@ from tbsim_env.config import EnvConfig, TerminationConfig
 from tbsim_env.data import load_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.errors import ActionError
-from tests.test_preprocess_support import transform_scenario
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +70,7 @@ def test_determinism_over_80_steps():
 
 
 def test_observations_invariant_to_rotation_and_translation(real):
-    moved = transform_scenario(real, 1.1, (-3200.0, 4700.0))
+    moved = real.transformed(1.1, (-3200.0, 4700.0))
     obs_a, _ = TrafficEnv([real], npc_policy="log_replay", controlled="tracks_to_predict").reset(
         seed=0
     )

@@ -39,7 +39,23 @@ JUNCTIONS = ("stop_intersection", "t_junction")
 def scene(layout: str, seed: int) -> Scenario:
     """The generated scene moved back into its layout's frame (junction at the origin)."""
     dx, dy = frame_offset(layout, seed)
-    return generate_scenario(layout, seed).translated((-dx, -dy))
+    return generate_scenario(layout, seed).transformed(shift=(-dx, -dy))
+
+
+def test_scenario_transform_round_trips_and_keeps_placeholders() -> None:
+    sc = generate_scenario("intersection", 1)
+    moved = sc.transformed(0.7, (120.0, -40.0))
+    back = moved.transformed(shift=(-120.0, 40.0)).transformed(-0.7)
+    t, b, m = sc.tracks, back.tracks, moved.tracks
+    ok = t.valid
+    np.testing.assert_allclose(b.xyz[ok], t.xyz[ok], atol=1e-9)
+    np.testing.assert_allclose(b.velocity[ok], t.velocity[ok], atol=1e-5)
+    np.testing.assert_allclose(wrap_angle_np(b.heading - t.heading)[ok], 0.0, atol=1e-5)
+    assert (m.xyz[~ok] == t.xyz[~ok]).all() and (m.heading[~ok] == t.heading[~ok]).all()
+    speed = np.linalg.norm(m.velocity[ok], axis=-1)
+    np.testing.assert_allclose(speed, np.linalg.norm(t.velocity[ok], axis=-1), atol=1e-4)
+    for p, q in zip(back.road_map.polylines, sc.road_map.polylines):
+        np.testing.assert_allclose(p, q, atol=1e-9)
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
@@ -72,7 +88,7 @@ def test_scene_lies_far_from_the_placeholder_origin(layout: str) -> None:
     t = sc.tracks
     assert (t.xyz[~t.valid] == 0.0).all()
     dx, dy = frame_offset(layout, 3)
-    back = sc.translated((-dx, -dy))
+    back = sc.transformed(shift=(-dx, -dy))
     local = scene(layout, 3)
     np.testing.assert_allclose(back.tracks.xyz, local.tracks.xyz, atol=1e-9)
 

@@ -24,7 +24,6 @@ from tests.test_preprocess_support import (
     line,
     make_road_map,
     make_scenario,
-    transform_scenario,
 )
 
 LANE, EDGE = MapFeatureType.LANE, MapFeatureType.ROAD_EDGE
@@ -339,7 +338,7 @@ def test_preprocess_scenario_is_equivariant(theta, shift):
     sc = _full_scene()
     cfg = TokenConfig(max_map_pieces=30, max_agents=8)
     a = preprocess_scenario(sc, cfg)
-    b = preprocess_scenario(transform_scenario(sc, theta, shift), cfg)
+    b = preprocess_scenario(sc.transformed(theta, shift), cfg)
     assert_tokens_equivariant(a, b, theta)
 
 

@@ -117,53 +117,6 @@ def make_scenario(
     ).validate()
 
 
-def _rotate_xy(points: np.ndarray, theta: float, shift: np.ndarray) -> np.ndarray:
-    out = np.array(points, np.float64, copy=True)
-    c, s = np.cos(theta), np.sin(theta)
-    x, y = points[..., 0], points[..., 1]
-    out[..., 0] = c * x - s * y + shift[0]
-    out[..., 1] = s * x + c * y + shift[1]
-    return out
-
-
-def transform_scenario(scenario: Scenario, theta: float, shift: tuple[float, float]) -> Scenario:
-    """The scenario rotated by ``theta`` about (0, 0), then translated by ``shift`` (xy)."""
-    shift_a = np.asarray(shift, np.float64)
-    t = scenario.tracks
-    valid = t.valid
-    vel = _rotate_xy(t.velocity.astype(np.float64), theta, np.zeros(2))
-    tracks = Tracks(
-        id=t.id,
-        object_type=t.object_type,
-        xyz=np.where(valid[..., None], _rotate_xy(t.xyz, theta, shift_a), 0.0),
-        heading=np.where(valid, wrap_angle_np(t.heading + theta), 0.0).astype(np.float32),
-        velocity=np.where(valid[..., None], vel, 0.0).astype(np.float32),
-        size=t.size,
-        valid=valid,
-    )
-    m = scenario.road_map
-    road_map = RoadMap(
-        id=m.id,
-        feature_type=m.feature_type,
-        subtype=m.subtype,
-        polylines=tuple(_rotate_xy(p, theta, shift_a) for p in m.polylines),
-        speed_limit_mph=m.speed_limit_mph,
-        entry_lanes=m.entry_lanes,
-        exit_lanes=m.exit_lanes,
-        left_neighbors=m.left_neighbors,
-        right_neighbors=m.right_neighbors,
-        controlled_lanes=m.controlled_lanes,
-    )
-    s = scenario.signals
-    signals = TrafficSignals(
-        lane_id=s.lane_id,
-        state=s.state,
-        valid=s.valid,
-        stop_point=_rotate_xy(s.stop_point, theta, shift_a),
-    )
-    return scenario.replace(tracks=tracks, road_map=road_map, signals=signals)
-
-
 def rotation(theta: float) -> np.ndarray:
     """[2, 2] rotation matrix."""
     c, s = np.cos(theta), np.sin(theta)

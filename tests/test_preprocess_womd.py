@@ -20,7 +20,7 @@ from tbsim_env.data.preprocess import build_map_pieces, preprocess_scenario, sce
 from tbsim_env.data.preprocess.agents import signed_speed
 from tbsim_env.data.preprocess.map_pieces import polygon_to_polylines
 from tbsim_env.data.scenario import wrap_angle_np
-from tests.test_preprocess_support import assert_tokens_equivariant, transform_scenario
+from tests.test_preprocess_support import assert_tokens_equivariant
 
 DEFAULT = TokenConfig()
 SMALL = TokenConfig(max_map_pieces=200, max_agents=16, max_traffic_lights=5)
@@ -210,7 +210,7 @@ def test_training_mode_preprocesses(scenario):
 def test_real_scenario_equivariant(scenario, cfg):
     theta, shift = 1.1, (-321.0, 4567.0)
     a = preprocess_scenario(scenario, cfg)
-    b = preprocess_scenario(transform_scenario(scenario, theta, shift), cfg)
+    b = preprocess_scenario(scenario.transformed(theta, shift), cfg)
     assert_tokens_equivariant(a, b, theta, atol=5e-3)
 
 

@@ -214,18 +214,39 @@ class Scenario:
     def replace(self, **changes) -> Scenario:
         return dataclasses.replace(self, **changes)
 
-    def translated(self, shift: tuple[float, float]) -> Scenario:
-        """The scenario moved by ``shift`` (x, y metres): tracks at valid steps, every map
-        polyline and the signal stop points. Invalid track steps keep their placeholder 0."""
-        d = np.array([shift[0], shift[1], 0.0])
+    def transformed(self, yaw: float = 0.0, shift: tuple[float, float] = (0.0, 0.0)) -> Scenario:
+        """The scenario rotated by ``yaw`` (rad) about (0, 0), then moved by ``shift`` (x, y
+        metres): tracks at valid steps (positions, headings, velocities), every map polyline
+        and the signal stop points. Invalid track steps keep their placeholder values."""
+        c, s = np.cos(yaw), np.sin(yaw)
+
+        def rotate(xy: np.ndarray) -> np.ndarray:
+            """[..., >=2] float64 copy with x, y rotated (other columns kept)."""
+            out = np.array(xy, np.float64, copy=True)
+            if yaw:
+                out[..., 0] = c * xy[..., 0] - s * xy[..., 1]
+                out[..., 1] = s * xy[..., 0] + c * xy[..., 1]
+            return out
+
+        def move(xyz: np.ndarray) -> np.ndarray:
+            out = rotate(xyz)
+            out[..., 0] += shift[0]
+            out[..., 1] += shift[1]
+            return out
+
         t = self.tracks
-        tracks = dataclasses.replace(t, xyz=np.where(t.valid[..., None], t.xyz + d, t.xyz))
+        ok = t.valid
+        changes = {"xyz": np.where(ok[..., None], move(t.xyz), t.xyz)}
+        if yaw:
+            vel = np.where(ok[..., None], rotate(t.velocity), t.velocity)
+            heading = np.where(ok, wrap_angle_np(t.heading.astype(np.float64) + yaw), t.heading)
+            changes.update(velocity=vel.astype(np.float32), heading=heading.astype(np.float32))
         m = self.road_map
-        road_map = dataclasses.replace(
-            m, polylines=tuple(p + d[: p.shape[-1]] for p in m.polylines)
+        road_map = dataclasses.replace(m, polylines=tuple(move(p) for p in m.polylines))
+        sig = dataclasses.replace(self.signals, stop_point=move(self.signals.stop_point))
+        return self.replace(
+            tracks=dataclasses.replace(t, **changes), road_map=road_map, signals=sig
         )
-        sig = dataclasses.replace(self.signals, stop_point=self.signals.stop_point + d)
-        return self.replace(tracks=tracks, road_map=road_map, signals=sig)
 
     def role_mask(self) -> np.ndarray:
         """[A, 3] bool: (is SDC, in objects_of_interest, in tracks_to_predict)."""

@@ -347,7 +347,7 @@ def generate_scenario(
             objects_of_interest=np.zeros(0, np.int64),
             source=f"<generated {layout} seed {seed}>",
         )
-        .translated(frame_offset(layout, seed))
+        .transformed(shift=frame_offset(layout, seed))
         .validate()
     )
 
