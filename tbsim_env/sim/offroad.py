@@ -157,7 +157,8 @@ def point_segment_distance(
     t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
     t = torch.where(len2 > 0, t, torch.zeros_like(t))
     closest = a + t.clamp(0.0, 1.0)[..., None] * ab
-    dist = torch.linalg.vector_norm(q - closest, dim=-1)
+    offset = q - closest
+    dist = torch.hypot(offset[..., 0], offset[..., 1])
     return torch.where(valid, dist, torch.full_like(dist, float("inf"))), t
 
 
@@ -234,8 +235,10 @@ def _candidate_signed_and_unsigned(
     dx, dy = x - ax, y - ay
     t = (dx * abx + dy * aby) / length2  # [B, K, P, C]
     tc = t.clamp(0.0, 1.0)
-    offset = torch.stack([x - (ax + tc * abx), y - (ay + tc * aby)], -1)
-    dist = torch.linalg.vector_norm(offset, dim=-1).masked_fill_(cand.invalid, float("inf"))
+    # hypot, not the norm of a stacked pair: the same value in one operation instead of two
+    # (and ``point_segment_distance`` uses it too, so both give the same bits).
+    dist = torch.hypot(x - (ax + tc * abx), y - (ay + tc * aby))
+    dist = dist.masked_fill_(cand.invalid, float("inf"))
     local = dist.argmin(-1, keepdim=True)  # [B, K, P, 1]
     d = dist.gather(-1, local)
     t_best = t.gather(-1, local)
