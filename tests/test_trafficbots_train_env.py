@@ -58,6 +58,33 @@ def test_train_writes_checkpoints_and_resumes(tmp_path):
     make_policy("trafficbots", checkpoint=str(tmp_path / "run" / "last"))
 
 
+def test_train_init_fine_tunes_from_a_checkpoint(tmp_path, random_checkpoint):
+    from safetensors.torch import load_file
+
+    build_cache(["generated:merge:0-0"], tmp_path / "cache", workers=1, progress=False)
+    cfg = TrainConfig(
+        data=str(tmp_path / "cache"),
+        out=str(tmp_path / "run"),
+        steps=1,
+        rollout_steps=13,
+        lr=0.0,  # AdamW with lr 0 leaves the weights as they were loaded
+        weight_decay=0.0,
+        workers=0,
+        threads=1,
+        init=random_checkpoint,
+    )
+    train(cfg, progress=False)
+    start = load_file(f"{random_checkpoint}.safetensors")
+    after = load_file(str(tmp_path / "run" / "last.safetensors"))
+    assert start.keys() == after.keys()
+    assert all(torch.equal(start[k], after[k]) for k in start)
+    assert json.loads((tmp_path / "run" / "optimizer.json").read_text())["step"] == 1
+    # A checkpoint of another config is refused, naming the mismatch.
+    paper = TrainConfig(**{**cfg.__dict__, "out": str(tmp_path / "run2"), "model": "paper"})
+    with pytest.raises(CheckpointError, match="does not match the model"):
+        train(paper, progress=False)
+
+
 def test_trafficbots_npcs_pass_the_parallel_api(random_checkpoint):
     env = TrafficEnv(npc_policy="trafficbots", npc_checkpoint=random_checkpoint)
     parallel_api_test(env, num_cycles=15)

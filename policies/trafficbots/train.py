@@ -76,6 +76,10 @@ class TrainConfig:
             cache larger than this re-reads a shard for most items).
         rollout_steps: simulate only log steps 0 .. rollout_steps-1 per batch (None: all 91).
             A CPU budget knob (the spec trains on full episodes): 51 = 4 s of closed loop.
+        init: start from this checkpoint's weights (base path of ``.safetensors`` + ``.json``,
+            e.g. the shipped ``policies/trafficbots/weights/trafficbots_small``) with a fresh
+            optimiser at step 0: fine-tuning. Its config must match ``model``. Ignored when
+            ``out`` already holds a run to resume.
     """
 
     data: str
@@ -101,6 +105,7 @@ class TrainConfig:
     rollout_steps: int | None = None
     cache_shards: int = 0
     stop_at: int | None = None
+    init: str | None = None
 
     def model_config(self) -> TrafficBotsConfig:
         if self.model == "small":
@@ -248,6 +253,10 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         start = _optimizer_state_from_files(opt, out / "optimizer")
         if main:
             print(f"resuming {out} from step {start}")
+    elif cfg.init:
+        load_state_into(model, cfg.init)  # CheckpointError names the file and the mismatch
+        if main:
+            print(f"fine-tuning from {cfg.init}")
     objective: torch.nn.Module = TrainingObjective(model)
     if world > 1:
         # Prior-latent batches leave the posterior encoders unused: find_unused_parameters.
@@ -354,6 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default)
         elif f.type in ("int | None",):
             p.add_argument(name, type=int, default=f.default)
+        elif f.type in ("str | None",):
+            p.add_argument(name, type=str, default=f.default)
         else:
             typ = {"int": int, "float": float, "str": str}[str(f.type)]
             p.add_argument(name, type=typ, default=f.default)
