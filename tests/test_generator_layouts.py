@@ -3,6 +3,7 @@ driver personalities and vehicle sizes, the training mix (tbsim_env.data.generat
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
 
@@ -17,7 +18,13 @@ from tbsim_env.data.generator import (
     generate_scenario,
     training_mix,
 )
-from tbsim_env.data.generator.driver import DriverConfig, draw_fleet, straight_routes
+from tbsim_env.data.generator.driver import (
+    DriverConfig,
+    add_cyclists,
+    draw_fleet,
+    kerb_routes,
+    straight_routes,
+)
 from tbsim_env.data.generator.roads import (
     LAYOUT_BUILDERS,
     PRIORITY,
@@ -409,3 +416,84 @@ def test_generated_scenes_contain_long_vehicles() -> None:
     )
     assert (lengths > 8.0).sum() >= 3
     assert lengths.max() <= 12.0 + 1e-4
+
+
+# ----------------------------------------------------------------------------- cyclists
+
+URBAN = ("intersection", "stop_intersection", "t_junction")
+
+
+def cyclists(sc: Scenario) -> np.ndarray:
+    return np.flatnonzero(sc.tracks.object_type == int(ObjectType.CYCLIST))
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
+def test_cyclists_ride_in_urban_layouts_only(layout: str) -> None:
+    total = 0
+    for seed in range(8):
+        sc = scene(layout, seed)
+        t = sc.tracks
+        cyc = cyclists(sc)
+        total += cyc.size
+        assert sc.sdc_index not in cyc and not np.isin(sc.tracks_to_predict, cyc).any()
+        if cyc.size == 0:
+            continue
+        size = t.size[cyc][t.valid[cyc]]
+        assert ((size[:, 0] >= 1.6 - 1e-6) & (size[:, 0] <= 1.9 + 1e-6)).all()
+        assert ((size[:, 1] >= 0.6 - 1e-6) & (size[:, 1] <= 0.8 + 1e-6)).all()
+        assert ((size[:, 2] >= 1.6 - 1e-6) & (size[:, 2] <= 1.8 + 1e-6)).all()
+        valid = t.valid[cyc]
+        speed = np.linalg.norm(t.velocity[cyc], axis=-1)
+        assert speed[valid].max() <= 7.0 + 1e-3
+        pair = valid[:, 1:] & valid[:, :-1]
+        acc = np.diff(speed, axis=1) / DT
+        assert np.mean(acc[pair] <= 1.5 + 1e-3) > 0.99  # gentler than cars
+        fd = np.diff(t.xyz[cyc, :, :2], axis=1) / DT
+        mean_v = 0.5 * (t.velocity[cyc, 1:] + t.velocity[cyc, :-1])
+        assert np.linalg.norm(fd - mean_v, axis=-1)[pair].max() < 0.3
+    if layout == "merge":
+        assert total == 0
+    else:
+        assert total >= 4, total
+
+
+def test_cyclists_take_kerb_lanes_and_keep_other_draws() -> None:
+    net = LAYOUT_BUILDERS["intersection"]()
+    routes = build_routes(net)
+    w = np.ones(routes.num_routes)
+    cfg = DriverConfig(desired_speed=(9.0, 14.0), cyclist_share=(0.2, 0.3))
+    fleet = draw_fleet(routes, w, 2000, cfg, np.random.default_rng(0))
+    kerb = kerb_routes(net, routes)
+    assert 0 < kerb.sum() < routes.num_routes
+    with_cyc = add_cyclists(fleet, w, kerb, cfg, np.random.default_rng(1))
+    cyc = with_cyc.cyclist
+    assert 0.15 < cyc.mean() < 0.35
+    assert kerb[with_cyc.route[cyc]].all()
+    assert ((with_cyc.desired_speed[cyc] >= 4.0) & (with_cyc.desired_speed[cyc] <= 7.0)).all()
+    assert with_cyc.max_accel[cyc].max() <= 1.5 and not with_cyc.is_long[cyc].any()
+    # Motor vehicle slots are untouched.
+    for name in ("route", "size", "desired_speed", "max_accel", "personality"):
+        np.testing.assert_array_equal(getattr(with_cyc, name)[~cyc], getattr(fleet, name)[~cyc])
+    # No share, no cyclists and no draws: the fleet object comes back as it was.
+    none = dataclasses.replace(cfg, cyclist_share=(0.0, 0.0))
+    assert add_cyclists(fleet, w, kerb, none, np.random.default_rng(1)) is fleet
+
+
+def test_vehicles_queue_behind_cyclists() -> None:
+    """Somewhere a motor vehicle drives right behind a cyclist (same heading, within 12 m)
+    at about the cyclist's speed: cyclists are part of the traffic, not ghosts."""
+    found = 0
+    for layout in URBAN:
+        for seed in range(8):
+            t = scene(layout, seed).tracks
+            veh, cyc = vehicles(scene(layout, seed)), cyclists(scene(layout, seed))
+            for c in cyc:
+                h = np.stack([np.cos(t.heading[c]), np.sin(t.heading[c])], -1)  # [T, 2]
+                rel = t.xyz[veh, :, :2] - t.xyz[c, :, :2]  # [V, T, 2]
+                lon = (rel * h).sum(-1)
+                lat = np.abs(rel[..., 0] * h[:, 1] - rel[..., 1] * h[:, 0])
+                v_c = np.linalg.norm(t.velocity[c], axis=-1)
+                v_v = np.linalg.norm(t.velocity[veh], axis=-1)
+                behind = t.valid[veh] & t.valid[c] & (lon < -2.0) & (lon > -12.0) & (lat < 1.0)
+                found += int((behind & (v_c > 2.0) & (np.abs(v_v - v_c) < 1.0)).any())
+    assert found >= 4

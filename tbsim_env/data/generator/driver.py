@@ -18,7 +18,10 @@ Each step a vehicle takes the lowest of these IDM accelerations:
 Drivers differ: each vehicle gets a personality in [-1 (timid), 1 (aggressive)] around a
 per-scene mean, which sets its desired speed, headway, standstill gap, acceleration,
 braking, reaction time at stop signs and accepted gap; vehicles are cars, vans and
-occasional trucks or buses (these keep to routes without sharp turns).
+occasional trucks or buses (these keep to routes without sharp turns). On urban roads a
+per-scene share of the slots are cyclists (``add_cyclists``): bicycle-sized riders on
+kerb-lane routes with lower desired speeds and gentler acceleration, driven by the same
+rules (signals, stop signs, priority), so that the vehicles behind them queue.
 
 The loop runs over time only; every per-vehicle operation is vectorised over vehicles.
 Units: metres, seconds, m/s, m/s^2.
@@ -66,6 +69,11 @@ class DriverConfig:
         truck_share: range of the per-scene share of trucks and buses (8-12 m).
         straight_curvature: trucks and buses only take routes whose curvature stays below
             this, 1/m.
+        cyclist_share: range of the per-scene share of cyclists (0 on roads without them);
+            drawn by ``add_cyclists`` from its own random stream.
+        cyclist_speed: desired speed range of cyclists, m/s.
+        cyclist_accel: maximum acceleration range of cyclists, m/s^2.
+        cyclist_decel: comfortable deceleration range of cyclists, m/s^2.
 
     All ranges are (timid end, aggressive end) ordered low to high; a vehicle's value is
     placed in its range by its personality (70 %) and independent noise (30 %).
@@ -83,6 +91,10 @@ class DriverConfig:
     van_share: tuple[float, float] = (0.05, 0.2)
     truck_share: tuple[float, float] = (0.0, 0.1)
     straight_curvature: float = 0.02
+    cyclist_share: tuple[float, float] = (0.0, 0.0)
+    cyclist_speed: tuple[float, float] = (4.0, 7.0)
+    cyclist_accel: tuple[float, float] = (0.8, 1.5)
+    cyclist_decel: tuple[float, float] = (1.5, 2.5)
     max_decel: float = 5.0
     lateral_accel: float = 2.0
     yellow_decel: float = 3.0
@@ -105,6 +117,7 @@ class Fleet:
         reaction: [N] float64 dwell after a full stop, s.
         gap_time: [N] float64 accepted time gap to higher-priority traffic, s.
         personality: [N] float64 in [-1 (timid), 1 (aggressive)].
+        cyclist: [N] bool, the slot is a cyclist (kerb-lane routes only), else a motor vehicle.
     """
 
     route: np.ndarray
@@ -117,6 +130,7 @@ class Fleet:
     reaction: np.ndarray
     gap_time: np.ndarray
     personality: np.ndarray
+    cyclist: np.ndarray
 
     @property
     def is_long(self) -> np.ndarray:
@@ -148,6 +162,15 @@ CAR_SIZE = (4.6, 1.9, 1.6)
 def straight_routes(routes: RouteTable, cfg: DriverConfig) -> np.ndarray:
     """[R] bool, routes that trucks and buses may take (no sharp turns)."""
     return routes.curvature.max(axis=1) < cfg.straight_curvature
+
+
+def _trait(
+    r: tuple[float, float], sign: float, pers: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    """Value in range r: higher for aggressive drivers if sign > 0, else lower (70 %
+    personality, 30 % independent noise)."""
+    x = 0.5 + 0.5 * (0.7 * sign * pers + 0.3 * rng.uniform(-1.0, 1.0, pers.shape))
+    return r[0] + (r[1] - r[0]) * np.clip(x, 0.0, 1.0)
 
 
 def draw_fleet(
@@ -183,9 +206,7 @@ def draw_fleet(
     height = np.where(truck, rng.uniform(3.0, 3.8, n), height)
 
     def trait(r: tuple[float, float], sign: float) -> np.ndarray:
-        """Value in range r: higher for aggressive drivers if sign > 0, else lower."""
-        x = 0.5 + 0.5 * (0.7 * sign * pers + 0.3 * rng.uniform(-1.0, 1.0, n))
-        return r[0] + (r[1] - r[0]) * np.clip(x, 0.0, 1.0)
+        return _trait(r, sign, pers, rng)
 
     heavy = np.where(truck, 0.6, 1.0)
     return Fleet(
@@ -199,6 +220,69 @@ def draw_fleet(
         reaction=trait(cfg.reaction, -1.0),
         gap_time=trait(cfg.gap_time, -1.0),
         personality=pers,
+        cyclist=np.zeros(n, bool),
+    )
+
+
+def kerb_routes(net: RoadNetwork, routes: RouteTable) -> np.ndarray:
+    """[R] bool, routes that start on a kerb lane (no right neighbour), the ones cyclists take."""
+    kerb = np.asarray([not net.lane(int(src)).right for src in routes.source])
+    return kerb if kerb.any() else np.ones(routes.num_routes, bool)
+
+
+def add_cyclists(
+    fleet: Fleet,
+    route_weights: np.ndarray,
+    kerb: np.ndarray,
+    cfg: DriverConfig,
+    rng: np.random.Generator,
+) -> Fleet:
+    """Turn a per-scene share (``cfg.cyclist_share``) of the fleet's slots into cyclists.
+
+    Cyclists get kerb-lane routes (by weight), bicycle sizes (length 1.6-1.9 m, width
+    0.6-0.8 m, height 1.6-1.8 m), desired speeds in ``cfg.cyclist_speed`` and gentler
+    acceleration and braking; headway, gaps and reaction keep the rider's personality.
+    All draws come from ``rng`` (a stream of their own, so that scenes without cyclists
+    keep their other draws), and nothing is drawn when the share range is (0, 0).
+
+    Args:
+        fleet: the drawn fleet (N slots).
+        route_weights: [R] relative probability of each route.
+        kerb: [R] bool, routes cyclists may take (see ``kerb_routes``).
+        cfg: driver configuration.
+        rng: random generator of the cyclist stream.
+    """
+    if cfg.cyclist_share[1] <= 0.0:
+        return fleet
+    n = fleet.route.shape[0]
+    share = rng.uniform(*cfg.cyclist_share)
+    cyc = rng.random(n) < share
+    k = int(cyc.sum())
+    if k == 0:
+        return fleet
+    w = np.where(kerb, route_weights, 0.0)
+    route = fleet.route.copy()
+    route[cyc] = rng.choice(route_weights.size, size=k, p=w / w.sum())
+    pers = fleet.personality[cyc]
+    size = fleet.size.copy()
+    size[cyc] = np.stack(
+        [rng.uniform(1.6, 1.9, k), rng.uniform(0.6, 0.8, k), rng.uniform(1.6, 1.8, k)], axis=1
+    )
+
+    def put(name: str, value: np.ndarray) -> np.ndarray:
+        out = getattr(fleet, name).copy()
+        out[cyc] = value
+        return out
+
+    return dataclasses.replace(
+        fleet,
+        route=route,
+        size=size,
+        desired_speed=put("desired_speed", _trait(cfg.cyclist_speed, 1.0, pers, rng)),
+        max_accel=put("max_accel", _trait(cfg.cyclist_accel, 1.0, pers, rng)),
+        comfort_decel=put("comfort_decel", _trait(cfg.cyclist_decel, 1.0, pers, rng)),
+        min_gap=put("min_gap", 0.6 * fleet.min_gap[cyc]),
+        cyclist=cyc,
     )
 
 
@@ -382,6 +466,8 @@ def simulate(
     Slots ``[0, num_initial)`` start on the map at ``s0``/``v0``; the remaining slots are
     spawned in order at the start of a source lane when it is clear (each step with
     probability ``spawn_prob`` per source lane) and get a route from that lane by weight.
+    Cyclists only enter on kerb lanes: when the next slot is a cyclist and the source is
+    not a kerb lane, the next motor vehicle slot enters instead.
 
     Args:
         net: road network.
@@ -414,6 +500,8 @@ def simulate(
     latch = np.zeros(n, np.int8)  # yellow decision: 0 none, 1 stop, 2 go
     merge_ok = np.zeros(n, bool)
     next_slot = num_initial
+    spawned = np.arange(n) < num_initial
+    kerb = kerb_routes(net, routes)
     times = -cfg.warmup_s + DT * np.arange(num_steps)
     sig = (
         signal_states(net.signals, times, signal_offset_s)
@@ -421,6 +509,7 @@ def simulate(
         else np.zeros((0, num_steps), np.int8)
     )
     sources = np.unique(routes.source)
+    kerb_src = np.asarray([kerb[routes.source == src].any() for src in sources])
     out_s = np.zeros((n, num_steps))
     out_v = np.zeros((n, num_steps))
     out_alive = np.zeros((n, num_steps), bool)
@@ -436,10 +525,16 @@ def simulate(
         for k, src in enumerate(sources):
             if next_slot >= n or rng.random() >= spawn_prob[k]:
                 continue
+            want = next_slot
+            if fleet.cyclist[want] and not kerb_src[k]:
+                # Cyclists enter on kerb lanes only: the next motor vehicle slot goes here.
+                motor = np.flatnonzero(~spawned[want:] & ~fleet.cyclist[want:])
+                if motor.size == 0:
+                    continue
+                want += int(motor[0])
             on_src = alive & ((lane_b == src) | (lane_c == src))
             rear = np.where(on_src, s - 0.5 * length, np.inf)
             j = int(np.argmin(rear)) if on_src.any() else -1
-            want = next_slot
             if j >= 0 and rear[j] < length[want] + 10.0:
                 continue
             v_new = fleet.desired_speed[want] * 0.9
@@ -447,6 +542,8 @@ def simulate(
                 room = rear[j] - 0.5 * length[want] - fleet.min_gap[want]
                 v_new = min(v_new, v[j] + 1.0, max(room, 0.0) / fleet.time_headway[want])
             choices = np.flatnonzero(routes.source == src)
+            if fleet.cyclist[want]:
+                choices = choices[kerb[choices]]
             if length[want] > 7.5:
                 if straight[choices].any():
                     choices = choices[straight[choices]]
@@ -458,7 +555,9 @@ def simulate(
             lane_new, sig_new = routes.locate(r[[want]], s[[want]])
             lane_c[want], sig_c[want] = lane_new[0], sig_new[0]
             lane_f[want] = lane_b[want] = lane_new[0]
-            next_slot += 1
+            spawned[want] = True
+            while next_slot < n and spawned[next_slot]:
+                next_slot += 1
 
         # ---------------------------------------------------------------- leaders
         off = routes.lane_offset[r[:, None], lane_c[None, :]]  # [N, N] j's lane in i's route

@@ -8,7 +8,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
-from tbsim_env.data.generator.driver import DriveLog, DriverConfig, draw_fleet, simulate
+from tbsim_env.data.generator.driver import (
+    DriveLog,
+    DriverConfig,
+    add_cyclists,
+    draw_fleet,
+    kerb_routes,
+    simulate,
+)
 from tbsim_env.data.generator.roads import (
     LAYOUT_BUILDERS,
     STOP,
@@ -52,9 +59,12 @@ class LayoutTraffic:
     stop_source_boost: float = 1.0
 
 
+CYCLISTS: tuple[float, float] = (0.03, 0.1)
+"""Range of the per-scene share of cyclists among the vehicle slots of the urban layouts."""
+
 TRAFFIC = {
     "intersection": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.07),
+        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.07, cyclist_share=CYCLISTS),
         initial_vehicles=(18, 24),
         pedestrians=4,
     ),
@@ -64,12 +74,12 @@ TRAFFIC = {
         pedestrians=0,
     ),
     "stop_intersection": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(8.0, 13.0), inflow=0.05),
+        driver=DriverConfig(desired_speed=(8.0, 13.0), inflow=0.05, cyclist_share=CYCLISTS),
         initial_vehicles=(16, 22),
         pedestrians=4,
     ),
     "t_junction": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.06),
+        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.06, cyclist_share=CYCLISTS),
         initial_vehicles=(14, 20),
         pedestrians=3,
         stop_source_boost=2.5,
@@ -94,6 +104,12 @@ and the followers run into them."""
 
 def _rng(layout: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(layout.encode())])
+
+
+def _vru_rng(layout: str, seed: int) -> np.random.Generator:
+    """Stream of the vulnerable road users added after the first release (cyclists, crossing
+    pedestrians): its own, so that scenes without them keep every other draw."""
+    return np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 2])
 
 
 def frame_offset(layout: str, seed: int) -> tuple[float, float]:
@@ -241,7 +257,8 @@ def generate_scenario(
         num_pedestrians: pedestrians on the sidewalks; None uses the layout default.
 
     Returns:
-        A validated ``Scenario``: vehicles then pedestrians, the SDC last.
+        A validated ``Scenario``: vehicles and cyclists, then pedestrians, the SDC (a
+        vehicle, never a cyclist) last.
 
     Raises:
         ValueError: unknown layout or negative counts.
@@ -273,6 +290,8 @@ def generate_scenario(
     n_src = int(np.unique(routes.source).size)
     capacity = n_init + int(3 * cfg.inflow * n_src * total_steps * DT) + 4
     fleet = draw_fleet(routes, weights, capacity, cfg, rng)
+    vru = _vru_rng(layout, seed)
+    fleet = add_cyclists(fleet, weights, kerb_routes(net, routes), cfg, vru)
     s0 = _place_initial(net, routes, fleet.route, n_init, rng, fleet.size[:, 0])
     v0 = fleet.desired_speed * rng.uniform(0.6, 0.9, capacity)
     placed = np.concatenate([s0 >= 0.0, np.zeros(capacity - n_init, bool)])
@@ -308,16 +327,16 @@ def generate_scenario(
     heading = np.concatenate([vhead, phead])
     vel = np.concatenate([vvel, pvel])
     valid = np.concatenate([vvalid, pvalid]) & (np.abs(xy) <= observed).all(axis=-1)
-    otype = np.concatenate(
-        [np.full(n_veh, int(ObjectType.VEHICLE)), np.full(n_ped, int(ObjectType.PEDESTRIAN))]
-    )
+    vtype = np.where(log.fleet.cyclist[slot], int(ObjectType.CYCLIST), int(ObjectType.VEHICLE))
+    otype = np.concatenate([vtype, np.full(n_ped, int(ObjectType.PEDESTRIAN))])
     seen = valid.any(axis=1)  # objects that never enter the observed area are not tracks
     n_veh, n_ped = int(seen[:n_veh].sum()), int(seen[n_veh:].sum())
     size, xy, heading, vel, valid, otype = (a[seen] for a in (size, xy, heading, vel, valid, otype))
     z = 0.5 * size[..., 2:3]
     xyz = np.concatenate([xy, z], axis=-1)
 
-    sdc = _choose_sdc(xy[:n_veh], valid[:n_veh])
+    motor = otype[:n_veh] == int(ObjectType.VEHICLE)
+    sdc = _choose_sdc(xy[:n_veh], valid[:n_veh] & motor[:, None])
     order = np.concatenate([np.delete(np.arange(n_veh + n_ped), sdc), [sdc]])
     xyz, heading, vel, size, valid, otype = (
         a[order] for a in (xyz, heading, vel, size, valid, otype)
