@@ -35,6 +35,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from tbsim_env.constants import DT, SignalState
+from tbsim_env.data.generator.crossings import (
+    PATH_CLEARANCE,
+    PED_ACCEL,
+    CrossingPlan,
+    RouteCrossings,
+    empty_plan,
+    route_crossings,
+    walk_time_left,
+)
 from tbsim_env.data.generator.roads import STOP, RoadNetwork, connector_conflicts, signal_states
 from tbsim_env.data.generator.routes import RouteTable
 
@@ -147,12 +156,18 @@ class DriveLog:
         s: [N, T] float64 route arc length of the box centre, metres.
         speed: [N, T] float64 m/s.
         alive: [N, T] bool, on the map at that step.
+        crossing: the crossing pedestrians' plan (P pedestrians).
+        ped_s: [P, T] float64 arc length of each crossing pedestrian along its path, m.
+        ped_speed: [P, T] float64 m/s.
     """
 
     fleet: Fleet
     s: np.ndarray
     speed: np.ndarray
     alive: np.ndarray
+    crossing: CrossingPlan
+    ped_s: np.ndarray
+    ped_speed: np.ndarray
 
 
 CAR_SIZE = (4.6, 1.9, 1.6)
@@ -447,6 +462,111 @@ def _curve_accel(
     return cap_here, need.min(axis=1)
 
 
+class _Pedestrians:
+    """State of the crossing pedestrians inside the driver loop (P pedestrians).
+
+    Every step, ``interact`` lets waiting pedestrians decide to cross and returns the stop
+    targets they impose on the vehicles; ``advance`` then records and moves them.
+    """
+
+    def __init__(
+        self,
+        plan: CrossingPlan,
+        table: RouteCrossings | None,
+        window: np.ndarray,
+        num_steps: int,
+    ) -> None:
+        self.plan = plan
+        self.num = plan.num
+        self.table = table
+        self.window = window  # [C, T] walk time left, s
+        self.s = plan.s0.copy()
+        self.v = plan.speed.copy()
+        self.committed = np.zeros(self.num, bool)
+        self.out_s = np.zeros((self.num, num_steps))
+        self.out_v = np.zeros((self.num, num_steps))
+
+    @classmethod
+    def start(
+        cls,
+        net: RoadNetwork,
+        routes: RouteTable,
+        plan: CrossingPlan | None,
+        times: np.ndarray,
+        offset_s: float,
+    ) -> _Pedestrians:
+        plan = empty_plan() if plan is None else plan
+        if plan.num == 0:
+            return cls(plan, None, np.zeros((0, len(times))), len(times))
+        window = walk_time_left(net, times, offset_s)
+        return cls(plan, route_crossings(net, routes), window, len(times))
+
+    def interact(
+        self,
+        t: int,
+        r: np.ndarray,
+        s: np.ndarray,
+        v: np.ndarray,
+        length: np.ndarray,
+        alive: np.ndarray,
+        fleet: Fleet,
+    ) -> np.ndarray:
+        """Pedestrians' crossing decisions at step t, and the vehicles' stop targets [N].
+
+        A pedestrian within 3 m of its kerb point steps off when its walk window leaves
+        time to clear the road and no vehicle whose route crosses the crosswalk is on it
+        or too close to stop comfortably before it. A vehicle stops before the crosswalk
+        (target: where its route enters it) while a committed pedestrian has not passed
+        its path, or while a pedestrian is about to step off and the vehicle can stop
+        comfortably (and no vehicle is on that crosswalk).
+
+        Args:
+            t: step index.
+            r, s, v, length: [N] route, route s (m), speed (m/s) and length (m).
+            alive: [N] vehicles on the map.
+            fleet: the vehicles' attributes.
+        """
+        p, tab = self.plan, self.table
+        c = p.crossing
+        front, rear = s + 0.5 * length, s - 0.5 * length
+        s_in, s_out = tab.s_in[r][:, c], tab.s_out[r][:, c]  # [N, P]
+        crosses = alive[:, None] & np.isfinite(s_in)
+        before = front[:, None] < s_in
+        stop_d = (v**2 / (2.0 * fleet.comfort_decel))[:, None] + 1.0
+        can_stop = before & (s_in - front[:, None] >= stop_d)
+        on_it = crosses & ~before & (rear[:, None] < s_out)
+        blocker = on_it | (crosses & before & ~can_stop)
+        near = ~self.committed & (p.s_wait - self.s <= 3.0)
+        need = (p.s_clear - self.s) / p.speed + p.speed / (2.0 * PED_ACCEL)
+        allowed = self.window[c, t] >= need
+        self.committed |= near & allowed & ~blocker.any(axis=0)
+        # Progress across the crosswalk against the far end of each vehicle's path.
+        ahead = np.where(p.direction > 0, tab.q_hi[r][:, c], -tab.q_lo[r][:, c])
+        progress = p.direction * p.axis_coordinate(self.s)
+        crossing = self.committed & (self.s < p.s_far)
+        hard = crosses & before & crossing[None, :] & (progress < ahead + PATH_CLEARANCE)
+        about = near & ~self.committed & allowed & ~on_it.any(axis=0)
+        soft = crosses & can_stop & about[None, :]
+        return np.where(hard | soft, s_in, np.inf).min(axis=1)
+
+    def advance(self, t: int) -> None:
+        """Record step t and walk one step: toward the walking speed when committed or
+        still far from the kerb, else braking (at most ``PED_ACCEL``, constant) to wait at
+        the kerb point."""
+        p, v = self.plan, self.v
+        self.out_s[:, t], self.out_v[:, t] = self.s, v
+        to_kerb = np.maximum(p.s_wait - self.s, 0.0)
+        brake = ~self.committed & (to_kerb - v * DT <= v**2 / (2.0 * PED_ACCEL))
+        decel = np.minimum(v**2 / (2.0 * np.maximum(to_kerb, 1e-6)), 2.0 * PED_ACCEL)
+        v_new = np.where(
+            brake, np.maximum(v - decel * DT, 0.0), np.minimum(p.speed, v + PED_ACCEL * DT)
+        )
+        s_new = self.s + 0.5 * (v + v_new) * DT
+        arrived = ~self.committed & (s_new >= p.s_wait)
+        self.s = np.where(arrived, p.s_wait, s_new)
+        self.v = np.where(arrived, 0.0, v_new)
+
+
 def simulate(
     net: RoadNetwork,
     routes: RouteTable,
@@ -460,6 +580,7 @@ def simulate(
     cfg: DriverConfig,
     rng: np.random.Generator,
     signal_offset_s: float,
+    crossing: CrossingPlan | None = None,
 ) -> DriveLog:
     """Run the driver for ``num_steps`` steps of ``DT`` starting at time ``-cfg.warmup_s``.
 
@@ -482,9 +603,12 @@ def simulate(
         cfg: driver configuration.
         rng: random generator (spawn times).
         signal_offset_s: signal plan phase offset in seconds.
+        crossing: pedestrians who cross on the crosswalks (None: none), moved along their
+            paths in the same loop (see ``crossings``).
 
     Returns:
-        The ``DriveLog`` of all N slots over ``num_steps`` steps.
+        The ``DriveLog`` of all N slots (and the crossing pedestrians) over ``num_steps``
+        steps.
     """
     st = _prepare(net, routes)
     n = fleet.route.shape[0]
@@ -515,6 +639,7 @@ def simulate(
     out_alive = np.zeros((n, num_steps), bool)
     r = fleet.route.copy()
     idx = np.arange(n)
+    peds = _Pedestrians.start(net, routes, crossing, times, signal_offset_s)
 
     for t in range(num_steps):
         lane_c, sig_c = routes.locate(r, s)
@@ -669,6 +794,10 @@ def simulate(
             stop_at = np.where(hold, np.minimum(stop_at, target), stop_at)
             creep = hold & is_stop & (to_line < 3.5) & (v < 0.3)
 
+        # ---------------------------------------------------------------- pedestrians
+        if peds.num:
+            stop_at = np.minimum(stop_at, peds.interact(t, r, s, v, length, alive, fleet))
+
         # ---------------------------------------------------------------- acceleration
         cap_here, a_curve = _curve_accel(routes, r, s, v, cfg.lateral_accel)
         v_des = np.minimum(fleet.desired_speed, cap_here)
@@ -681,6 +810,7 @@ def simulate(
         acc = np.where(creep, np.minimum(acc, -v / DT), acc)
 
         out_s[:, t], out_v[:, t], out_alive[:, t] = s, v, alive
+        peds.advance(t)
         v_new = np.maximum(v + acc * DT, 0.0)
         s = np.where(alive, s + 0.5 * (v + v_new) * DT, s)
         v = np.where(alive, v_new, v)
@@ -688,5 +818,11 @@ def simulate(
         done |= gone
         alive &= ~gone
     return DriveLog(
-        fleet=dataclasses.replace(fleet, route=r, size=size), s=out_s, speed=out_v, alive=out_alive
+        fleet=dataclasses.replace(fleet, route=r, size=size),
+        s=out_s,
+        speed=out_v,
+        alive=out_alive,
+        crossing=peds.plan,
+        ped_s=peds.out_s,
+        ped_speed=peds.out_v,
     )

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
+from tbsim_env.data.generator.crossings import plan_crossings
 from tbsim_env.data.generator.driver import (
     DriveLog,
     DriverConfig,
@@ -48,7 +49,9 @@ class LayoutTraffic:
     Attributes:
         driver: driver parameter ranges.
         initial_vehicles: range (inclusive) of vehicles placed at the start of the warm-up.
-        pedestrians: default number of pedestrians.
+        pedestrians: default number of pedestrians walking along the sidewalks.
+        crossing_pedestrians: range (inclusive) of the number of pedestrians who cross on
+            the crosswalks (at most one per crosswalk).
         stop_source_boost: traffic entering through stop-controlled lanes is this many times
             the other sources' (initial placement and inflow), so minor roads see action.
     """
@@ -56,6 +59,7 @@ class LayoutTraffic:
     driver: DriverConfig
     initial_vehicles: tuple[int, int]
     pedestrians: int
+    crossing_pedestrians: tuple[int, int] = (0, 0)
     stop_source_boost: float = 1.0
 
 
@@ -67,6 +71,7 @@ TRAFFIC = {
         driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.07, cyclist_share=CYCLISTS),
         initial_vehicles=(18, 24),
         pedestrians=4,
+        crossing_pedestrians=(1, 3),
     ),
     "merge": LayoutTraffic(
         driver=DriverConfig(desired_speed=(15.0, 20.0), inflow=0.25, warmup_s=6.0),
@@ -77,11 +82,13 @@ TRAFFIC = {
         driver=DriverConfig(desired_speed=(8.0, 13.0), inflow=0.05, cyclist_share=CYCLISTS),
         initial_vehicles=(16, 22),
         pedestrians=4,
+        crossing_pedestrians=(1, 3),
     ),
     "t_junction": LayoutTraffic(
         driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.06, cyclist_share=CYCLISTS),
         initial_vehicles=(14, 20),
         pedestrians=3,
+        crossing_pedestrians=(0, 2),
         stop_source_boost=2.5,
     ),
 }
@@ -244,6 +251,7 @@ def generate_scenario(
     *,
     num_vehicles: int | None = None,
     num_pedestrians: int | None = None,
+    num_crossing: int | None = None,
 ) -> Scenario:
     """Generate one WOMD-like scenario (91 steps at 10 Hz, current index 10).
 
@@ -255,6 +263,8 @@ def generate_scenario(
         num_vehicles: vehicles placed on the map at the start of the warm-up (more enter
             during the run through the map borders); None draws a layout default.
         num_pedestrians: pedestrians on the sidewalks; None uses the layout default.
+        num_crossing: pedestrians who cross on the crosswalks (at most one per crosswalk,
+            none on layouts without); None draws a layout default.
 
     Returns:
         A validated ``Scenario``: vehicles and cyclists, then pedestrians, the SDC (a
@@ -265,10 +275,12 @@ def generate_scenario(
     """
     if layout not in LAYOUT_BUILDERS:
         raise ValueError(f"unknown layout {layout!r}; valid layouts are {', '.join(LAYOUTS)}")
-    if (num_vehicles is not None and num_vehicles < 1) or (
-        num_pedestrians is not None and num_pedestrians < 0
+    if (
+        (num_vehicles is not None and num_vehicles < 1)
+        or (num_pedestrians is not None and num_pedestrians < 0)
+        or (num_crossing is not None and num_crossing < 0)
     ):
-        raise ValueError("num_vehicles must be >= 1 and num_pedestrians >= 0")
+        raise ValueError("num_vehicles must be >= 1, num_pedestrians and num_crossing >= 0")
     traffic = TRAFFIC[layout]
     cfg = traffic.driver
     rng = _rng(layout, seed)
@@ -301,6 +313,10 @@ def generate_scenario(
     s0 = np.concatenate([s0, np.zeros(capacity - n_init)])[order]
     n_placed = int(placed.sum())
     offset_s = float(rng.uniform(0.0, net.signals.cycle_s)) if net.signals else 0.0
+    lo, hi = traffic.crossing_pedestrians
+    if num_crossing is None:
+        num_crossing = int(vru.integers(lo, hi + 1)) if hi > 0 else 0
+    crossing = plan_crossings(net, num_crossing, vru, cfg.warmup_s, offset_s)
     log = simulate(
         net,
         routes,
@@ -314,11 +330,18 @@ def generate_scenario(
         cfg,
         rng,
         offset_s,
+        crossing,
     )
     window = slice(warm, warm + NUM_STEPS)
     slot, vxy, vhead, vvel, vvalid = _vehicle_tracks(routes, log, window)
     n_ped = traffic.pedestrians if num_pedestrians is None else num_pedestrians
     psize, pxy, phead, pvel, pvalid = _pedestrians(net, n_ped, rng, observed)
+    cxy, chead, cvel = crossing.poses(log.ped_s[:, window], log.ped_speed[:, window])
+    n_ped += crossing.num
+    psize = np.concatenate([psize, crossing.size])
+    pxy, phead = np.concatenate([pxy, cxy]), np.concatenate([phead, wrap_angle_np(chead)])
+    pvel = np.concatenate([pvel, cvel])
+    pvalid = np.concatenate([pvalid, np.ones(chead.shape, bool)])
 
     n_veh = slot.size
     vsize = np.broadcast_to(log.fleet.size[slot, None, :], (n_veh, NUM_STEPS, 3))
