@@ -1,5 +1,6 @@
 """Tests of the generator's scene variety: every layout, stop signs, T-junction priority,
-driver personalities and vehicle sizes, the training mix (tbsim_env.data.generator)."""
+driver personalities and vehicle sizes, cyclists, crossing pedestrians, the training mix
+(tbsim_env.data.generator)."""
 
 from __future__ import annotations
 

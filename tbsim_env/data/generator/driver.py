@@ -1,4 +1,5 @@
-"""Rule-based driver of the generator: lane routes, IDM car following, signals and merges.
+"""Rule-based driver of the generator: lane routes, IDM car following, signals, merges and
+crossing pedestrians.
 
 Every vehicle moves along its route (a lane path chosen at spawn) by its arc length ``s``.
 Each step a vehicle takes the lowest of these IDM accelerations:
@@ -13,7 +14,10 @@ Each step a vehicle takes the lowest of these IDM accelerations:
 * at an unsignalised junction (``RoadNetwork.junction``), stopping at the line until the
   vehicle's connector is granted: stop-sign approaches first come to a full stop, lower
   priority movements wait for an accepted time gap to higher priority traffic, and a
-  connector is never granted while a conflicting one is held by another vehicle.
+  connector is never granted while a conflicting one is held by another vehicle;
+* stopping before a crosswalk on its route while a pedestrian crossing there has not yet
+  passed the vehicle's path, or is about to step off the kerb and the vehicle can stop
+  comfortably (the pedestrians move in the same loop, see ``crossings``).
 
 Drivers differ: each vehicle gets a personality in [-1 (timid), 1 (aggressive)] around a
 per-scene mean, which sets its desired speed, headway, standstill gap, acceleration,
@@ -23,7 +27,8 @@ per-scene share of the slots are cyclists (``add_cyclists``): bicycle-sized ride
 kerb-lane routes with lower desired speeds and gentler acceleration, driven by the same
 rules (signals, stop signs, priority), so that the vehicles behind them queue.
 
-The loop runs over time only; every per-vehicle operation is vectorised over vehicles.
+The loop runs over time only; every per-vehicle operation is vectorised over vehicles (and
+pedestrians).
 Units: metres, seconds, m/s, m/s^2.
 """
 

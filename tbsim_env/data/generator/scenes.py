@@ -1,4 +1,11 @@
-"""Public API of the generator: seeded WOMD-like ``Scenario`` objects from the layouts."""
+"""Public API of the generator: seeded WOMD-like ``Scenario`` objects from the layouts.
+
+A scene holds the vehicles of the driver (``driver``: cars, vans, trucks and buses, and on
+urban layouts a per-scene share of cyclists), pedestrians walking along the sidewalks at
+constant speed and, on the junction layouts, pedestrians crossing on the crosswalks
+(``crossings``) whom the vehicles yield to. Cyclists and crossing pedestrians are drawn from
+a random stream of their own, so the freeway ``merge`` scenes, which have neither, are the
+same as before they were added."""
 
 from __future__ import annotations
 
@@ -259,7 +266,8 @@ def generate_scenario(
 
     Args:
         layout: one of ``LAYOUTS``.
-        seed: random seed (traffic, driver parameters, signal phase offset, track ids).
+        seed: random seed (traffic, driver parameters, signal phase offset, track ids,
+            cyclists and crossing pedestrians).
         num_vehicles: vehicles placed on the map at the start of the warm-up (more enter
             during the run through the map borders); None draws a layout default.
         num_pedestrians: pedestrians on the sidewalks; None uses the layout default.
@@ -267,8 +275,9 @@ def generate_scenario(
             none on layouts without); None draws a layout default.
 
     Returns:
-        A validated ``Scenario``: vehicles and cyclists, then pedestrians, the SDC (a
-        vehicle, never a cyclist) last.
+        A validated ``Scenario``: vehicles and cyclists, then sidewalk and crossing
+        pedestrians, the SDC (a vehicle, never a cyclist) last; tracks_to_predict are
+        vehicles only.
 
     Raises:
         ValueError: unknown layout or negative counts.
