@@ -79,7 +79,7 @@ def test_external_control_writes_a_video(tmp_path):
 def test_log_replay_baseline_table():
     out = run(
         str(EXAMPLES / "log_replay_baseline.py"),
-        "--generated=1",
+        "--generated=2",  # gen-intersection-0000 alone: most agents wait at a red light
         "--num-rollouts=2",
         "--policies",
         "log_replay",

@@ -127,11 +127,20 @@ def test_default_scenarios_mix_layouts() -> None:
 
 
 def test_counts_are_respected() -> None:
-    sc = generate_scenario("intersection", 5, num_vehicles=6, num_pedestrians=0)
-    assert (sc.tracks.object_type == int(ObjectType.PEDESTRIAN)).sum() == 0
-    sc2 = generate_scenario("intersection", 5, num_vehicles=24, num_pedestrians=3)
-    assert (sc2.tracks.object_type == int(ObjectType.PEDESTRIAN)).sum() == 3
+    def peds(sc: Scenario) -> int:
+        return int((sc.tracks.object_type == int(ObjectType.PEDESTRIAN)).sum())
+
+    sc = generate_scenario("intersection", 5, num_vehicles=6, num_pedestrians=0, num_crossing=0)
+    assert peds(sc) == 0
+    sc2 = generate_scenario("intersection", 5, num_vehicles=24, num_pedestrians=3, num_crossing=0)
+    assert peds(sc2) == 3
     assert vehicles(sc2).size > vehicles(sc).size
+    # Crossing pedestrians come on top, at most one per crosswalk (4 here, none on a freeway).
+    assert peds(generate_scenario("intersection", 5, num_pedestrians=3, num_crossing=2)) == 5
+    assert peds(generate_scenario("intersection", 5, num_pedestrians=0, num_crossing=9)) == 4
+    assert peds(generate_scenario("merge", 5, num_pedestrians=0, num_crossing=2)) == 0
+    with pytest.raises(ValueError):
+        generate_scenario("intersection", 5, num_crossing=-1)
 
 
 # ----------------------------------------------------------------------------- structure
@@ -384,7 +393,8 @@ def test_vehicles_stay_on_lanes_and_leave_at_border(layout: str, seed: int) -> N
 
 
 def test_pedestrians_walk_off_road() -> None:
-    sc = scene("intersection", 0)
+    """Sidewalk walkers (crossing pedestrians are tested in test_generator_layouts)."""
+    sc = generate_scenario("intersection", 0, num_crossing=0)
     t = sc.tracks
     ped = np.flatnonzero(t.object_type == int(ObjectType.PEDESTRIAN))
     assert ped.size == 4

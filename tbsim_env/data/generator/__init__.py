@@ -1,10 +1,12 @@
 """Embedded procedural scenario generator: WOMD-like scenes without any download.
 
-Layouts (``LAYOUTS``) are built in ``roads``, vehicles are driven by the rule-based driver in
-``driver`` and ``scenes`` packs the result into the same ``Scenario`` type the WOMD reader
-produces. Layouts: "intersection" (signalised, split phasing), "merge" (freeway on-ramp),
-"stop_intersection" (all-way stop, first come first served) and "t_junction" (minor road
-with a stop sign yielding to the major road). ``training_mix(seed)`` cycles through them.
+Layouts (``LAYOUTS``) are built in ``roads``, vehicles and cyclists are driven by the
+rule-based driver in ``driver``, pedestrians cross on the crosswalks as planned in
+``crossings`` (the driver yields to them) and ``scenes`` packs the result into the same
+``Scenario`` type the WOMD reader produces. Layouts: "intersection" (signalised, split
+phasing), "merge" (freeway on-ramp), "stop_intersection" (all-way stop, first come first
+served) and "t_junction" (minor road with a stop sign yielding to the major road).
+``training_mix(seed)`` cycles through them.
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Rule-based driver of the generator: lane routes, IDM car following, signals and merges.
+"""Rule-based driver of the generator: lane routes, IDM car following, signals, merges and
+crossing pedestrians.
 
 Every vehicle moves along its route (a lane path chosen at spawn) by its arc length ``s``.
 Each step a vehicle takes the lowest of these IDM accelerations:
@@ -13,14 +14,21 @@ Each step a vehicle takes the lowest of these IDM accelerations:
 * at an unsignalised junction (``RoadNetwork.junction``), stopping at the line until the
   vehicle's connector is granted: stop-sign approaches first come to a full stop, lower
   priority movements wait for an accepted time gap to higher priority traffic, and a
-  connector is never granted while a conflicting one is held by another vehicle.
+  connector is never granted while a conflicting one is held by another vehicle;
+* stopping before a crosswalk on its route while a pedestrian crossing there has not yet
+  passed the vehicle's path, or is about to step off the kerb and the vehicle can stop
+  comfortably (the pedestrians move in the same loop, see ``crossings``).
 
 Drivers differ: each vehicle gets a personality in [-1 (timid), 1 (aggressive)] around a
 per-scene mean, which sets its desired speed, headway, standstill gap, acceleration,
 braking, reaction time at stop signs and accepted gap; vehicles are cars, vans and
-occasional trucks or buses (these keep to routes without sharp turns).
+occasional trucks or buses (these keep to routes without sharp turns). On urban roads a
+per-scene share of the slots are cyclists (``add_cyclists``): bicycle-sized riders on
+kerb-lane routes with lower desired speeds and gentler acceleration, driven by the same
+rules (signals, stop signs, priority), so that the vehicles behind them queue.
 
-The loop runs over time only; every per-vehicle operation is vectorised over vehicles.
+The loop runs over time only; every per-vehicle operation is vectorised over vehicles (and
+pedestrians).
 Units: metres, seconds, m/s, m/s^2.
 """
 
@@ -32,6 +40,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from tbsim_env.constants import DT, SignalState
+from tbsim_env.data.generator.crossings import (
+    PATH_CLEARANCE,
+    PED_ACCEL,
+    CrossingPlan,
+    RouteCrossings,
+    empty_plan,
+    route_crossings,
+    walk_time_left,
+)
 from tbsim_env.data.generator.roads import STOP, RoadNetwork, connector_conflicts, signal_states
 from tbsim_env.data.generator.routes import RouteTable
 
@@ -66,6 +83,11 @@ class DriverConfig:
         truck_share: range of the per-scene share of trucks and buses (8-12 m).
         straight_curvature: trucks and buses only take routes whose curvature stays below
             this, 1/m.
+        cyclist_share: range of the per-scene share of cyclists (0 on roads without them);
+            drawn by ``add_cyclists`` from its own random stream.
+        cyclist_speed: desired speed range of cyclists, m/s.
+        cyclist_accel: maximum acceleration range of cyclists, m/s^2.
+        cyclist_decel: comfortable deceleration range of cyclists, m/s^2.
 
     All ranges are (timid end, aggressive end) ordered low to high; a vehicle's value is
     placed in its range by its personality (70 %) and independent noise (30 %).
@@ -83,6 +105,10 @@ class DriverConfig:
     van_share: tuple[float, float] = (0.05, 0.2)
     truck_share: tuple[float, float] = (0.0, 0.1)
     straight_curvature: float = 0.02
+    cyclist_share: tuple[float, float] = (0.0, 0.0)
+    cyclist_speed: tuple[float, float] = (4.0, 7.0)
+    cyclist_accel: tuple[float, float] = (0.8, 1.5)
+    cyclist_decel: tuple[float, float] = (1.5, 2.5)
     max_decel: float = 5.0
     lateral_accel: float = 2.0
     yellow_decel: float = 3.0
@@ -105,6 +131,7 @@ class Fleet:
         reaction: [N] float64 dwell after a full stop, s.
         gap_time: [N] float64 accepted time gap to higher-priority traffic, s.
         personality: [N] float64 in [-1 (timid), 1 (aggressive)].
+        cyclist: [N] bool, the slot is a cyclist (kerb-lane routes only), else a motor vehicle.
     """
 
     route: np.ndarray
@@ -117,6 +144,7 @@ class Fleet:
     reaction: np.ndarray
     gap_time: np.ndarray
     personality: np.ndarray
+    cyclist: np.ndarray
 
     @property
     def is_long(self) -> np.ndarray:
@@ -133,12 +161,18 @@ class DriveLog:
         s: [N, T] float64 route arc length of the box centre, metres.
         speed: [N, T] float64 m/s.
         alive: [N, T] bool, on the map at that step.
+        crossing: the crossing pedestrians' plan (P pedestrians).
+        ped_s: [P, T] float64 arc length of each crossing pedestrian along its path, m.
+        ped_speed: [P, T] float64 m/s.
     """
 
     fleet: Fleet
     s: np.ndarray
     speed: np.ndarray
     alive: np.ndarray
+    crossing: CrossingPlan
+    ped_s: np.ndarray
+    ped_speed: np.ndarray
 
 
 CAR_SIZE = (4.6, 1.9, 1.6)
@@ -148,6 +182,15 @@ CAR_SIZE = (4.6, 1.9, 1.6)
 def straight_routes(routes: RouteTable, cfg: DriverConfig) -> np.ndarray:
     """[R] bool, routes that trucks and buses may take (no sharp turns)."""
     return routes.curvature.max(axis=1) < cfg.straight_curvature
+
+
+def _trait(
+    r: tuple[float, float], sign: float, pers: np.ndarray, rng: np.random.Generator
+) -> np.ndarray:
+    """Value in range r: higher for aggressive drivers if sign > 0, else lower (70 %
+    personality, 30 % independent noise)."""
+    x = 0.5 + 0.5 * (0.7 * sign * pers + 0.3 * rng.uniform(-1.0, 1.0, pers.shape))
+    return r[0] + (r[1] - r[0]) * np.clip(x, 0.0, 1.0)
 
 
 def draw_fleet(
@@ -183,9 +226,7 @@ def draw_fleet(
     height = np.where(truck, rng.uniform(3.0, 3.8, n), height)
 
     def trait(r: tuple[float, float], sign: float) -> np.ndarray:
-        """Value in range r: higher for aggressive drivers if sign > 0, else lower."""
-        x = 0.5 + 0.5 * (0.7 * sign * pers + 0.3 * rng.uniform(-1.0, 1.0, n))
-        return r[0] + (r[1] - r[0]) * np.clip(x, 0.0, 1.0)
+        return _trait(r, sign, pers, rng)
 
     heavy = np.where(truck, 0.6, 1.0)
     return Fleet(
@@ -199,6 +240,69 @@ def draw_fleet(
         reaction=trait(cfg.reaction, -1.0),
         gap_time=trait(cfg.gap_time, -1.0),
         personality=pers,
+        cyclist=np.zeros(n, bool),
+    )
+
+
+def kerb_routes(net: RoadNetwork, routes: RouteTable) -> np.ndarray:
+    """[R] bool, routes that start on a kerb lane (no right neighbour), the ones cyclists take."""
+    kerb = np.asarray([not net.lane(int(src)).right for src in routes.source])
+    return kerb if kerb.any() else np.ones(routes.num_routes, bool)
+
+
+def add_cyclists(
+    fleet: Fleet,
+    route_weights: np.ndarray,
+    kerb: np.ndarray,
+    cfg: DriverConfig,
+    rng: np.random.Generator,
+) -> Fleet:
+    """Turn a per-scene share (``cfg.cyclist_share``) of the fleet's slots into cyclists.
+
+    Cyclists get kerb-lane routes (by weight), bicycle sizes (length 1.6-1.9 m, width
+    0.6-0.8 m, height 1.6-1.8 m), desired speeds in ``cfg.cyclist_speed`` and gentler
+    acceleration and braking; headway, gaps and reaction keep the rider's personality.
+    All draws come from ``rng`` (a stream of their own, so that scenes without cyclists
+    keep their other draws), and nothing is drawn when the share range is (0, 0).
+
+    Args:
+        fleet: the drawn fleet (N slots).
+        route_weights: [R] relative probability of each route.
+        kerb: [R] bool, routes cyclists may take (see ``kerb_routes``).
+        cfg: driver configuration.
+        rng: random generator of the cyclist stream.
+    """
+    if cfg.cyclist_share[1] <= 0.0:
+        return fleet
+    n = fleet.route.shape[0]
+    share = rng.uniform(*cfg.cyclist_share)
+    cyc = rng.random(n) < share
+    k = int(cyc.sum())
+    if k == 0:
+        return fleet
+    w = np.where(kerb, route_weights, 0.0)
+    route = fleet.route.copy()
+    route[cyc] = rng.choice(route_weights.size, size=k, p=w / w.sum())
+    pers = fleet.personality[cyc]
+    size = fleet.size.copy()
+    size[cyc] = np.stack(
+        [rng.uniform(1.6, 1.9, k), rng.uniform(0.6, 0.8, k), rng.uniform(1.6, 1.8, k)], axis=1
+    )
+
+    def put(name: str, value: np.ndarray) -> np.ndarray:
+        out = getattr(fleet, name).copy()
+        out[cyc] = value
+        return out
+
+    return dataclasses.replace(
+        fleet,
+        route=route,
+        size=size,
+        desired_speed=put("desired_speed", _trait(cfg.cyclist_speed, 1.0, pers, rng)),
+        max_accel=put("max_accel", _trait(cfg.cyclist_accel, 1.0, pers, rng)),
+        comfort_decel=put("comfort_decel", _trait(cfg.cyclist_decel, 1.0, pers, rng)),
+        min_gap=put("min_gap", 0.6 * fleet.min_gap[cyc]),
+        cyclist=cyc,
     )
 
 
@@ -363,6 +467,111 @@ def _curve_accel(
     return cap_here, need.min(axis=1)
 
 
+class _Pedestrians:
+    """State of the crossing pedestrians inside the driver loop (P pedestrians).
+
+    Every step, ``interact`` lets waiting pedestrians decide to cross and returns the stop
+    targets they impose on the vehicles; ``advance`` then records and moves them.
+    """
+
+    def __init__(
+        self,
+        plan: CrossingPlan,
+        table: RouteCrossings | None,
+        window: np.ndarray,
+        num_steps: int,
+    ) -> None:
+        self.plan = plan
+        self.num = plan.num
+        self.table = table
+        self.window = window  # [C, T] walk time left, s
+        self.s = plan.s0.copy()
+        self.v = plan.speed.copy()
+        self.committed = np.zeros(self.num, bool)
+        self.out_s = np.zeros((self.num, num_steps))
+        self.out_v = np.zeros((self.num, num_steps))
+
+    @classmethod
+    def start(
+        cls,
+        net: RoadNetwork,
+        routes: RouteTable,
+        plan: CrossingPlan | None,
+        times: np.ndarray,
+        offset_s: float,
+    ) -> _Pedestrians:
+        plan = empty_plan() if plan is None else plan
+        if plan.num == 0:
+            return cls(plan, None, np.zeros((0, len(times))), len(times))
+        window = walk_time_left(net, times, offset_s)
+        return cls(plan, route_crossings(net, routes), window, len(times))
+
+    def interact(
+        self,
+        t: int,
+        r: np.ndarray,
+        s: np.ndarray,
+        v: np.ndarray,
+        length: np.ndarray,
+        alive: np.ndarray,
+        fleet: Fleet,
+    ) -> np.ndarray:
+        """Pedestrians' crossing decisions at step t, and the vehicles' stop targets [N].
+
+        A pedestrian within 3 m of its kerb point steps off when its walk window leaves
+        time to clear the road and no vehicle whose route crosses the crosswalk is on it
+        or too close to stop comfortably before it. A vehicle stops before the crosswalk
+        (target: where its route enters it) while a committed pedestrian has not passed
+        its path, or while a pedestrian is about to step off and the vehicle can stop
+        comfortably (and no vehicle is on that crosswalk).
+
+        Args:
+            t: step index.
+            r, s, v, length: [N] route, route s (m), speed (m/s) and length (m).
+            alive: [N] vehicles on the map.
+            fleet: the vehicles' attributes.
+        """
+        p, tab = self.plan, self.table
+        c = p.crossing
+        front, rear = s + 0.5 * length, s - 0.5 * length
+        s_in, s_out = tab.s_in[r][:, c], tab.s_out[r][:, c]  # [N, P]
+        crosses = alive[:, None] & np.isfinite(s_in)
+        before = front[:, None] < s_in
+        stop_d = (v**2 / (2.0 * fleet.comfort_decel))[:, None] + 1.0
+        can_stop = before & (s_in - front[:, None] >= stop_d)
+        on_it = crosses & ~before & (rear[:, None] < s_out)
+        blocker = on_it | (crosses & before & ~can_stop)
+        near = ~self.committed & (p.s_wait - self.s <= 3.0)
+        need = (p.s_clear - self.s) / p.speed + p.speed / (2.0 * PED_ACCEL)
+        allowed = self.window[c, t] >= need
+        self.committed |= near & allowed & ~blocker.any(axis=0)
+        # Progress across the crosswalk against the far end of each vehicle's path.
+        ahead = np.where(p.direction > 0, tab.q_hi[r][:, c], -tab.q_lo[r][:, c])
+        progress = p.direction * p.axis_coordinate(self.s)
+        crossing = self.committed & (self.s < p.s_far)
+        hard = crosses & before & crossing[None, :] & (progress < ahead + PATH_CLEARANCE)
+        about = near & ~self.committed & allowed & ~on_it.any(axis=0)
+        soft = crosses & can_stop & about[None, :]
+        return np.where(hard | soft, s_in, np.inf).min(axis=1)
+
+    def advance(self, t: int) -> None:
+        """Record step t and walk one step: toward the walking speed when committed or
+        still far from the kerb, else braking (at most ``PED_ACCEL``, constant) to wait at
+        the kerb point."""
+        p, v = self.plan, self.v
+        self.out_s[:, t], self.out_v[:, t] = self.s, v
+        to_kerb = np.maximum(p.s_wait - self.s, 0.0)
+        brake = ~self.committed & (to_kerb - v * DT <= v**2 / (2.0 * PED_ACCEL))
+        decel = np.minimum(v**2 / (2.0 * np.maximum(to_kerb, 1e-6)), 2.0 * PED_ACCEL)
+        v_new = np.where(
+            brake, np.maximum(v - decel * DT, 0.0), np.minimum(p.speed, v + PED_ACCEL * DT)
+        )
+        s_new = self.s + 0.5 * (v + v_new) * DT
+        arrived = ~self.committed & (s_new >= p.s_wait)
+        self.s = np.where(arrived, p.s_wait, s_new)
+        self.v = np.where(arrived, 0.0, v_new)
+
+
 def simulate(
     net: RoadNetwork,
     routes: RouteTable,
@@ -376,12 +585,15 @@ def simulate(
     cfg: DriverConfig,
     rng: np.random.Generator,
     signal_offset_s: float,
+    crossing: CrossingPlan | None = None,
 ) -> DriveLog:
     """Run the driver for ``num_steps`` steps of ``DT`` starting at time ``-cfg.warmup_s``.
 
     Slots ``[0, num_initial)`` start on the map at ``s0``/``v0``; the remaining slots are
     spawned in order at the start of a source lane when it is clear (each step with
     probability ``spawn_prob`` per source lane) and get a route from that lane by weight.
+    Cyclists only enter on kerb lanes: when the next slot is a cyclist and the source is
+    not a kerb lane, the next motor vehicle slot enters instead.
 
     Args:
         net: road network.
@@ -396,9 +608,12 @@ def simulate(
         cfg: driver configuration.
         rng: random generator (spawn times).
         signal_offset_s: signal plan phase offset in seconds.
+        crossing: pedestrians who cross on the crosswalks (None: none), moved along their
+            paths in the same loop (see ``crossings``).
 
     Returns:
-        The ``DriveLog`` of all N slots over ``num_steps`` steps.
+        The ``DriveLog`` of all N slots (and the crossing pedestrians) over ``num_steps``
+        steps.
     """
     st = _prepare(net, routes)
     n = fleet.route.shape[0]
@@ -414,6 +629,8 @@ def simulate(
     latch = np.zeros(n, np.int8)  # yellow decision: 0 none, 1 stop, 2 go
     merge_ok = np.zeros(n, bool)
     next_slot = num_initial
+    spawned = np.arange(n) < num_initial
+    kerb = kerb_routes(net, routes)
     times = -cfg.warmup_s + DT * np.arange(num_steps)
     sig = (
         signal_states(net.signals, times, signal_offset_s)
@@ -421,11 +638,13 @@ def simulate(
         else np.zeros((0, num_steps), np.int8)
     )
     sources = np.unique(routes.source)
+    kerb_src = np.asarray([kerb[routes.source == src].any() for src in sources])
     out_s = np.zeros((n, num_steps))
     out_v = np.zeros((n, num_steps))
     out_alive = np.zeros((n, num_steps), bool)
     r = fleet.route.copy()
     idx = np.arange(n)
+    peds = _Pedestrians.start(net, routes, crossing, times, signal_offset_s)
 
     for t in range(num_steps):
         lane_c, sig_c = routes.locate(r, s)
@@ -436,10 +655,16 @@ def simulate(
         for k, src in enumerate(sources):
             if next_slot >= n or rng.random() >= spawn_prob[k]:
                 continue
+            want = next_slot
+            if fleet.cyclist[want] and not kerb_src[k]:
+                # Cyclists enter on kerb lanes only: the next motor vehicle slot goes here.
+                motor = np.flatnonzero(~spawned[want:] & ~fleet.cyclist[want:])
+                if motor.size == 0:
+                    continue
+                want += int(motor[0])
             on_src = alive & ((lane_b == src) | (lane_c == src))
             rear = np.where(on_src, s - 0.5 * length, np.inf)
             j = int(np.argmin(rear)) if on_src.any() else -1
-            want = next_slot
             if j >= 0 and rear[j] < length[want] + 10.0:
                 continue
             v_new = fleet.desired_speed[want] * 0.9
@@ -447,6 +672,8 @@ def simulate(
                 room = rear[j] - 0.5 * length[want] - fleet.min_gap[want]
                 v_new = min(v_new, v[j] + 1.0, max(room, 0.0) / fleet.time_headway[want])
             choices = np.flatnonzero(routes.source == src)
+            if fleet.cyclist[want]:
+                choices = choices[kerb[choices]]
             if length[want] > 7.5:
                 if straight[choices].any():
                     choices = choices[straight[choices]]
@@ -458,7 +685,9 @@ def simulate(
             lane_new, sig_new = routes.locate(r[[want]], s[[want]])
             lane_c[want], sig_c[want] = lane_new[0], sig_new[0]
             lane_f[want] = lane_b[want] = lane_new[0]
-            next_slot += 1
+            spawned[want] = True
+            while next_slot < n and spawned[next_slot]:
+                next_slot += 1
 
         # ---------------------------------------------------------------- leaders
         off = routes.lane_offset[r[:, None], lane_c[None, :]]  # [N, N] j's lane in i's route
@@ -570,6 +799,10 @@ def simulate(
             stop_at = np.where(hold, np.minimum(stop_at, target), stop_at)
             creep = hold & is_stop & (to_line < 3.5) & (v < 0.3)
 
+        # ---------------------------------------------------------------- pedestrians
+        if peds.num:
+            stop_at = np.minimum(stop_at, peds.interact(t, r, s, v, length, alive, fleet))
+
         # ---------------------------------------------------------------- acceleration
         cap_here, a_curve = _curve_accel(routes, r, s, v, cfg.lateral_accel)
         v_des = np.minimum(fleet.desired_speed, cap_here)
@@ -582,6 +815,7 @@ def simulate(
         acc = np.where(creep, np.minimum(acc, -v / DT), acc)
 
         out_s[:, t], out_v[:, t], out_alive[:, t] = s, v, alive
+        peds.advance(t)
         v_new = np.maximum(v + acc * DT, 0.0)
         s = np.where(alive, s + 0.5 * (v + v_new) * DT, s)
         v = np.where(alive, v_new, v)
@@ -589,5 +823,11 @@ def simulate(
         done |= gone
         alive &= ~gone
     return DriveLog(
-        fleet=dataclasses.replace(fleet, route=r, size=size), s=out_s, speed=out_v, alive=out_alive
+        fleet=dataclasses.replace(fleet, route=r, size=size),
+        s=out_s,
+        speed=out_v,
+        alive=out_alive,
+        crossing=peds.plan,
+        ped_s=peds.out_s,
+        ped_speed=peds.out_v,
     )

@@ -155,6 +155,42 @@ def signal_states(plan: SignalPlan, times: np.ndarray, offset_s: float) -> np.nd
 
 
 @dataclass(frozen=True)
+class Crossing:
+    """Where pedestrians cross one junction arm: its crosswalk and the walking lines to it.
+
+    Coordinates are relative to the crosswalk centre: ``along`` points along the arm away
+    from the junction, ``axis`` across the road (the crosswalk's long side). A crossing
+    pedestrian comes in on a walking line ``walk`` metres to one side of the arm's axis,
+    bends at ``bend`` toward the kerb point (``kerb`` to that side, off the road), crosses
+    to the kerb point on the other side and leaves on the other walking line.
+
+    Attributes:
+        arm: the junction arm (polar angle arm * pi / 2) the crosswalk lies on.
+        centre: [2] crosswalk centre, metres.
+        along: [2] unit vector along the arm, away from the junction.
+        axis: [2] unit vector across the road.
+        kerb: distance from the centre line of the arm to the kerb (waiting) points, m.
+        walk: distance from the centre line of the arm to the walking lines, m (beyond the
+            sidewalk walkers' paths).
+        bend: ``along`` coordinate where the walking lines bend toward the kerb, m.
+        reach: ``along`` coordinate of the map border, m.
+        offset: range of the ``along`` coordinate of the crossing line on the crosswalk, m
+            (the outer half, so that pedestrians at the kerb points of two neighbouring
+            arms stay apart).
+    """
+
+    arm: int
+    centre: np.ndarray
+    along: np.ndarray
+    axis: np.ndarray
+    kerb: float
+    walk: float
+    bend: float
+    reach: float
+    offset: tuple[float, float]
+
+
+@dataclass(frozen=True)
 class RoadNetwork:
     """A complete generated road layout.
 
@@ -173,6 +209,7 @@ class RoadNetwork:
         half_extent: the map covers [-half_extent, half_extent]^2; objects leave beyond it.
         junction: right-of-way rules of an unsignalised junction, or None.
         stop_signs: stop signs (written as ``MapFeatureType.STOP_SIGN``).
+        crossings: pedestrian crossings, one per crosswalk (same order).
     """
 
     layout: str
@@ -189,6 +226,7 @@ class RoadNetwork:
     half_extent: float
     junction: JunctionControl | None = None
     stop_signs: tuple[StopSign, ...] = ()
+    crossings: tuple[Crossing, ...] = ()
 
     def lane(self, lane_id: int) -> Lane:
         """The lane with this id."""
@@ -296,6 +334,7 @@ def _build_junction(
     line_types: list[RoadLineType] = []
     edges: list[np.ndarray] = []
     crosswalks: list[np.ndarray] = []
+    crossings: list[Crossing] = []
     sidewalks: list[np.ndarray] = []
     for k in arms:
         u, r = axes(k)
@@ -312,6 +351,20 @@ def _build_junction(
         c0, c1 = 8.5, 12.0
         crosswalks.append(
             np.stack([c0 * u - half * r, c1 * u - half * r, c1 * u + half * r, c0 * u + half * r])
+        )
+        mid = 0.5 * (c0 + c1)
+        crossings.append(
+            Crossing(
+                arm=k,
+                centre=mid * u,
+                along=u,
+                axis=r,
+                kerb=half + 2.3,
+                walk=half + 4.3,
+                bend=stop + 2.0 - mid,
+                reach=arm_length - mid,
+                offset=(0.15, 0.25 * (c1 - c0)),
+            )
         )
         b, _ = axes(k + 1)
         if (k + 1) % 4 in arms:
@@ -374,6 +427,7 @@ def _build_junction(
         half_extent=arm_length,
         junction=junction,
         stop_signs=tuple(stop_signs),
+        crossings=tuple(crossings),
     )
 
 

@@ -1,4 +1,11 @@
-"""Public API of the generator: seeded WOMD-like ``Scenario`` objects from the layouts."""
+"""Public API of the generator: seeded WOMD-like ``Scenario`` objects from the layouts.
+
+A scene holds the vehicles of the driver (``driver``: cars, vans, trucks and buses, and on
+urban layouts a per-scene share of cyclists), pedestrians walking along the sidewalks at
+constant speed and, on the junction layouts, pedestrians crossing on the crosswalks
+(``crossings``) whom the vehicles yield to. Cyclists and crossing pedestrians are drawn from
+a random stream of their own, so the freeway ``merge`` scenes, which have neither, are the
+same as before they were added."""
 
 from __future__ import annotations
 
@@ -8,7 +15,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
-from tbsim_env.data.generator.driver import DriveLog, DriverConfig, draw_fleet, simulate
+from tbsim_env.data.generator.crossings import plan_crossings
+from tbsim_env.data.generator.driver import (
+    DriveLog,
+    DriverConfig,
+    add_cyclists,
+    draw_fleet,
+    kerb_routes,
+    simulate,
+)
 from tbsim_env.data.generator.roads import (
     LAYOUT_BUILDERS,
     STOP,
@@ -41,7 +56,9 @@ class LayoutTraffic:
     Attributes:
         driver: driver parameter ranges.
         initial_vehicles: range (inclusive) of vehicles placed at the start of the warm-up.
-        pedestrians: default number of pedestrians.
+        pedestrians: default number of pedestrians walking along the sidewalks.
+        crossing_pedestrians: range (inclusive) of the number of pedestrians who cross on
+            the crosswalks (at most one per crosswalk).
         stop_source_boost: traffic entering through stop-controlled lanes is this many times
             the other sources' (initial placement and inflow), so minor roads see action.
     """
@@ -49,14 +66,19 @@ class LayoutTraffic:
     driver: DriverConfig
     initial_vehicles: tuple[int, int]
     pedestrians: int
+    crossing_pedestrians: tuple[int, int] = (0, 0)
     stop_source_boost: float = 1.0
 
 
+CYCLISTS: tuple[float, float] = (0.03, 0.1)
+"""Range of the per-scene share of cyclists among the vehicle slots of the urban layouts."""
+
 TRAFFIC = {
     "intersection": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.07),
+        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.07, cyclist_share=CYCLISTS),
         initial_vehicles=(18, 24),
         pedestrians=4,
+        crossing_pedestrians=(1, 3),
     ),
     "merge": LayoutTraffic(
         driver=DriverConfig(desired_speed=(15.0, 20.0), inflow=0.25, warmup_s=6.0),
@@ -64,14 +86,16 @@ TRAFFIC = {
         pedestrians=0,
     ),
     "stop_intersection": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(8.0, 13.0), inflow=0.05),
+        driver=DriverConfig(desired_speed=(8.0, 13.0), inflow=0.05, cyclist_share=CYCLISTS),
         initial_vehicles=(16, 22),
         pedestrians=4,
+        crossing_pedestrians=(1, 3),
     ),
     "t_junction": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.06),
+        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.06, cyclist_share=CYCLISTS),
         initial_vehicles=(14, 20),
         pedestrians=3,
+        crossing_pedestrians=(0, 2),
         stop_source_boost=2.5,
     ),
 }
@@ -94,6 +118,12 @@ and the followers run into them."""
 
 def _rng(layout: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(layout.encode())])
+
+
+def _vru_rng(layout: str, seed: int) -> np.random.Generator:
+    """Stream of the vulnerable road users added after the first release (cyclists, crossing
+    pedestrians): its own, so that scenes without them keep every other draw."""
+    return np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 2])
 
 
 def frame_offset(layout: str, seed: int) -> tuple[float, float]:
@@ -228,6 +258,7 @@ def generate_scenario(
     *,
     num_vehicles: int | None = None,
     num_pedestrians: int | None = None,
+    num_crossing: int | None = None,
 ) -> Scenario:
     """Generate one WOMD-like scenario (91 steps at 10 Hz, current index 10).
 
@@ -235,23 +266,30 @@ def generate_scenario(
 
     Args:
         layout: one of ``LAYOUTS``.
-        seed: random seed (traffic, driver parameters, signal phase offset, track ids).
+        seed: random seed (traffic, driver parameters, signal phase offset, track ids,
+            cyclists and crossing pedestrians).
         num_vehicles: vehicles placed on the map at the start of the warm-up (more enter
             during the run through the map borders); None draws a layout default.
         num_pedestrians: pedestrians on the sidewalks; None uses the layout default.
+        num_crossing: pedestrians who cross on the crosswalks (at most one per crosswalk,
+            none on layouts without); None draws a layout default.
 
     Returns:
-        A validated ``Scenario``: vehicles then pedestrians, the SDC last.
+        A validated ``Scenario``: vehicles and cyclists, then sidewalk and crossing
+        pedestrians, the SDC (a vehicle, never a cyclist) last; tracks_to_predict are
+        vehicles only.
 
     Raises:
         ValueError: unknown layout or negative counts.
     """
     if layout not in LAYOUT_BUILDERS:
         raise ValueError(f"unknown layout {layout!r}; valid layouts are {', '.join(LAYOUTS)}")
-    if (num_vehicles is not None and num_vehicles < 1) or (
-        num_pedestrians is not None and num_pedestrians < 0
+    if (
+        (num_vehicles is not None and num_vehicles < 1)
+        or (num_pedestrians is not None and num_pedestrians < 0)
+        or (num_crossing is not None and num_crossing < 0)
     ):
-        raise ValueError("num_vehicles must be >= 1 and num_pedestrians >= 0")
+        raise ValueError("num_vehicles must be >= 1, num_pedestrians and num_crossing >= 0")
     traffic = TRAFFIC[layout]
     cfg = traffic.driver
     rng = _rng(layout, seed)
@@ -273,6 +311,8 @@ def generate_scenario(
     n_src = int(np.unique(routes.source).size)
     capacity = n_init + int(3 * cfg.inflow * n_src * total_steps * DT) + 4
     fleet = draw_fleet(routes, weights, capacity, cfg, rng)
+    vru = _vru_rng(layout, seed)
+    fleet = add_cyclists(fleet, weights, kerb_routes(net, routes), cfg, vru)
     s0 = _place_initial(net, routes, fleet.route, n_init, rng, fleet.size[:, 0])
     v0 = fleet.desired_speed * rng.uniform(0.6, 0.9, capacity)
     placed = np.concatenate([s0 >= 0.0, np.zeros(capacity - n_init, bool)])
@@ -282,6 +322,10 @@ def generate_scenario(
     s0 = np.concatenate([s0, np.zeros(capacity - n_init)])[order]
     n_placed = int(placed.sum())
     offset_s = float(rng.uniform(0.0, net.signals.cycle_s)) if net.signals else 0.0
+    lo, hi = traffic.crossing_pedestrians
+    if num_crossing is None:
+        num_crossing = int(vru.integers(lo, hi + 1)) if hi > 0 else 0
+    crossing = plan_crossings(net, num_crossing, vru, cfg.warmup_s, offset_s)
     log = simulate(
         net,
         routes,
@@ -295,11 +339,18 @@ def generate_scenario(
         cfg,
         rng,
         offset_s,
+        crossing,
     )
     window = slice(warm, warm + NUM_STEPS)
     slot, vxy, vhead, vvel, vvalid = _vehicle_tracks(routes, log, window)
     n_ped = traffic.pedestrians if num_pedestrians is None else num_pedestrians
     psize, pxy, phead, pvel, pvalid = _pedestrians(net, n_ped, rng, observed)
+    cxy, chead, cvel = crossing.poses(log.ped_s[:, window], log.ped_speed[:, window])
+    n_ped += crossing.num
+    psize = np.concatenate([psize, crossing.size])
+    pxy, phead = np.concatenate([pxy, cxy]), np.concatenate([phead, wrap_angle_np(chead)])
+    pvel = np.concatenate([pvel, cvel])
+    pvalid = np.concatenate([pvalid, np.ones(chead.shape, bool)])
 
     n_veh = slot.size
     vsize = np.broadcast_to(log.fleet.size[slot, None, :], (n_veh, NUM_STEPS, 3))
@@ -308,16 +359,16 @@ def generate_scenario(
     heading = np.concatenate([vhead, phead])
     vel = np.concatenate([vvel, pvel])
     valid = np.concatenate([vvalid, pvalid]) & (np.abs(xy) <= observed).all(axis=-1)
-    otype = np.concatenate(
-        [np.full(n_veh, int(ObjectType.VEHICLE)), np.full(n_ped, int(ObjectType.PEDESTRIAN))]
-    )
+    vtype = np.where(log.fleet.cyclist[slot], int(ObjectType.CYCLIST), int(ObjectType.VEHICLE))
+    otype = np.concatenate([vtype, np.full(n_ped, int(ObjectType.PEDESTRIAN))])
     seen = valid.any(axis=1)  # objects that never enter the observed area are not tracks
     n_veh, n_ped = int(seen[:n_veh].sum()), int(seen[n_veh:].sum())
     size, xy, heading, vel, valid, otype = (a[seen] for a in (size, xy, heading, vel, valid, otype))
     z = 0.5 * size[..., 2:3]
     xyz = np.concatenate([xy, z], axis=-1)
 
-    sdc = _choose_sdc(xy[:n_veh], valid[:n_veh])
+    motor = otype[:n_veh] == int(ObjectType.VEHICLE)
+    sdc = _choose_sdc(xy[:n_veh], valid[:n_veh] & motor[:, None])
     order = np.concatenate([np.delete(np.arange(n_veh + n_ped), sdc), [sdc]])
     xyz, heading, vel, size, valid, otype = (
         a[order] for a in (xyz, heading, vel, size, valid, otype)
