@@ -20,6 +20,7 @@ from tbsim_env.constants import (
 )
 from tbsim_env.data.generator import LAYOUTS, default_scenarios, generate_scenario
 from tbsim_env.data.generator.roads import build_intersection, signal_states
+from tbsim_env.data.generator.scenes import SDC_MIN_TRAVEL_M
 from tbsim_env.data.scenario import Scenario, wrap_angle_np
 
 SEEDS = (0, 1, 2)
@@ -156,6 +157,11 @@ def test_womd_shape_and_roles(layout: str, seed: int) -> None:
     assert sc.sdc_index == t.num_tracks - 1
     assert t.object_type[sc.sdc_index] == int(ObjectType.VEHICLE)
     assert t.valid[sc.sdc_index, CURRENT_INDEX]
+    # The SDC drives (these scenes all have a vehicle that does), rather than waiting out
+    # the log at a red light.
+    k = sc.sdc_index
+    path = np.linalg.norm(np.diff(t.xyz[k, t.valid[k], :2], axis=0), axis=-1).sum()
+    assert path >= SDC_MIN_TRAVEL_M
     veh = vehicles(sc)
     assert t.valid[veh, CURRENT_INDEX].sum() >= 8
     ttp = sc.tracks_to_predict

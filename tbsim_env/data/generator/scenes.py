@@ -403,14 +403,28 @@ def generate_scenario(
     )
 
 
+SDC_MIN_TRAVEL_M: float = 10.0
+"""The SDC is chosen among vehicles that drive at least this far in the log when there are any
+(an ego car that waits out the whole log at a red light makes a dull default episode)."""
+
+
 def _choose_sdc(xy: np.ndarray, valid: np.ndarray) -> int:
-    """Index of the vehicle to be the SDC: valid at the current step, valid longest, then
-    closest to the map centre at the current step."""
+    """Index of the vehicle to be the SDC: valid at the current step, preferably one that drives
+    ``SDC_MIN_TRAVEL_M`` or more in the log, then valid longest, then closest to the map
+    centre at the current step.
+
+    Args:
+        xy: [V, T, 2] vehicle positions m; valid: [V, T] bool.
+    """
     cur = valid[:, CURRENT_INDEX]
     if not cur.any():
         raise ValueError("no vehicle is valid at the current step; use more vehicles")
+    both = valid[:, 1:] & valid[:, :-1]
+    travel = (np.linalg.norm(np.diff(xy, axis=1), axis=-1) * both).sum(axis=1)
+    moving = cur & (travel >= SDC_MIN_TRAVEL_M)
+    ok = moving if moving.any() else cur
     dist = np.linalg.norm(xy[:, CURRENT_INDEX], axis=-1)
-    score = np.where(cur, valid.sum(axis=1) * 1000.0 - dist, -np.inf)
+    score = np.where(ok, valid.sum(axis=1) * 1000.0 - dist, -np.inf)
     return int(np.argmax(score))
 
 
