@@ -9,6 +9,7 @@ Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a 
 per-scenario field, plus a rollout picture.
 
     python scripts/evaluate_default_npc.py --out docs/model_card [--checkpoint PATH]
+        [--samples 64] [--sets real,generated] [--policies log_replay,trafficbots]
 """
 
 from __future__ import annotations
@@ -57,18 +58,27 @@ def main() -> None:
     p.add_argument("--checkpoint", default=None)
     p.add_argument("--samples", type=int, default=32, help="TrafficBots rollouts sampled (>=32)")
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
+    p.add_argument(
+        "--sets", default="real,generated", help="comma-separated held-out sets: real, generated"
+    )
+    p.add_argument("--policies", default=",".join(POLICIES), help="comma-separated policies")
     args = p.parse_args()
     torch.set_num_threads(1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    sets = {
-        "held-out real WOMD": [load_scenarios(Path(args.data) / f)[0] for f in HELD_OUT_REAL],
-        "held-out generated": [generate_scenario(lay, seed) for lay, seed in HELD_OUT_GENERATED],
-    }
+    wanted = set(args.sets.split(","))
+    policies = [pol for pol in POLICIES if pol in args.policies.split(",")]
+    sets = {}
+    if "real" in wanted:
+        sets["held-out real WOMD"] = [load_scenarios(Path(args.data) / f)[0] for f in HELD_OUT_REAL]
+    if "generated" in wanted:
+        sets["held-out generated"] = [
+            generate_scenario(lay, seed) for lay, seed in HELD_OUT_GENERATED
+        ]
     report, dump = [], {}
     for set_name, scenarios in sets.items():
         per_version: dict[str, dict[str, dict]] = {"wosac2025": {}, "wosac2024": {}}
-        for pol in POLICIES:
+        for pol in policies:
             if pol == "trafficbots":
                 from policies.trafficbots.wosac import trafficbots_rollout_fn
 
