@@ -2,9 +2,10 @@
 
 Several run folders (stages of one run, each resuming the previous) are joined in step order; a
 step logged twice (a segment resumed from an earlier checkpoint) keeps its last value, and a
-dashed line marks where each later stage starts.
+dashed line marks where each later stage starts. ``RUN@N`` shifts a run's steps by N: a
+fine-tuning stage (``tbsim train --init``) counts its steps from 1 again.
 
-python scripts/plot_training.py runs/small_v1 [runs/small_v2 ...] docs/model_card/loss_curve.png
+python scripts/plot_training.py runs/small_v1 [runs/small_v2 runs/small_v3@1030 ...] out.png
 """
 
 from __future__ import annotations
@@ -33,12 +34,16 @@ def smooth(y: np.ndarray, k: int = 5) -> np.ndarray:
     return np.convolve(y, np.ones(k) / k, mode="valid")
 
 
-def load_rows(runs: list[Path]) -> tuple[list[dict], list[int]]:
-    """Rows of all runs by step (later logs of a step win) and the first step of each later run."""
+def load_rows(runs: list[str]) -> tuple[list[dict], list[int]]:
+    """Rows of all runs by step (later logs of a step win) and the first step of each later run.
+
+    A run is a folder, or ``FOLDER@N`` to add N to its steps."""
     by_step: dict[int, dict] = {}
     starts = []
-    for k, run in enumerate(runs):
-        rows = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+    for k, spec in enumerate(runs):
+        folder, _, shift = spec.partition("@")
+        rows = [json.loads(x) for x in (Path(folder) / "metrics.jsonl").read_text().splitlines()]
+        rows = [{**r, "step": r["step"] + int(shift or 0)} for r in rows]
         if k > 0 and rows:
             starts.append(min(r["step"] for r in rows))
         for r in rows:
@@ -47,7 +52,8 @@ def load_rows(runs: list[Path]) -> tuple[list[dict], list[int]]:
 
 
 def main() -> None:
-    *runs, out = (Path(a) for a in sys.argv[1:])
+    *runs, out = sys.argv[1:]
+    out = Path(out)
     rows, starts = load_rows(runs)
     steps = np.array([r["step"] for r in rows])
     fig, axes = plt.subplots(1, len(KEYS), figsize=(4 * len(KEYS), 3.2))
