@@ -10,8 +10,16 @@
 #      three resumed segments that ended when the session's GPU time ran out (step 820, 960,
 #      1030) with --seed 2024, 2025 and 2026; `--steps 1100 --stop-at 1030` keeps that schedule.
 #      The command below runs it in one go with one seed, so its batches differ from ours.
+#   3. CPU again (2 cores, 1 torch thread, a new session without a GPU): a fine-tune of the
+#      stage-2 weights (`--init`, fresh AdamW, lr 2e-4, batch 4, full 91-step rollouts, no
+#      teacher forcing) on scenes of the current generator, whose roads run 60 m past the
+#      observed area and whose urban layouts have cyclists and crossing pedestrians. Steps
+#      1-70 drew from 640 scenes of the generator before the cyclists (seeds 480-1119, commit
+#      424e315) and the real scenes x40; from step 71 on, also 640 scenes with cyclists and
+#      crossing pedestrians (seeds 1120-1759) drawn twice as often, and the real scenes x70.
+#      It stopped at step STOP3 when the session's time for it ran out.
 #
-#   bash scripts/train_default_npc.sh [OUT_DIR] [STAGE]     # STAGE: all (default), 1 or 2
+#   bash scripts/train_default_npc.sh [OUT_DIR] [STAGE]     # STAGE: all (default), 1, 2 or 3
 set -euo pipefail
 W=${TBSIM_WOMD_DIR:-../shared/data/womd}
 OUT=${1:-runs}
@@ -46,5 +54,23 @@ if [[ $STAGE == all || $STAGE == 2 ]]; then
     --cache-shards 0 --log-every 5 --ckpt-every 10 --seed 2024
 fi
 
-python scripts/evaluate_default_npc.py --checkpoint "$OUT/small_v2/last" --samples 64 \
+if [[ $STAGE == all || $STAGE == 3 ]]; then
+  # Seeds 480-1119 were generated before the cyclists (commit 424e315); the generator of this
+  # commit gives them cyclists and crossing pedestrians too, so both caches below hold those.
+  tbsim preprocess generated:intersection,merge,stop_intersection,t_junction:480-1119 \
+    --out "$OUT/cache_gen_v3" --workers 2 --shard-size 64
+  tbsim preprocess generated:intersection,merge,stop_intersection,t_junction:1120-1759 \
+    --out "$OUT/cache_gen_v4" --workers 2 --shard-size 64
+  tbsim preprocess "${REAL[@]}" --out "$OUT/cache_real" --workers 1 --exclude "${HELD_OUT[@]}"
+  tbsim train --data "$OUT/cache_gen_v3,$OUT/cache_real*40" --out "$OUT/small_v3" \
+    --model small --steps 400 --stop-at 70 --batch-size 4 --lr 2e-4 --teacher-forcing-start 0 \
+    --teacher-forcing-end 0 --threads 1 --workers 0 --no-amp --log-every 5 --ckpt-every 10 \
+    --seed 2027 --init "$OUT/small_v2/last"
+  tbsim train --data "$OUT/cache_gen_v4*2,$OUT/cache_gen_v3,$OUT/cache_real*70" \
+    --out "$OUT/small_v3" --model small --steps 400 --stop-at STOP3 --batch-size 4 --lr 2e-4 \
+    --teacher-forcing-start 0 --teacher-forcing-end 0 --threads 1 --workers 0 --no-amp \
+    --log-every 5 --ckpt-every 10 --seed 2028
+fi
+
+python scripts/evaluate_default_npc.py --checkpoint "$OUT/small_v3/last" --samples 64 \
   --out docs/model_card

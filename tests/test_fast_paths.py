@@ -435,3 +435,19 @@ def test_nearest_breaks_ties_by_index_whatever_the_padding(path, monkeypatch) ->
     padded = torch.nn.functional.pad(d, (0, 300), value=float("inf"))
     idx_p, top_p = nearest(padded, None, 16)
     assert torch.equal(idx_p, idx) and torch.equal(top_p, top)
+
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_take_rows_is_batched_advanced_indexing(batch):
+    from tbsim_env.torch_utils import take_rows
+
+    g = torch.Generator().manual_seed(batch)
+    for x in (
+        torch.randn(batch, 7, 4, 5, generator=g),  # rows with trailing dims
+        torch.randn(batch, 7, generator=g),  # scalar rows
+        torch.rand(batch, 7, generator=g) > 0.5,  # bool rows
+    ):
+        for shape in ((batch, 3), (batch, 2, 6)):
+            idx = torch.randint(0, 7, shape, generator=g)
+            b = torch.arange(batch).view((batch,) + (1,) * (len(shape) - 1))
+            assert torch.equal(take_rows(x, idx), x[b, idx])
