@@ -17,7 +17,7 @@
 #      1-70 drew from 640 scenes of the generator before the cyclists (seeds 480-1119, commit
 #      424e315) and the real scenes x40; from step 71 on, also 640 scenes with cyclists and
 #      crossing pedestrians (seeds 1120-1759) drawn twice as often, and the real scenes x70.
-#      It stopped at step STOP3 when the session's time for it ran out.
+#      It stopped at step 250 when the session's time for it ran out.
 #
 #   bash scripts/train_default_npc.sh [OUT_DIR] [STAGE]     # STAGE: all (default), 1, 2 or 3
 set -euo pipefail
@@ -67,7 +67,7 @@ if [[ $STAGE == all || $STAGE == 3 ]]; then
     --teacher-forcing-end 0 --threads 1 --workers 0 --no-amp --log-every 5 --ckpt-every 10 \
     --seed 2027 --init "$OUT/small_v2/last"
   tbsim train --data "$OUT/cache_gen_v4*2,$OUT/cache_gen_v3,$OUT/cache_real*70" \
-    --out "$OUT/small_v3" --model small --steps 400 --stop-at STOP3 --batch-size 4 --lr 2e-4 \
+    --out "$OUT/small_v3" --model small --steps 400 --stop-at 250 --batch-size 4 --lr 2e-4 \
     --teacher-forcing-start 0 --teacher-forcing-end 0 --threads 1 --workers 0 --no-amp \
     --log-every 5 --ckpt-every 10 --seed 2028
 fi
