@@ -38,7 +38,7 @@ from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, const, take_rows
+from tbsim_env.torch_utils import cached_arange, const, gather_rows
 
 NUM_TYPE_FEATURES = 4
 """Type one-hot over (vehicle, pedestrian, cyclist, other)."""
@@ -363,7 +363,7 @@ def observe(
     # Per agent: history, history mask, attributes (static, speed), current pose: [B, N, F].
     widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES, 3]
     agents = torch.cat([hist.flatten(-2), valid, static, state.speed[..., None], state.pose], -1)
-    ego_hist, ego_valid, ego_attrs, me = take_rows(agents, observers).split_with_sizes(widths, -1)
+    ego_hist, ego_valid, ego_attrs, me = gather_rows(agents, observers).split_with_sizes(widths, -1)
     me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
 
     # Nearest agents (other than the observer), map pieces and traffic lights.
@@ -383,11 +383,11 @@ def observe(
     t_idx, t_top = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights)
 
     # The selected rows: [B, Q, K, features + pose].
-    nb_feat, nb_pose = take_rows(agents, a_idx).split_with_sizes([sum(widths[:3]), 3], -1)
-    m_feat, m_pose = take_rows(ctx.tokens, m_idx).split_with_sizes(
+    nb_feat, nb_pose = gather_rows(agents, a_idx).split_with_sizes([sum(widths[:3]), 3], -1)
+    m_feat, m_pose = gather_rows(ctx.tokens, m_idx).split_with_sizes(
         [ctx.tokens.shape[-1] - 3, 3], -1
     )
-    t_feat, t_pose = take_rows(tl_tokens, t_idx).split_with_sizes([C.NUM_TL_STATES, 3], -1)
+    t_feat, t_pose = gather_rows(tl_tokens, t_idx).split_with_sizes([C.NUM_TL_STATES, 3], -1)
     # Poses of all selected tokens relative to the observer, zero where masked.
     sizes = [cfg.num_agents, cfg.num_map, cfg.num_traffic_lights]
     radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]

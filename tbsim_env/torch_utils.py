@@ -70,7 +70,7 @@ def const(value: float | tuple[float, ...], like: torch.Tensor) -> torch.Tensor 
 _ROW_OFFSETS: dict[tuple[int, int, int, torch.device], torch.Tensor] = {}
 
 
-def take_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+def gather_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``x[b, index[b, ...]]`` for every batch row b: ``x`` [B, N, ...], ``index`` [B, ...]
     int64 in [0, N) -> [B, ..., ...] (``index``'s shape, then ``x``'s trailing dims).
 

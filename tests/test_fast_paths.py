@@ -438,8 +438,8 @@ def test_nearest_breaks_ties_by_index_whatever_the_padding(path, monkeypatch) ->
 
 
 @pytest.mark.parametrize("batch", [1, 3])
-def test_take_rows_is_batched_advanced_indexing(batch):
-    from tbsim_env.torch_utils import take_rows
+def test_gather_rows_is_batched_advanced_indexing(batch):
+    from tbsim_env.torch_utils import gather_rows
 
     g = torch.Generator().manual_seed(batch)
     for x in (
@@ -450,4 +450,4 @@ def test_take_rows_is_batched_advanced_indexing(batch):
         for shape in ((batch, 3), (batch, 2, 6)):
             idx = torch.randint(0, 7, shape, generator=g)
             b = torch.arange(batch).view((batch,) + (1,) * (len(shape) - 1))
-            assert torch.equal(take_rows(x, idx), x[b, idx])
+            assert torch.equal(gather_rows(x, idx), x[b, idx])

@@ -21,7 +21,7 @@ from tbsim_env.sim.collision import (
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import EdgeCandidates, box_offroad_distance
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, const, take_rows
+from tbsim_env.torch_utils import cached_arange, const, gather_rows
 
 
 @dataclass(frozen=True)
@@ -181,8 +181,8 @@ def step_metrics(
     """
     if route.near_limit is None:
         route = dataclasses.replace(route, **_query_fields(state, query))
-    pose = take_rows(state.pose, query)
-    present = take_rows(state.valid, query)
+    pose = gather_rows(state.pose, query)
+    present = gather_rows(state.valid, query)
     size = route.size
     x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [B, Q, 1]
     trig = cos_sin(yaw)
