@@ -22,8 +22,9 @@ from policies.trafficbots.encodings import (
     rpe,
     sinusoid_pe,
 )
-from policies.trafficbots.knn import gather_tokens, knn_relative, knn_select
+from policies.trafficbots.knn import knn_relative, knn_select
 from policies.trafficbots.pointnet import PointNet
+from tbsim_env.torch_utils import gather_rows
 
 
 def test_sinusoid_and_angle_encoding_layout() -> None:
@@ -105,12 +106,12 @@ def test_knarpe_equals_dense_attention_when_k_covers_all_tokens() -> None:
     valid[:, 0] = True
     idx, mask, rel = knn_relative(pose, pose, valid, k=n, dist_limit=1e9)
     with torch.no_grad():
-        got = attn(x, gather_tokens(x, idx), rpe(rel, cfg), mask)
+        got = attn(x, gather_rows(x, idx), rpe(rel, cfg), mask)
         ref = _dense_reference(attn, x, pose, valid, cfg)
     assert torch.allclose(got, ref, atol=1e-5)
     # A query whose neighbours are all invalid outputs zeros.
     with torch.no_grad():
-        none = attn(x, gather_tokens(x, idx), rpe(rel, cfg), torch.zeros_like(mask))
+        none = attn(x, gather_rows(x, idx), rpe(rel, cfg), torch.zeros_like(mask))
     assert torch.count_nonzero(none) == 0
 
 

@@ -10,11 +10,12 @@ from torch import nn
 from policies.trafficbots.attention import DecoderLayer
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import pose_encoding, relative_pose, rpe
-from policies.trafficbots.knn import gather_tokens, knn_relative
+from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
 from tbsim_env.constants import ObjectType
+from tbsim_env.torch_utils import gather_rows
 
 N_AGENT_TYPES = 3
 """Type branches of the model: vehicle, pedestrian, cyclist (spec 1.4)."""
@@ -164,7 +165,7 @@ class AgentEncoder(nn.Module):
         t_idx, t_mask, t_rel = knn_relative(
             ag_pose, tl_pose, tl_valid, cfg.ag_tl_knn, cfg.ag_tl_dist
         )
-        ctx = torch.cat([gather_tokens(mp.feat, m_idx), gather_tokens(tl_feat, t_idx)], dim=2)
+        ctx = torch.cat([gather_rows(mp.feat, m_idx), gather_rows(tl_feat, t_idx)], dim=2)
         ctx_mask = torch.cat([m_mask, t_mask], dim=2)  # [B, N, Km + Kt]
         ctx_rpe = rpe(torch.cat([m_rel, t_rel], dim=2), cfg)
         s_rpe = rpe(s_rel, cfg)

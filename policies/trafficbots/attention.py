@@ -9,7 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from policies.trafficbots.knn import gather_tokens
+from tbsim_env.torch_utils import gather_rows
 
 
 class KnarpeAttention(nn.Module):
@@ -124,7 +124,7 @@ class SelfAttentionLayer(nn.Module):
             [B, N, d], zero for invalid tokens.
         """
         h = self.norm1(x)
-        x = x + self.dropout(self.attn(h, gather_tokens(h, idx), rpe, mask))
+        x = x + self.dropout(self.attn(h, gather_rows(h, idx), rpe, mask))
         x = x + self.ffn(self.norm2(x))
         return x * valid[..., None]
 
@@ -174,7 +174,7 @@ class DecoderLayer(nn.Module):
             [B, N, d], zero for invalid tokens.
         """
         h = self.norm_self(x)
-        x = x + self.dropout(self.self_attn(h, gather_tokens(h, self_idx), self_rpe, self_mask))
+        x = x + self.dropout(self.self_attn(h, gather_rows(h, self_idx), self_rpe, self_mask))
         x = x + self.dropout(self.cross_attn(self.norm1(x), self.norm_ctx(ctx), ctx_rpe, ctx_mask))
         x = x + self.ffn(self.norm2(x))
         return x * valid[..., None]

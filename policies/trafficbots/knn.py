@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from policies.trafficbots.encodings import relative_pose
+from tbsim_env.torch_utils import gather_rows
 
 
 @torch.no_grad()
@@ -38,20 +39,6 @@ def knn_select(
     return idx, dist <= dist_limit
 
 
-def gather_tokens(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """Gather rows of ``x`` per query.
-
-    Args:
-        x: [B, T, ...] token tensor.
-        idx: [B, Q, K] int64 rows.
-
-    Returns:
-        [B, Q, K, ...].
-    """
-    b = torch.arange(x.shape[0], device=x.device)[:, None, None]
-    return x[b, idx]
-
-
 def knn_relative(
     query_pose: torch.Tensor,
     target_pose: torch.Tensor,
@@ -72,5 +59,5 @@ def knn_relative(
         (idx [B, Q, K], mask [B, Q, K] bool, rel_pose [B, Q, K, 3]).
     """
     idx, mask = knn_select(query_pose[..., :2], target_pose[..., :2], target_valid, k, dist_limit)
-    rel = relative_pose(query_pose[:, :, None, :], gather_tokens(target_pose, idx))
+    rel = relative_pose(query_pose[:, :, None, :], gather_rows(target_pose, idx))
     return idx, mask, rel

@@ -27,6 +27,7 @@ from tbsim_env.config import TokenConfig
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import gather_rows
 
 
 @dataclass(frozen=True)
@@ -55,12 +56,6 @@ def _match(keys: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     """Row of ``table`` [B, S] equal to each of ``keys`` [B, K] (-1 when absent or key < 0)."""
     eq = (keys[:, :, None] == table[:, None, :]) & (keys[:, :, None] >= 0)
     return torch.where(eq.any(-1), eq.long().argmax(-1), -1)
-
-
-def _take(x: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
-    """x [B, S, ...] at rows [B, K] (rows < 0 read row 0; mask them yourself)."""
-    b = torch.arange(x.shape[0], device=x.device)[:, None]
-    return x[b, rows.clamp(min=0)]
 
 
 class TrafficBotsPolicy:
@@ -151,10 +146,11 @@ class TrafficBotsPolicy:
         """Actions [B, N, 2] for every agent slot (zero for slots the model does not drive)."""
         del generator  # z and destinations were drawn in ``initial_state``.
         ps = policy_state
-        pose = _take(state.pose, ps.slot).clone()
+        rows = ps.slot.clamp(min=0)  # -1 (no slot) reads row 0, masked by ``valid``
+        pose = gather_rows(state.pose, rows)  # a new tensor: safe to shift in place
         pose[..., :2] += ps.offset[:, None]
-        valid = _take(state.valid, ps.slot) & (ps.slot >= 0)
-        speed = _take(state.speed, ps.slot) * valid
+        valid = gather_rows(state.valid, rows) & (ps.slot >= 0)
+        speed = gather_rows(state.speed, rows) * valid
         tl = self._log_signals(state, ps.tl_signal, state.step, ps.tl_pred)
         out, rollout = self.model.step(
             ps.ctx, ps.rollout, pose * valid[..., None], speed, valid, tl

@@ -17,11 +17,12 @@ from torch import nn
 from policies.trafficbots.attention import DecoderLayer
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import rpe
-from policies.trafficbots.knn import gather_tokens, knn_relative
+from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
 from tbsim_env.constants import NUM_TL_STATES
+from tbsim_env.torch_utils import gather_rows
 
 
 def _rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -93,7 +94,7 @@ def tl_context(
         self_idx=s_idx,
         self_mask=s_mask,
         self_rpe=rpe(s_rel, cfg),
-        map_feat=gather_tokens(mp.feat, m_idx),
+        map_feat=gather_rows(mp.feat, m_idx),
         map_mask=m_mask,
         map_rpe=rpe(m_rel, cfg),
     )

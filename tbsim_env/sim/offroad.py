@@ -14,7 +14,7 @@ import torch
 
 from tbsim_env.sim.collision import box_corner_xy, box_corners
 from tbsim_env.sim.state import RoadEdges
-from tbsim_env.torch_utils import const
+from tbsim_env.torch_utils import const, gather_rows
 
 NO_EDGE_DISTANCE = -1.0e10
 """Distance reported when a scenario has no road edge (always on-road)."""
@@ -80,17 +80,17 @@ def _candidate_geometry(edges: RoadEdges, index: torch.Tensor) -> dict[str, torc
     Made with the operations of ``point_segment_distance`` and ``_signed_and_unsigned`` on the
     same values, so distances and signs from the cache are bit-identical to theirs.
     """
-    start = _gather_segments(edges.start, index)
-    direction = _gather_segments(edges.end, index) - start
+    start = gather_rows(edges.start, index)
+    direction = gather_rows(edges.end, index) - start
     length2 = (direction * direction).sum(-1)
     length2 = torch.where(length2 > 0, length2.clamp_min(1e-12), float("inf"))
     seg = torch.cat([start, direction, length2[..., None]], -1)  # [B, K, C, 5]
-    prev = _gather_segments(edges.prev_index, index)
-    nxt = _gather_segments(edges.next_index, index)
-    prev_start = _gather_segments(edges.start, prev)
-    prev_dir = _gather_segments(edges.end, prev) - prev_start
-    next_start = _gather_segments(edges.start, nxt)
-    next_dir = _gather_segments(edges.end, nxt) - next_start
+    prev = gather_rows(edges.prev_index, index)
+    nxt = gather_rows(edges.next_index, index)
+    prev_start = gather_rows(edges.start, prev)
+    prev_dir = gather_rows(edges.end, prev) - prev_start
+    next_start = gather_rows(edges.start, nxt)
+    next_dir = gather_rows(edges.end, nxt) - next_start
     flags = torch.stack(
         [
             _cross(prev_dir, direction) > 0,
@@ -103,7 +103,7 @@ def _candidate_geometry(edges: RoadEdges, index: torch.Tensor) -> dict[str, torc
     starts = torch.stack([start, prev_start, next_start], -1).flatten(-2)  # x x x y y y
     dirs = torch.stack([direction, prev_dir, next_dir], -1).flatten(-2)
     sides = torch.cat([starts, dirs, flags], -1)  # [B, K, C, 16]
-    valid = _gather_segments(edges.valid, index)
+    valid = gather_rows(edges.valid, index)
     return {
         "segments": seg.permute(0, 1, 3, 2)[:, :, :, None].contiguous(),
         "invalid": ~valid[:, :, None],
@@ -114,22 +114,6 @@ def _candidate_geometry(edges: RoadEdges, index: torch.Tensor) -> dict[str, torc
 
 def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-
-
-def _take(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """x: [B, E, ...], idx: [B, K] -> [B, K, ...]."""
-    if x.dim() == 2:
-        return x.gather(1, idx)
-    return x.gather(1, idx[..., None].expand(-1, -1, x.shape[-1]))
-
-
-def _gather_segments(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
-    """x: [B, E, ...], index: [B, K, C] -> [B, K, C, ...]."""
-    b, k, c = index.shape
-    flat = index.reshape(b, k * c)
-    if x.dim() == 2:
-        return x.gather(1, flat).view(b, k, c)
-    return x.gather(1, flat[..., None].expand(-1, -1, x.shape[-1])).view(b, k, c, x.shape[-1])
 
 
 def point_segment_distance(
@@ -148,9 +132,9 @@ def point_segment_distance(
     if segment_index is None:
         a, b, valid = edges.start[:, None], edges.end[:, None], edges.valid[:, None]
     else:
-        a = _gather_segments(edges.start, segment_index)
-        b = _gather_segments(edges.end, segment_index)
-        valid = _gather_segments(edges.valid, segment_index)
+        a = gather_rows(edges.start, segment_index)
+        b = gather_rows(edges.end, segment_index)
+        valid = gather_rows(edges.valid, segment_index)
     ab = b - a
     q = points[:, :, None]
     len2 = (ab * ab).sum(-1)
@@ -190,13 +174,13 @@ def _signed_and_unsigned(
     best = local[..., 0] if segment_index is None else segment_index.gather(2, local)[..., 0]
 
     def side(seg: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        sa = _take(edges.start, seg)
-        sab = _take(edges.end, seg) - sa
+        sa = gather_rows(edges.start, seg)
+        sab = gather_rows(edges.end, seg) - sa
         return torch.sign(_cross(points - sa, sab)), sab
 
     n, dir_this = side(best)
-    prev = _take(edges.prev_index, best)
-    nxt = _take(edges.next_index, best)
+    prev = gather_rows(edges.prev_index, best)
+    nxt = gather_rows(edges.next_index, best)
     n_prev, dir_prev = side(prev)
     n_next, dir_next = side(nxt)
     convex_prev = _cross(dir_prev, dir_this) > 0
