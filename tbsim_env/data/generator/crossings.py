@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from tbsim_env.data.generator.geometry import arc_length
 from tbsim_env.data.generator.roads import RoadNetwork, SignalPlan
 from tbsim_env.data.generator.routes import RouteTable
 
@@ -261,7 +262,8 @@ def plan_crossings(
             for m in range(-2, 3)
         ]
         t_on, ph_on = min((t, ph) for t, ph in onsets if t >= -7.0)
-        served = [c for c in order if ph_on in _walk_phases(net)[c]]
+        walk = _walk_phases(net)
+        served = [c for c in order if ph_on in walk[c]]
         order = served + [c for c in order if c not in served]
         arrive = np.where(
             np.isin(order, served), t_on + rng.uniform(-5.0, 1.5, len(order)), arrive + 1.0
@@ -291,8 +293,7 @@ def plan_crossings(
         kerb[i] = x.kerb
         far_edge = extent[c, 1] if sd < 0 else extent[c, 0]
         s_clear[i] = x.kerb + far_edge + 0.7  # relative to the kerb point for now
-    seg = np.linalg.norm(np.diff(path, axis=1), axis=-1)
-    path_s = np.concatenate([np.zeros((n, 1)), np.cumsum(seg, axis=1)], axis=1)
+    path_s = arc_length(path)
     s_wait = path_s[:, 2]
     s0 = s_wait - speed * (arrive[:n] + warmup_s)
     return CrossingPlan(

@@ -35,6 +35,7 @@ Units: metres, seconds, m/s, m/s^2.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -225,8 +226,7 @@ def draw_fleet(
     width = np.where(truck, rng.uniform(2.4, 2.55, n), width)
     height = np.where(truck, rng.uniform(3.0, 3.8, n), height)
 
-    def trait(r: tuple[float, float], sign: float) -> np.ndarray:
-        return _trait(r, sign, pers, rng)
+    trait = functools.partial(_trait, pers=pers, rng=rng)
 
     heavy = np.where(truck, 0.6, 1.0)
     return Fleet(

@@ -9,16 +9,16 @@ LANE_POINT_SPACING = 0.5
 
 
 def arc_length(points: np.ndarray) -> np.ndarray:
-    """Cumulative arc length of a polyline.
+    """Cumulative arc length of a polyline (or of a batch of them).
 
     Args:
-        points: [n, 2] polyline in metres.
+        points: [..., n, 2] polylines in metres.
 
     Returns:
-        [n] float64, 0 at the first point.
+        [..., n] float64, 0 at the first point.
     """
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    return np.concatenate([[0.0], np.cumsum(seg)])
+    seg = np.linalg.norm(np.diff(points, axis=-2), axis=-1)
+    return np.concatenate([np.zeros(seg.shape[:-1] + (1,)), np.cumsum(seg, axis=-1)], axis=-1)
 
 
 def resample(points: np.ndarray, spacing: float = LANE_POINT_SPACING) -> np.ndarray:
