@@ -24,6 +24,7 @@ import torch
 from tbsim_env.data import load_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env import parallel_env as pe
+from tbsim_env.env import transition as tr
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 
@@ -51,13 +52,14 @@ def bench_env(scenarios, episodes: int) -> tuple[float, float, int]:
 def timed_parts(totals: dict[str, float]):
     """Accumulate the seconds ``TrafficEnv`` spends in each part of a step into ``totals``.
 
-    Wraps the functions ``tbsim_env.env.parallel_env`` calls (restored on exit); what is not
-    in a part is the env's own Python glue (dicts, numpy conversion, infos).
+    Wraps the functions ``TrafficEnv.step`` calls (in ``tbsim_env.env.transition`` and
+    ``parallel_env``; restored on exit); what is not in a part is the env's own Python glue
+    (dicts, numpy conversion, infos).
     """
     parts = {
-        "core.step": (pe.core, "step"),
-        "step_metrics": (pe, "step_metrics"),
-        "reward": (pe, "reward_and_termination"),
+        "core.step": (tr.core, "step"),
+        "step_metrics": (tr, "step_metrics"),
+        "reward": (tr, "reward_and_termination"),
         "push_history": (pe, "push_history"),
         "observe": (pe, "observe"),
     }

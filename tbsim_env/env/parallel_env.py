@@ -32,7 +32,8 @@ from tbsim_env import constants as C
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, step_metrics
-from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
+from tbsim_env.env.rewards import RewardOutcome
+from tbsim_env.env.transition import Controllers, transition
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     History,
@@ -45,7 +46,6 @@ from tbsim_env.observation import (
     observe,
     push_history,
 )
-from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.offroad import EdgeCandidates
@@ -313,6 +313,13 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self._npc = npc
         self.state_ = state.replace(controlled=external | npc)
         self._has_npc = bool(npc.any())
+        self._controllers = Controllers(
+            external=external,
+            npc=npc,
+            policy=self.npc_policy,
+            query=self._ext_slots,
+            has_npc=self._has_npc,
+        )
         self._policy_state = (
             self.npc_policy.initial_state(self.state_, [sc], self._generator)
             if self._has_npc
@@ -387,29 +394,25 @@ class TrafficEnv(ParallelEnv, EzPickle):
         if not self.agents:
             raise RuntimeError("the episode is over: call reset()")
         ext_action = self._action_tensor(actions)
-        if self._has_npc:
-            npc_action, self._policy_state = self.npc_policy.act(
-                self.state_, self._policy_state, self._generator
-            )
-            action = core.merge_actions((self._npc, npc_action), (self._external, ext_action))
-        else:
-            action = ext_action
-        state = core.step(self.state_, action)
-        metrics, self._edge_cache = step_metrics(
-            state, self._ext_slots, self._route, self._edge_cache
-        )
         live_before = list(self.agents)
-        outcome = reward_and_termination(
-            metrics,
+        tr = transition(
+            self.state_,
+            ext_action,
+            self._controllers,
+            self._policy_state,
+            self._generator,
+            self._route,
+            self._edge_cache,
             self._progress,
             self._goal_reached,
             self._has_goal,
-            self.config.reward,
-            self.config.termination,
+            self.config,
         )
+        metrics, outcome = tr.metrics, tr.outcome
+        self._policy_state, self._edge_cache = tr.policy_state, tr.candidates
         self._progress = outcome.progress_best
-        self._goal_reached = self._goal_reached | outcome.goal_now
-        self.state_ = state
+        self._goal_reached = tr.goal_reached
+        state = self.state_ = tr.state
         columns, reward_l, term_l = self._info_columns(metrics, outcome)
         truncated_all = columns["step"][0] >= self._end
         rewards, terms, truncs, infos = {}, {}, {}, {}
@@ -419,11 +422,6 @@ class TrafficEnv(ParallelEnv, EzPickle):
             terms[name] = term_l[j]
             truncs[name] = truncated_all and not term_l[j]
             infos[name] = {k: v[j] for k, v in columns.items()}
-        if self.config.remove_terminated and any(terms.values()):
-            remove = torch.zeros_like(state.valid)
-            remove[0, self._ext_slots[0][outcome.terminated[0]]] = True
-            state = state.replace(valid=state.valid & ~remove)
-        self.state_ = state
         self._history = push_history(self._history, state)
         # Removing terminated agents leaves every pose as step_metrics saw it.
         obs = self._observations(live_before, metrics.agent_distance)

@@ -48,7 +48,7 @@ from tbsim_env.env.parallel_env import (
     controlled_indices,
     resolve_scenarios,
 )
-from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
+from tbsim_env.env.transition import Controllers, transition
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     History,
@@ -60,7 +60,6 @@ from tbsim_env.observation import (
     observe,
     push_history,
 )
-from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.geometry import to_local
@@ -508,34 +507,28 @@ class BatchedTrafficEnv:
         ext_action = torch.zeros(*self._state.pose.shape[:2], 2, device=self.device)
         bi, qi = active.nonzero(as_tuple=True)
         ext_action[bi, self._ext[bi, qi]] = act[bi, qi]
-        if self._has_npc:
-            npc_action, self._policy_state = self.npc_policy.act(
-                self._state, self._policy_state, self._generator
-            )
-            action = core.merge_actions((self._npc, npc_action), (self._external, ext_action))
-        else:
-            action = ext_action
-        state = core.step(self._state, action)
-        metrics, self._cand = step_metrics(state, self._ext, self._route, self._cand)
-        out = reward_and_termination(
-            metrics,
+        tr = transition(
+            self._state,
+            ext_action,
+            self._controllers(),
+            self._policy_state,
+            self._generator,
+            self._route,
+            self._cand,
             self._progress,
             self._goal_reached,
             self._has_goal,
-            self.config.reward,
-            self.config.termination,
+            self.config,
+            active=active,
         )
+        state, out = tr.state, tr.outcome
+        self._policy_state, self._cand = tr.policy_state, tr.candidates
         self._progress = out.progress_best
-        self._goal_reached = self._goal_reached | out.goal_now
+        self._goal_reached = tr.goal_reached
         reward = out.reward * active
         term = out.terminated & active
         trunc_slot = state.step >= self._end  # [B]
         trunc = active & trunc_slot[:, None] & ~term
-        if self.config.remove_terminated and bool(term.any()):
-            remove = torch.zeros_like(state.valid)
-            ti, tq = term.nonzero(as_tuple=True)
-            remove[ti, self._ext[ti, tq]] = True
-            state = state.replace(valid=state.valid & ~remove)
         self._state = state
         self._history = push_history(self._history, state)
         self.agent_mask = active & ~term & ~trunc
@@ -543,7 +536,7 @@ class BatchedTrafficEnv:
         self._ep_length += 1
         obs = self._observe(mask=active)
         done = ~self.agent_mask.any(-1)  # [B]
-        infos = self._infos(metrics)
+        infos = self._infos(tr.metrics)
         infos["active"] = active
         infos["done"] = done
         infos["episode_return"] = self._ep_return.clone()
@@ -560,6 +553,16 @@ class BatchedTrafficEnv:
         return obs, reward, term, trunc, infos
 
     # ------------------------------------------------------------------ helpers
+    def _controllers(self) -> Controllers:
+        """The controller assignment now (slots change it when they restart)."""
+        return Controllers(
+            external=self._external,
+            npc=self._npc,
+            policy=self.npc_policy,
+            query=self._ext,
+            has_npc=self._has_npc,
+        )
+
     def _observe(
         self, rows: torch.Tensor | None = None, mask: torch.Tensor | None = None
     ) -> dict[str, torch.Tensor]:
@@ -643,9 +646,7 @@ class BatchedTrafficEnv:
 __all__ = [
     "ROUTE_KEY",
     "BatchedTrafficEnv",
-    "RewardOutcome",
     "put_rows",
-    "reward_and_termination",
     "route_features",
     "take_rows",
 ]

@@ -1,0 +1,125 @@
+"""One environment transition, shared by ``TrafficEnv`` and ``BatchedTrafficEnv``.
+
+The order of a step is defined here once: NPC actions, merge with the external actions,
+dynamics and log replay (``core.step``), per-agent metrics of the externally controlled agents,
+rewards and terminations, then (when the config asks for it) terminated agents leave the
+scene. The envs add only what their API needs around it (action parsing, dicts or tensors,
+episode bookkeeping, observations).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from policies.base import Policy
+from tbsim_env.config import EnvConfig
+from tbsim_env.env.agent_metrics import Route, StepMetrics, step_metrics
+from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
+from tbsim_env.sim import core
+from tbsim_env.sim.offroad import EdgeCandidates
+from tbsim_env.sim.state import SimState
+
+
+@dataclass(frozen=True)
+class Controllers:
+    """Who drives which agent slot in a batch of scenarios.
+
+    Attributes:
+        external: [B, N] bool, slots driven by the caller's actions.
+        npc: [B, N] bool, slots driven by ``policy`` (empty when it replays the log exactly).
+        policy: the NPC policy.
+        query: [B, Q] int64, slots of the externally controlled agents (metrics, rewards).
+        has_npc: ``npc`` is not empty (the policy acts every step).
+    """
+
+    external: torch.Tensor
+    npc: torch.Tensor
+    policy: Policy
+    query: torch.Tensor
+    has_npc: bool
+
+
+@dataclass(frozen=True)
+class Transition:
+    """Result of ``transition``.
+
+    Attributes:
+        state: the next state (terminated agents removed when the config says so).
+        metrics: ``step_metrics`` of the query agents in the next state (before removal).
+        outcome: rewards and terminations of the query agents.
+        goal_reached: [B, Q] bool, reached before or at this step.
+        policy_state: the NPC policy's state after acting (``policy_state`` without NPCs).
+        candidates: road-edge candidates to pass to the next step.
+    """
+
+    state: SimState
+    metrics: StepMetrics
+    outcome: RewardOutcome
+    goal_reached: torch.Tensor
+    policy_state: Any
+    candidates: EdgeCandidates
+
+
+def transition(
+    state: SimState,
+    ext_action: torch.Tensor,
+    ctrl: Controllers,
+    policy_state: Any,
+    generator: torch.Generator,
+    route: Route,
+    candidates: EdgeCandidates | None,
+    progress: torch.Tensor,
+    goal_reached: torch.Tensor,
+    has_goal: torch.Tensor,
+    config: EnvConfig,
+    active: torch.Tensor | None = None,
+) -> Transition:
+    """Advance a batch of scenarios by one step.
+
+    Args:
+        state: current state.
+        ext_action: [B, N, 2] actions of the external slots (others are not read).
+        ctrl: the controller assignment.
+        policy_state: the NPC policy's state (not read without NPCs).
+        generator: random stream of stochastic policies.
+        route: logged routes of the query agents.
+        candidates: road-edge candidates of the previous step (None: built here).
+        progress: [B, Q] m, best progress along the route so far.
+        goal_reached: [B, Q] bool, the goal was reached before this step.
+        has_goal: [B, Q] bool, the route is longer than the goal radius.
+        config: rewards, terminations and whether terminated agents leave.
+        active: optional [B, Q] bool, the query agents whose termination removes them (e.g.
+            not the padding of a batch); all by default.
+    """
+    if ctrl.has_npc:
+        npc_action, policy_state = ctrl.policy.act(state, policy_state, generator)
+        action = core.merge_actions((ctrl.npc, npc_action), (ctrl.external, ext_action))
+    else:
+        action = ext_action
+    state = core.step(state, action)
+    metrics, candidates = step_metrics(state, ctrl.query, route, candidates)
+    outcome = reward_and_termination(
+        metrics, progress, goal_reached, has_goal, config.reward, config.termination
+    )
+    leaving = outcome.terminated if active is None else outcome.terminated & active
+    if config.remove_terminated and bool(leaving.any()):
+        state = remove_agents(state, ctrl.query, leaving)
+    return Transition(
+        state=state,
+        metrics=metrics,
+        outcome=outcome,
+        goal_reached=goal_reached | outcome.goal_now,
+        policy_state=policy_state,
+        candidates=candidates,
+    )
+
+
+def remove_agents(state: SimState, query: torch.Tensor, remove: torch.Tensor) -> SimState:
+    """``state`` without the query agents flagged in ``remove`` [B, Q] (they leave for good)."""
+    gone = torch.zeros_like(state.valid)
+    b_idx, q_idx = remove.nonzero(as_tuple=True)
+    gone[b_idx, query[b_idx, q_idx]] = True
+    return state.replace(valid=state.valid & ~gone)
