@@ -9,7 +9,10 @@ Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a 
 per-scenario field, plus a rollout picture.
 
     python scripts/evaluate_default_npc.py --out docs/model_card [--checkpoint PATH]
-        [--samples 64] [--sets real,generated] [--policies log_replay,trafficbots]
+        [--samples 64] [--sets real,generated] [--policies log_replay,trafficbots] [--keep]
+
+With ``--keep``, the sets and policies not evaluated in this run keep their results from the
+``results.json`` already in ``--out`` (e.g. re-evaluate a new checkpoint, keep the baselines).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import torch
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import LAYOUTS, generate_scenario
 from tbsim_env.evaluation import make_rollout_fn, scenario_seed
-from tbsim_env.metrics.wosac import aggregate, score_scenario, scores_to_json
+from tbsim_env.metrics.wosac import score_scenario, scores_to_json
 
 HELD_OUT_REAL = (
     "waymo-open-dataset/motion_data_one_scenario.tfrecord",
@@ -62,6 +65,11 @@ def main() -> None:
         "--sets", default="real,generated", help="comma-separated held-out sets: real, generated"
     )
     p.add_argument("--policies", default=",".join(POLICIES), help="comma-separated policies")
+    p.add_argument(
+        "--keep",
+        action="store_true",
+        help="keep the results of other sets / policies from OUT/results.json",
+    )
     args = p.parse_args()
     torch.set_num_threads(1)
     out = Path(args.out)
@@ -75,9 +83,10 @@ def main() -> None:
         sets["held-out generated"] = [
             generate_scenario(lay, seed) for lay, seed in HELD_OUT_GENERATED
         ]
-    report, dump = [], {}
+    dump = {}
+    if args.keep and (out / "results.json").exists():
+        dump = json.loads((out / "results.json").read_text())
     for set_name, scenarios in sets.items():
-        per_version: dict[str, dict[str, dict]] = {"wosac2025": {}, "wosac2024": {}}
         for pol in policies:
             if pol == "trafficbots":
                 from policies.trafficbots.wosac import trafficbots_rollout_fn
@@ -96,10 +105,21 @@ def main() -> None:
                     flush=True,
                 )
             for v in scores:
-                per_version[v][pol] = aggregate(scores[v]).__dict__
                 dump[f"{set_name}/{pol}/{v}"] = scores_to_json(scores[v])
-        report.append(f"### {set_name} ({', '.join(s.scenario_id for s in scenarios)})\n")
-        for v, rows in per_version.items():
+    report = []
+    for set_name in dict.fromkeys(k.split("/")[0] for k in dump):
+        ids = next(
+            [s["scenario_id"] for s in d["scenarios"]]
+            for k, d in dump.items()
+            if k.startswith(set_name + "/")
+        )
+        report.append(f"### {set_name} ({', '.join(ids)})\n")
+        for v in ("wosac2025", "wosac2024"):
+            rows = {
+                pol: dump[f"{set_name}/{pol}/{v}"]["mean"]
+                for pol in POLICIES
+                if f"{set_name}/{pol}/{v}" in dump
+            }
             report.append(table(rows, v) + "\n")
     text = "\n".join(report)
     print(text)
