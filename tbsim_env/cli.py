@@ -219,6 +219,14 @@ def _cmd_train(args: argparse.Namespace) -> int:
     return train_main(args.args)
 
 
+def _cmd_average(args: argparse.Namespace) -> int:
+    from policies.trafficbots.checkpoint import average_checkpoints
+
+    w_path, _ = average_checkpoints(args.checkpoints, args.out)
+    print(f"wrote the mean of {len(args.checkpoints)} checkpoints to {w_path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="tbsim", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -295,6 +303,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     t.add_argument("args", nargs=argparse.REMAINDER)
     t.set_defaults(func=_cmd_train)
+
+    a = sub.add_parser(
+        "average",
+        help="average the weights of TrafficBots checkpoints of one run (one config)",
+    )
+    a.add_argument("checkpoints", nargs="+", help="checkpoint base paths (2 or more)")
+    a.add_argument("--out", required=True, help="base path of the averaged checkpoint")
+    a.set_defaults(func=_cmd_average)
     return p
 
 

@@ -16,6 +16,7 @@ from policies.trafficbots import (
     TokenBatch,
     TrafficBots,
     TrafficBotsConfig,
+    average_checkpoints,
     load_checkpoint,
     load_state_into,
     rollout,
@@ -96,3 +97,34 @@ def test_bad_or_missing_files_fail(saved, tmp_path) -> None:
     (tmp_path / "junk.safetensors").write_bytes(b"not a safetensors file")
     with pytest.raises(CheckpointError, match="cannot read weights"):
         load_state_into(TrafficBots(TrafficBotsConfig.small()), tmp_path / "junk")
+
+
+def test_average_of_checkpoints_is_the_elementwise_mean(saved, tmp_path) -> None:
+    model, base, _, _ = saved
+    torch.manual_seed(1)
+    other = TrafficBots(TrafficBotsConfig.small())
+    save_checkpoint(other, tmp_path / "other")
+    w_path, _ = average_checkpoints([base, tmp_path / "other"], tmp_path / "mean")
+    mean = load_checkpoint(w_path)
+    assert mean.cfg == model.cfg
+    a, b, m = model.state_dict(), other.state_dict(), mean.state_dict()
+    assert any(not torch.equal(a[k], b[k]) for k in a if a[k].is_floating_point())
+    for key in a:
+        torch.testing.assert_close(m[key], (a[key] + b[key]) / 2, rtol=0, atol=1e-7)
+    # The CLI writes the same file.
+    from tbsim_env.cli import main
+
+    argv = ["average", str(base), str(tmp_path / "other"), "--out", str(tmp_path / "cli")]
+    assert main(argv) == 0
+    cli = load_checkpoint(tmp_path / "cli").state_dict()
+    assert all(torch.equal(cli[k], m[k]) for k in m)
+
+
+def test_average_rejects_one_checkpoint_and_mixed_configs(saved, tmp_path) -> None:
+    _, base, _, _ = saved
+    with pytest.raises(CheckpointError, match="two or more"):
+        average_checkpoints([base], tmp_path / "mean")
+    cfg = TrafficBotsConfig.small().to_dict() | {"dropout": 0.0}
+    save_checkpoint(TrafficBots(TrafficBotsConfig.from_dict(cfg)), tmp_path / "other")
+    with pytest.raises(CheckpointError, match="dropout"):
+        average_checkpoints([base, tmp_path / "other"], tmp_path / "mean")

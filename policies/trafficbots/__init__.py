@@ -1,7 +1,12 @@
 """TrafficBots V1.5 re-implementation: network, closed-loop rollout, losses, checkpoints."""
 
 from policies.trafficbots.batch import TokenBatch
-from policies.trafficbots.checkpoint import load_checkpoint, load_state_into, save_checkpoint
+from policies.trafficbots.checkpoint import (
+    average_checkpoints,
+    load_checkpoint,
+    load_state_into,
+    save_checkpoint,
+)
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.inference import RolloutSamples, sample_rollouts
 from policies.trafficbots.losses import LossConfig, training_step
@@ -18,6 +23,7 @@ __all__ = [
     "TrafficBots",
     "TrafficBotsConfig",
     "Trajectory",
+    "average_checkpoints",
     "load_checkpoint",
     "load_state_into",
     "rollout",

@@ -126,3 +126,42 @@ def load_checkpoint(
     model = TrafficBots(config)
     load_state_into(model, path)
     return model.to(map_location).eval()
+
+
+def average_checkpoints(paths: list[str | Path], out: str | Path) -> tuple[Path, Path]:
+    """Write the element-wise mean of the weights of several checkpoints of one config.
+
+    Averaging checkpoints of one training run (stochastic weight averaging) evens out the
+    noise of small-batch updates between them.
+
+    Args:
+        paths: base paths of two or more checkpoints (same config).
+        out: base path of the averaged checkpoint.
+
+    Returns:
+        (weights path, config path) written.
+
+    Raises:
+        CheckpointError: fewer than two checkpoints, an unreadable or mismatched one, configs
+            that differ, or non-float tensors (buffers) that differ between checkpoints.
+    """
+    if len(paths) < 2:
+        raise CheckpointError(f"averaging needs two or more checkpoints, got {len(paths)}")
+    models = [load_checkpoint(p) for p in paths]
+    first = models[0].cfg.to_dict()
+    for p, m in zip(paths[1:], models[1:], strict=True):
+        if m.cfg.to_dict() != first:
+            diff = sorted(k for k, v in m.cfg.to_dict().items() if first.get(k) != v)
+            raise CheckpointError(f"{p}: config differs from {paths[0]} in {diff}")
+    states = [m.state_dict() for m in models]
+    mean = {}
+    for key, ref in states[0].items():
+        if ref.is_floating_point():
+            mean[key] = torch.stack([s[key] for s in states]).mean(0)
+        elif all(torch.equal(s[key], ref) for s in states[1:]):
+            mean[key] = ref
+        else:
+            raise CheckpointError(f"non-float tensor {key!r} differs between the checkpoints")
+    model = models[0]
+    model.load_state_dict(mean)
+    return save_checkpoint(model, out)
