@@ -12,7 +12,8 @@ per-scenario field, plus a rollout picture.
         [--samples 64] [--sets real,generated] [--policies log_replay,trafficbots] [--keep]
 
 With ``--keep``, the sets and policies not evaluated in this run keep their results from the
-``results.json`` already in ``--out`` (e.g. re-evaluate a new checkpoint, keep the baselines).
+``results.json`` already in ``--out`` (e.g. re-evaluate a new checkpoint, keep the baselines);
+``--sets '' --keep`` only rewrites ``results.md`` from it.
 """
 
 from __future__ import annotations
