@@ -307,22 +307,15 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self._slot_of = {n: j for j, n in enumerate(self._ext_names)}
         external = torch.zeros_like(state.controlled)
         external[0, ext] = True
-        self._external = external
         exact = getattr(self.npc_policy, "exact_replay", False)
         npc = torch.zeros_like(external) if exact else state.agents.mask & ~external
-        self._npc = npc
         self.state_ = state.replace(controlled=external | npc)
-        self._has_npc = bool(npc.any())
-        self._controllers = Controllers(
-            external=external,
-            npc=npc,
-            policy=self.npc_policy,
-            query=self._ext_slots,
-            has_npc=self._has_npc,
+        self._ctrl = Controllers(
+            external=external, npc=npc, policy=self.npc_policy, has_npc=bool(npc.any())
         )
         self._policy_state = (
             self.npc_policy.initial_state(self.state_, [sc], self._generator)
-            if self._has_npc
+            if self._ctrl.has_npc
             else None
         )
         if k not in self._route_cache:
@@ -398,7 +391,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
         tr = transition(
             self.state_,
             ext_action,
-            self._controllers,
+            self._ctrl,
+            self._ext_slots,
             self._policy_state,
             self._generator,
             self._route,
@@ -525,8 +519,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
             self._renderer = (self._scenario_index, layer)
         state = self.sim_state
         groups = np.full(state.num_agents, int(AgentGroup.LOG_REPLAY), np.int64)
-        groups[self._npc[0].cpu().numpy()] = int(AgentGroup.POLICY)
-        groups[self._external[0].cpu().numpy()] = int(AgentGroup.EXTERNAL)
+        groups[self._ctrl.npc[0].cpu().numpy()] = int(AgentGroup.POLICY)
+        groups[self._ctrl.external[0].cpu().numpy()] = int(AgentGroup.EXTERNAL)
         return render_state(self._renderer[1], state, 0, groups)
 
     def close(self) -> None:

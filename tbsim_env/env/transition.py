@@ -31,14 +31,12 @@ class Controllers:
         external: [B, N] bool, slots driven by the caller's actions.
         npc: [B, N] bool, slots driven by ``policy`` (empty when it replays the log exactly).
         policy: the NPC policy.
-        query: [B, Q] int64, slots of the externally controlled agents (metrics, rewards).
         has_npc: ``npc`` is not empty (the policy acts every step).
     """
 
     external: torch.Tensor
     npc: torch.Tensor
     policy: Policy
-    query: torch.Tensor
     has_npc: bool
 
 
@@ -67,6 +65,7 @@ def transition(
     state: SimState,
     ext_action: torch.Tensor,
     ctrl: Controllers,
+    query: torch.Tensor,
     policy_state: Any,
     generator: torch.Generator,
     route: Route,
@@ -83,6 +82,7 @@ def transition(
         state: current state.
         ext_action: [B, N, 2] actions of the external slots (others are not read).
         ctrl: the controller assignment.
+        query: [B, Q] int64, slots of the externally controlled agents (metrics, rewards).
         policy_state: the NPC policy's state (not read without NPCs).
         generator: random stream of stochastic policies.
         route: logged routes of the query agents.
@@ -100,13 +100,13 @@ def transition(
     else:
         action = ext_action
     state = core.step(state, action)
-    metrics, candidates = step_metrics(state, ctrl.query, route, candidates)
+    metrics, candidates = step_metrics(state, query, route, candidates)
     outcome = reward_and_termination(
         metrics, progress, goal_reached, has_goal, config.reward, config.termination
     )
     leaving = outcome.terminated if active is None else outcome.terminated & active
     if config.remove_terminated and bool(leaving.any()):
-        state = remove_agents(state, ctrl.query, leaving)
+        state = remove_agents(state, query, leaving)
     return Transition(
         state=state,
         metrics=metrics,

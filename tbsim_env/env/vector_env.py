@@ -391,14 +391,19 @@ class BatchedTrafficEnv:
         self._route: Route = take_rows(bank.route, ks)
         self._has_goal = bank.has_goal[ks].clone()
         self._static = bank.static[ks].clone()
-        self._external = bank.external[ks].clone()
-        self._npc = bank.npc[ks].clone()
-        self._has_npc = bool(self._npc.any())
+        npc = bank.npc[ks].clone()
+        # Restarting slots update external / npc in place; has_npc only ever turns on.
+        self._ctrl = Controllers(
+            external=bank.external[ks].clone(),
+            npc=npc,
+            policy=self.npc_policy,
+            has_npc=bool(npc.any()),
+        )
         self._policy_state: PolicyState = (
             self.npc_policy.initial_state(
                 self._state, [self.scenarios[int(k)] for k in ks], self._generator
             )
-            if self._has_npc
+            if self._ctrl.has_npc
             else None
         )
         self._history: History = init_history(self._state, self.obs_config.history)
@@ -425,13 +430,13 @@ class BatchedTrafficEnv:
         put_rows(self._route, rows, take_rows(bank.route, ks))
         self._has_goal[rows] = bank.has_goal[ks]
         self._static[rows] = bank.static[ks]
-        self._external[rows] = bank.external[ks]
-        self._npc[rows] = bank.npc[ks]
+        self._ctrl.external[rows] = bank.external[ks]
+        self._ctrl.npc[rows] = bank.npc[ks]
         sub = take_rows(self._state, rows)
-        if self._has_npc or bool(bank.npc[ks].any()):
-            if not self._has_npc:
+        if self._ctrl.has_npc or bool(bank.npc[ks].any()):
+            if not self._ctrl.has_npc:
                 # No slot had NPCs so far: start the policy on the whole batch.
-                self._has_npc = True
+                self._ctrl = dataclasses.replace(self._ctrl, has_npc=True)
                 self._policy_state = self.npc_policy.initial_state(
                     self._state,
                     [self.scenarios[int(k)] for k in self.scenario_index],
@@ -510,7 +515,8 @@ class BatchedTrafficEnv:
         tr = transition(
             self._state,
             ext_action,
-            self._controllers(),
+            self._ctrl,
+            self._ext,
             self._policy_state,
             self._generator,
             self._route,
@@ -553,16 +559,6 @@ class BatchedTrafficEnv:
         return obs, reward, term, trunc, infos
 
     # ------------------------------------------------------------------ helpers
-    def _controllers(self) -> Controllers:
-        """The controller assignment now (slots change it when they restart)."""
-        return Controllers(
-            external=self._external,
-            npc=self._npc,
-            policy=self.npc_policy,
-            query=self._ext,
-            has_npc=self._has_npc,
-        )
-
     def _observe(
         self, rows: torch.Tensor | None = None, mask: torch.Tensor | None = None
     ) -> dict[str, torch.Tensor]:
