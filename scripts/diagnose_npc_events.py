@@ -1,8 +1,9 @@
 """Where do the shipped NPC's off-road and collision events happen? (docs/MODEL_CARD.md)
 
 Samples TrafficBots rollouts on one generated scene and prints, per evaluated object, its logged
-turn, its off-road and collision rates over the rollouts, and where the first off-road step of
-a rollout lies (layout frame: the junction is at the origin) next to the logged position.
+turn, its off-road and collision rates over the rollouts, where the first off-road step of a
+rollout lies (layout frame: the junction is at the origin) next to the logged position, and
+whom the object hits first in the first rollout where it collides.
 
     python scripts/diagnose_npc_events.py intersection 10000 [--rollouts 16] [--checkpoint P]
 """
@@ -15,8 +16,24 @@ import numpy as np
 import torch
 
 from policies.trafficbots.wosac import trafficbots_rollout_fn
+from tbsim_env import constants as C
 from tbsim_env.data.generator import frame_offset, generate_scenario
 from tbsim_env.metrics.wosac import scenario_features
+from tbsim_env.metrics.wosac.features_interactive import rectangle_signed_distance
+from tbsim_env.metrics.wosac.trajectories import ObjectTrajectories
+
+
+def collision_partner(sim: ObjectTrajectories, r: int, e: int, t: int) -> tuple[int, float]:
+    """(index, signed distance m) of the object whose box is deepest into object ``e``'s box
+    in rollout ``r`` at step ``t`` (2-D boxes; -1 and inf when no other object is valid)."""
+    centre = torch.stack([sim.x[r, :, t], sim.y[r, :, t]], -1)  # [N, 2]
+    half = torch.stack([sim.length, sim.width], -1) * 0.5
+    heading = sim.heading[r, :, t]
+    d = rectangle_signed_distance(centre[e], heading[e], half[e], centre, heading, half)
+    d = torch.where(sim.valid[r, :, t], d, torch.full_like(d, float("inf")))
+    d[e] = float("inf")
+    j = int(d.argmin())
+    return (j, float(d[j])) if torch.isfinite(d[j]) else (-1, float("inf"))
 
 
 def main() -> None:
@@ -62,6 +79,16 @@ def main() -> None:
                 f"({float(s[0]) - dx:.1f}, {float(s[1]) - dy:.1f}), log "
                 f"({float(lg[0]) - dx:.1f}, {float(lg[1]) - dy:.1f}), "
                 f"{float(feats.distance_to_road_edge[r, e, k]):.2f} m past the edge"
+            )
+        hits = [r for r in range(coll.shape[0]) if coll[r, e].any()]
+        if hits:
+            r = hits[0]
+            k = int(coll[r, e].int().argmax())
+            j, depth = collision_partner(sim, r, e, first + k)
+            kind = C.ObjectType(int(sim.object_type[j])).name.lower() if j >= 0 else "none"
+            line += (
+                f"; rollout {r} collides at step {first + k} with object "
+                f"{int(obj.object_id[j]) if j >= 0 else -1} ({kind}, {depth:.2f} m)"
             )
         print(line)
 

@@ -1,0 +1,60 @@
+"""The helpers of the diagnostic scripts in scripts/ that the model card's findings rest on."""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+
+import torch
+
+from tbsim_env import constants as C
+from tbsim_env.metrics.wosac.trajectories import ObjectTrajectories
+from tests.conftest import REPO
+
+
+def _script(name: str):
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _boxes(xy: list[tuple[float, float]], heading: list[float], valid: list[bool]):
+    """One rollout, one step, a 4.0 x 2.0 m box per object."""
+    n = len(xy)
+    x = torch.tensor([[[p[0]] for p in xy]])
+    y = torch.tensor([[[p[1]] for p in xy]])
+    return ObjectTrajectories(
+        x=x,
+        y=y,
+        z=torch.zeros_like(x),
+        heading=torch.tensor(heading).view(1, n, 1),
+        valid=torch.tensor(valid).view(1, n, 1),
+        length=torch.full((n,), 4.0),
+        width=torch.full((n,), 2.0),
+        height=torch.full((n,), 1.5),
+        object_type=torch.full((n,), int(C.ObjectType.VEHICLE)),
+        num_eval=n,
+    )
+
+
+def test_collision_partner_is_the_deepest_overlap_among_valid_objects():
+    partner = _script("diagnose_npc_events").collision_partner
+    # Object 0 at the origin; 1 overlaps by 0.5 m along x; 2 overlaps deeper but is invalid;
+    # 3 is rotated and overlaps by 0.2 m; 4 is far away.
+    sim = _boxes(
+        [(0.0, 0.0), (3.5, 0.0), (1.0, 0.0), (0.0, 2.8), (50.0, 0.0)],
+        [0.0, 0.0, 0.0, math.pi / 2, 0.0],
+        [True, True, False, True, True],
+    )
+    j, depth = partner(sim, 0, 0, 0)
+    assert j == 1 and abs(depth + 0.5) < 1e-5
+    # Seen from object 3, the nearest box is object 0 (0.2 m deep), not object 1 (apart).
+    j, depth = partner(sim, 0, 3, 0)
+    assert j == 0 and abs(depth + 0.2) < 1e-5
+
+
+def test_collision_partner_without_other_valid_objects():
+    partner = _script("diagnose_npc_events").collision_partner
+    sim = _boxes([(0.0, 0.0), (1.0, 0.0)], [0.0, 0.0], [True, False])
+    assert partner(sim, 0, 0, 0) == (-1, float("inf"))
