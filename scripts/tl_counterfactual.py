@@ -1,11 +1,13 @@
-"""Does the NPC policy obey the traffic lights it sees? (docs/MODEL_CARD.md, red lights)
+"""Does the NPC policy obey the traffic lights it sees? (docs/MODEL_CARD.md, yielding)
 
 Runs ``TrafficEnv`` with TrafficBots NPCs (the SDC follows its log) on one generated scene three
 times: with the logged lights, with every valid light forced to STOP and with every valid light
 forced to GO, and prints how far the vehicles travel (mean over ``--seeds`` episodes). A policy
-that ignores the lights gives the same figures in all three rows.
+that ignores the lights gives the same figures in all three rows. ``--tracks`` also prints the
+distance of each of those tracks in every episode.
 
     python scripts/tl_counterfactual.py intersection 10000 [--seeds 3] [--checkpoint P]
+        [--tracks 320,326]
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ def main() -> None:
     p.add_argument("seed", type=int)
     p.add_argument("--seeds", type=int, default=3, help="episodes (policy seeds) per variant")
     p.add_argument("--checkpoint", default=None)
+    p.add_argument("--tracks", default="", help="comma-separated track ids to list per episode")
     args = p.parse_args()
     torch.set_num_threads(1)
     sc = generate_scenario(args.layout, args.seed)
@@ -65,12 +68,23 @@ def main() -> None:
         f"| the log itself | {logged.mean():.1f} | {np.median(logged):.1f} | "
         f"{np.mean(logged < 2.0):.2f} |"
     )
+    tracks = [int(x) for x in args.tracks.split(",") if x]
+    unknown = [x for x in tracks if x not in set(t.id.tolist())]
+    if unknown:
+        p.error(f"tracks {unknown} are not in {args.layout} {args.seed}")
     variants = (("as logged", None), ("all STOP", C.SignalState.STOP), ("all GO", C.SignalState.GO))
+    per_track = []
     for name, state in variants:
         runs = [travel(with_lights(sc, state), k, args.checkpoint) for k in range(args.seeds)]
         assert len(runs[0]) == len(vehicle), "agent slots are the scenario's tracks"
         d = np.mean(runs, axis=0)[vehicle & ok[:, 0]]
         print(f"| {name} | {d.mean():.1f} | {np.median(d):.1f} | {np.mean(d < 2.0):.2f} |")
+        per_track.append((name, runs))
+    for tid in tracks:
+        row = int(np.flatnonzero(t.id == tid)[0])
+        print(f"\ntrack {tid}, metres per episode:")
+        for name, runs in per_track:
+            print(f"  {name}: " + ", ".join(f"{r[row]:.1f}" for r in runs))
 
 
 if __name__ == "__main__":
