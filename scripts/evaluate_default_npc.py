@@ -3,7 +3,8 @@
 Held-out sets (never in the training cache, see scripts/train_default_npc.sh):
   * real WOMD: 637f20cafde22ff8 (motion_data_one_scenario.tfrecord) and db4edc9bd0c9d18c
     (gpudrive/tfrecord-00000-of-01000_4.json);
-  * generated: seeds 10000-10007, two of each layout (training used seeds 0-479).
+  * generated: seeds 10000-10007, two of each layout (the shipped weights trained on seeds
+    0-1759).
 
 Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a JSON of every
 per-scenario field, plus a rollout picture.
