@@ -5,6 +5,9 @@ Held-out sets (never in the training cache, see scripts/train_default_npc.sh):
     (gpudrive/tfrecord-00000-of-01000_4.json);
   * generated: seeds 10000-10007, two of each layout (the shipped weights trained on seeds
     0-1759).
+A third set, ``validation`` (generated seeds 20000-20007, two of each layout, also never
+trained on), is for choosing between checkpoints, so that the held-out sets stay untouched by
+that choice.
 
 Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a JSON of every
 per-scenario field, plus a rollout picture.
@@ -36,6 +39,7 @@ HELD_OUT_REAL = (
     "gpudrive/tfrecord-00000-of-01000_4.json",
 )
 HELD_OUT_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 10000 + s) for s in range(8))
+VALIDATION_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 20000 + s) for s in range(8))
 POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
 COLUMNS = (
     ("realism_meta_metric", "meta"),
@@ -64,7 +68,9 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=32, help="TrafficBots rollouts sampled (>=32)")
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument(
-        "--sets", default="real,generated", help="comma-separated held-out sets: real, generated"
+        "--sets",
+        default="real,generated",
+        help="comma-separated sets: real, generated (held out), validation (for choosing)",
     )
     p.add_argument("--policies", default=",".join(POLICIES), help="comma-separated policies")
     p.add_argument(
@@ -76,7 +82,9 @@ def main() -> None:
     torch.set_num_threads(1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    wanted = set(args.sets.split(","))
+    wanted = set(args.sets.split(",")) - {""}
+    if wanted - {"real", "generated", "validation"}:
+        p.error(f"unknown sets {sorted(wanted - {'real', 'generated', 'validation'})}")
     policies = [pol for pol in POLICIES if pol in args.policies.split(",")]
     sets = {}
     if "real" in wanted:
@@ -84,6 +92,10 @@ def main() -> None:
     if "generated" in wanted:
         sets["held-out generated"] = [
             generate_scenario(lay, seed) for lay, seed in HELD_OUT_GENERATED
+        ]
+    if "validation" in wanted:
+        sets["validation generated"] = [
+            generate_scenario(lay, seed) for lay, seed in VALIDATION_GENERATED
         ]
     dump = {}
     if args.keep and (out / "results.json").exists():
