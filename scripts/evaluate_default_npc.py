@@ -40,6 +40,7 @@ HELD_OUT_REAL = (
 )
 HELD_OUT_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 10000 + s) for s in range(8))
 VALIDATION_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 20000 + s) for s in range(8))
+SETS = ("real", "generated", "validation")
 POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
 COLUMNS = (
     ("realism_meta_metric", "meta"),
@@ -83,8 +84,8 @@ def main() -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     wanted = set(args.sets.split(",")) - {""}
-    if wanted - {"real", "generated", "validation"}:
-        p.error(f"unknown sets {sorted(wanted - {'real', 'generated', 'validation'})}")
+    if wanted - set(SETS):
+        p.error(f"unknown sets {sorted(wanted - set(SETS))}; choose from {', '.join(SETS)}")
     policies = [pol for pol in POLICIES if pol in args.policies.split(",")]
     sets = {}
     if "real" in wanted:
