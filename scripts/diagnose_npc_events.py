@@ -36,6 +36,16 @@ def collision_partner(sim: ObjectTrajectories, r: int, e: int, t: int) -> tuple[
     return (j, float(d[j])) if torch.isfinite(d[j]) else (-1, float("inf"))
 
 
+def first_event(flags: torch.Tensor) -> tuple[int, int] | None:
+    """(rollout, future step) of the first event in the first rollout that has one, from
+    ``flags`` [R, T] bool; None without any."""
+    rows = flags.any(-1).nonzero()
+    if rows.numel() == 0:
+        return None
+    r = int(rows[0, 0])
+    return r, int(flags[r].int().argmax())
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("layout")
@@ -63,33 +73,30 @@ def main() -> None:
             f"off-road {off[:, e].any(-1).float().mean():.2f}, "
             f"collision {coll[:, e].any(-1).float().mean():.2f}"
         )
-        hits = [r for r in range(off.shape[0]) if off[r, e].any()]
-        if hits:
-            r = hits[0]
-            k = int(off[r, e].int().argmax())
-            s, lg = (
-                (sim.x[r, e, first + k], sim.y[r, e, first + k]),
-                (
-                    log.x[0, e, first + k],
-                    log.y[0, e, first + k],
-                ),
-            )
+        hit = first_event(off[:, e])
+        if hit is not None:
+            r, k = hit
             line += (
                 f"; rollout {r} leaves the road at step {first + k}: sim "
-                f"({float(s[0]) - dx:.1f}, {float(s[1]) - dy:.1f}), log "
-                f"({float(lg[0]) - dx:.1f}, {float(lg[1]) - dy:.1f}), "
+                f"({float(sim.x[r, e, first + k]) - dx:.1f}, "
+                f"{float(sim.y[r, e, first + k]) - dy:.1f}), log "
+                f"({float(log.x[0, e, first + k]) - dx:.1f}, "
+                f"{float(log.y[0, e, first + k]) - dy:.1f}), "
                 f"{float(feats.distance_to_road_edge[r, e, k]):.2f} m past the edge"
             )
-        hits = [r for r in range(coll.shape[0]) if coll[r, e].any()]
-        if hits:
-            r = hits[0]
-            k = int(coll[r, e].int().argmax())
+        hit = first_event(coll[:, e])
+        if hit is not None:
+            r, k = hit
             j, depth = collision_partner(sim, r, e, first + k)
-            kind = C.ObjectType(int(sim.object_type[j])).name.lower() if j >= 0 else "none"
-            line += (
-                f"; rollout {r} collides at step {first + k} with object "
-                f"{int(obj.object_id[j]) if j >= 0 else -1} ({kind}, {depth:.2f} m)"
+            whom = (
+                "no valid box"
+                if j < 0
+                else (
+                    f"object {int(obj.object_id[j])} "
+                    f"({C.ObjectType(int(sim.object_type[j])).name.lower()}, {depth:.2f} m)"
+                )
             )
+            line += f"; rollout {r} collides at step {first + k} with {whom}"
         print(line)
 
 

@@ -69,7 +69,7 @@ def main() -> None:
         f"{np.mean(logged < 2.0):.2f} |"
     )
     tracks = [int(x) for x in args.tracks.split(",") if x]
-    unknown = [x for x in tracks if x not in set(t.id.tolist())]
+    unknown = sorted(set(tracks) - set(t.id.tolist()))
     if unknown:
         p.error(f"tracks {unknown} are not in {args.layout} {args.seed}")
     variants = (("as logged", None), ("all STOP", C.SignalState.STOP), ("all GO", C.SignalState.GO))

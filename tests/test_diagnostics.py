@@ -58,3 +58,11 @@ def test_collision_partner_without_other_valid_objects():
     partner = _script("diagnose_npc_events").collision_partner
     sim = _boxes([(0.0, 0.0), (1.0, 0.0)], [0.0, 0.0], [True, False])
     assert partner(sim, 0, 0, 0) == (-1, float("inf"))
+
+
+def test_first_event_is_the_first_step_of_the_first_rollout_with_one():
+    first_event = _script("diagnose_npc_events").first_event
+    flags = torch.zeros(3, 5, dtype=torch.bool)
+    assert first_event(flags) is None
+    flags[2, 1] = flags[1, 4] = flags[1, 3] = True
+    assert first_event(flags) == (1, 3)
