@@ -4,10 +4,13 @@ Runs ``TrafficEnv`` with TrafficBots NPCs (the SDC follows its log) on one gener
 times: with the logged lights, with every valid light forced to STOP and with every valid light
 forced to GO, and prints how far the vehicles travel (mean over ``--seeds`` episodes). A policy
 that ignores the lights gives the same figures in all three rows. ``--tracks`` also prints the
-distance of each of those tracks in every episode.
+distance of each of those tracks in every episode and the first step at which it overlaps
+another agent. ``--replay`` makes those tracks follow their logs too (like the SDC), which
+tells a follower's fault from its leader's: does 320 still run into 326 when 326 stands where
+its log stands?
 
     python scripts/tl_counterfactual.py intersection 10000 [--seeds 3] [--checkpoint P]
-        [--tracks 320,326]
+        [--tracks 320,326] [--replay 326]
 """
 
 from __future__ import annotations
@@ -19,9 +22,11 @@ import numpy as np
 import torch
 
 from tbsim_env import constants as C
+from tbsim_env.config import EnvConfig, TerminationConfig
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env import TrafficEnv
+from tbsim_env.sim.collision import collided
 
 
 def with_lights(sc: Scenario, state: C.SignalState | None) -> Scenario:
@@ -33,18 +38,43 @@ def with_lights(sc: Scenario, state: C.SignalState | None) -> Scenario:
     return dataclasses.replace(sc, signals=dataclasses.replace(s, state=forced))
 
 
-def travel(sc: Scenario, seed: int, checkpoint: str | None) -> np.ndarray:
-    """[N] metres each agent slot drives in one episode (the SDC follows its log)."""
-    env = TrafficEnv([sc], controlled="sdc", npc_policy="trafficbots", npc_checkpoint=checkpoint)
+_NO_TERMINATION = EnvConfig(
+    termination=TerminationConfig(collision=False, offroad=False, goal=False)
+)
+"""The log followers run to the end of the episode whatever happens to them."""
+
+
+def first_true(flags: torch.Tensor) -> torch.Tensor:
+    """[N] int64 index of the first True of each column of ``flags`` [T, N] bool, -1 if none."""
+    first = flags.int().argmax(0)
+    return torch.where(flags.any(0), first, torch.full_like(first, -1))
+
+
+def travel(
+    sc: Scenario, seed: int, checkpoint: str | None, replay: tuple[int, ...] = ()
+) -> tuple[np.ndarray, np.ndarray]:
+    """One episode: ([N] metres each agent slot drives, [N] episode step of its first overlap
+    with another agent, -1 if none). The SDC and the ``replay`` tracks follow their logs."""
+    controlled = [sc.sdc_id, *[r for r in replay if r != sc.sdc_id]]
+    env = TrafficEnv(
+        [sc],
+        controlled=controlled,
+        npc_policy="trafficbots",
+        npc_checkpoint=checkpoint,
+        config=_NO_TERMINATION,
+    )
     env.reset(seed=seed)
     prev = env.sim_state.pose[0, :, :2].clone()
     total = torch.zeros(prev.shape[0])
+    hits = []
     while env.agents:
         env.step(env.expert_actions())
-        cur = env.sim_state.pose[0, :, :2].clone()
-        total += torch.linalg.vector_norm(cur - prev, dim=-1) * env.sim_state.valid[0]
+        s = env.sim_state
+        cur = s.pose[0, :, :2].clone()
+        total += torch.linalg.vector_norm(cur - prev, dim=-1) * s.valid[0]
+        hits.append(collided(s.pose, s.agents.size[..., :2], s.valid)[0])
         prev = cur
-    return total.numpy()
+    return total.numpy(), first_true(torch.stack(hits)).numpy()
 
 
 def main() -> None:
@@ -54,6 +84,7 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=3, help="episodes (policy seeds) per variant")
     p.add_argument("--checkpoint", default=None)
     p.add_argument("--tracks", default="", help="comma-separated track ids to list per episode")
+    p.add_argument("--replay", default="", help="comma-separated track ids that follow their log")
     args = p.parse_args()
     torch.set_num_threads(1)
     sc = generate_scenario(args.layout, args.seed)
@@ -69,22 +100,26 @@ def main() -> None:
         f"{np.mean(logged < 2.0):.2f} |"
     )
     tracks = [int(x) for x in args.tracks.split(",") if x]
-    unknown = sorted(set(tracks) - set(t.id.tolist()))
+    replay = tuple(int(x) for x in args.replay.split(",") if x)
+    unknown = sorted(set(tracks + list(replay)) - set(t.id.tolist()))
     if unknown:
         p.error(f"tracks {unknown} are not in {args.layout} {args.seed}")
     variants = (("as logged", None), ("all STOP", C.SignalState.STOP), ("all GO", C.SignalState.GO))
     per_track = []
     for name, state in variants:
-        runs = [travel(with_lights(sc, state), k, args.checkpoint) for k in range(args.seeds)]
-        assert len(runs[0]) == len(vehicle), "agent slots are the scenario's tracks"
-        d = np.mean(runs, axis=0)[vehicle & ok[:, 0]]
+        runs = [
+            travel(with_lights(sc, state), k, args.checkpoint, replay) for k in range(args.seeds)
+        ]
+        assert len(runs[0][0]) == len(vehicle), "agent slots are the scenario's tracks"
+        d = np.mean([r[0] for r in runs], axis=0)[vehicle & ok[:, 0]]
         print(f"| {name} | {d.mean():.1f} | {np.median(d):.1f} | {np.mean(d < 2.0):.2f} |")
         per_track.append((name, runs))
     for tid in tracks:
         row = int(np.flatnonzero(t.id == tid)[0])
-        print(f"\ntrack {tid}, metres per episode:")
+        print(f"\ntrack {tid}, metres per episode (steps until it first overlaps another agent):")
         for name, runs in per_track:
-            print(f"  {name}: " + ", ".join(f"{r[row]:.1f}" for r in runs))
+            cells = (f"{d[row]:.1f} ({hit[row] + 1 if hit[row] >= 0 else '-'})" for d, hit in runs)
+            print(f"  {name}: " + ", ".join(cells))
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import math
 
+import numpy as np
 import torch
 
 from tbsim_env import constants as C
@@ -66,3 +67,23 @@ def test_first_event_is_the_first_step_of_the_first_rollout_with_one():
     assert first_event(flags) is None
     flags[2, 1] = flags[1, 4] = flags[1, 3] = True
     assert first_event(flags) == (1, 3)
+
+
+def test_first_true_per_column_and_minus_one_without_any():
+    first_true = _script("tl_counterfactual").first_true
+    flags = torch.zeros(4, 3, dtype=torch.bool)
+    flags[2, 0] = flags[3, 0] = flags[0, 2] = True
+    assert first_true(flags).tolist() == [2, -1, 0]
+
+
+def test_replayed_leader_stands_and_counts_as_controlled():
+    """``travel`` with a replayed track: it follows its log (the scene's standing vehicle stays
+    within centimetres) and the episode runs to the end whatever it meets."""
+    cf = _script("tl_counterfactual")
+    sc = cf.generate_scenario("intersection", 10000)
+    slot = list(sc.tracks.id).index(326)
+    t0 = sc.current_index
+    logged = np.linalg.norm(np.diff(sc.tracks.xyz[slot, t0:, :2], axis=0), axis=-1).sum()
+    dist, hits = cf.travel(sc, 0, None, replay=(326,))
+    assert dist.shape == hits.shape == (len(sc.tracks.id),)
+    assert abs(dist[slot] - logged) < 0.05
