@@ -14,6 +14,7 @@ per-scenario field, plus a rollout picture.
 
     python scripts/evaluate_default_npc.py --out docs/model_card [--checkpoint PATH]
         [--samples 64] [--sets real,generated] [--policies log_replay,trafficbots] [--keep]
+        [--workers 2]
 
 With ``--keep``, the sets and policies not evaluated in this run keep their results from the
 ``results.json`` already in ``--out`` (e.g. re-evaluate a new checkpoint, keep the baselines);
@@ -23,8 +24,12 @@ With ``--keep``, the sets and policies not evaluated in this run keep their resu
 from __future__ import annotations
 
 import argparse
+import functools
 import json
+import multiprocessing as mp
 import os
+from concurrent.futures import ProcessPoolExecutor
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -53,6 +58,25 @@ COLUMNS = (
 )
 
 
+VERSIONS = ("wosac2025", "wosac2024")
+
+
+@functools.cache
+def rollout_fn(policy: str, checkpoint: str | None, samples: int):
+    """The ``(scenario, num_rollouts, seed) -> Rollouts`` of ``policy``, built once per process."""
+    if policy == "trafficbots":
+        from policies.trafficbots.wosac import trafficbots_rollout_fn
+
+        return trafficbots_rollout_fn(checkpoint=checkpoint, num_samples=samples)
+    return make_rollout_fn(policy)
+
+
+def score_scene(policy: str, checkpoint: str | None, samples: int, sc) -> dict:
+    """{version: ``ScenarioScore``} of 32 rollouts of ``policy`` on ``sc``, seeded by its id."""
+    r = rollout_fn(policy, checkpoint, samples)(sc, 32, scenario_seed(0, sc.scenario_id))
+    return {v: score_scenario(sc, r, v) for v in VERSIONS}
+
+
 def table(rows: dict[str, dict], version: str) -> str:
     head = "| policy | " + " | ".join(c[1] for c in COLUMNS) + " |"
     sep = "|---" * (len(COLUMNS) + 1) + "|"
@@ -79,11 +103,19 @@ def main() -> None:
         action="store_true",
         help="keep the results of other sets / policies from OUT/results.json",
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes scoring scenes in parallel, 1 thread each",
+    )
     args = p.parse_args()
     torch.set_num_threads(1)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     wanted = set(args.sets.split(",")) - {""}
+    if args.workers < 1:
+        p.error(f"--workers must be at least 1, got {args.workers}")
     if wanted - set(SETS):
         p.error(f"unknown sets {sorted(wanted - set(SETS))}; choose from {', '.join(SETS)}")
     policies = [pol for pol in POLICIES if pol in args.policies.split(",")]
@@ -101,26 +133,30 @@ def main() -> None:
     dump = {}
     if args.keep and (out / "results.json").exists():
         dump = json.loads((out / "results.json").read_text())
+    pool = (
+        ProcessPoolExecutor(args.workers, mp.get_context("spawn"), torch.set_num_threads, (1,))
+        if args.workers > 1
+        else None
+    )
     for set_name, scenarios in sets.items():
         for pol in policies:
-            if pol == "trafficbots":
-                from policies.trafficbots.wosac import trafficbots_rollout_fn
-
-                fn = trafficbots_rollout_fn(checkpoint=args.checkpoint, num_samples=args.samples)
-            else:
-                fn = make_rollout_fn(pol)
-            scores = {"wosac2025": [], "wosac2024": []}
-            for sc in scenarios:
-                r = fn(sc, 32, scenario_seed(0, sc.scenario_id))
-                for v in scores:
-                    scores[v].append(score_scenario(sc, r, v))
+            job = partial(score_scene, pol, args.checkpoint, args.samples)
+            # In scene order either way; each scene's seed comes from its id, so the scores do
+            # not depend on the number of workers.
+            results = pool.map(job, scenarios) if pool else map(job, scenarios)
+            scores = {v: [] for v in VERSIONS}
+            for sc, per_version in zip(scenarios, results):
+                for v in VERSIONS:
+                    scores[v].append(per_version[v])
                 print(
                     f"{set_name} {pol} {sc.scenario_id}: "
-                    f"{scores['wosac2025'][-1].realism_meta_metric:.4f}",
+                    f"{per_version['wosac2025'].realism_meta_metric:.4f}",
                     flush=True,
                 )
             for v in scores:
                 dump[f"{set_name}/{pol}/{v}"] = scores_to_json(scores[v])
+    if pool:
+        pool.shutdown()
     report = []
     for set_name in dict.fromkeys(k.split("/")[0] for k in dump):
         ids = next(
@@ -129,7 +165,7 @@ def main() -> None:
             if k.startswith(set_name + "/")
         )
         report.append(f"### {set_name} ({', '.join(ids)})\n")
-        for v in ("wosac2025", "wosac2024"):
+        for v in VERSIONS:
             rows = {
                 pol: dump[f"{set_name}/{pol}/{v}"]["mean"]
                 for pol in POLICIES

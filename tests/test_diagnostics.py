@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import torch
@@ -87,3 +90,20 @@ def test_replayed_leader_stands_and_counts_as_controlled():
     dist, hits = cf.travel(sc, 0, None, replay=(326,))
     assert dist.shape == hits.shape == (len(sc.tracks.id),)
     assert abs(dist[slot] - logged) < 0.05
+
+
+def test_evaluation_scores_do_not_depend_on_the_number_of_workers(tmp_path):
+    """``evaluate_default_npc.py --workers 2`` scores scenes in spawned processes and writes the
+    same results, in the same scene order, as one process (each scene's seed comes from its
+    id)."""
+    out = {}
+    for workers in (1, 2):
+        out[workers] = tmp_path / f"w{workers}"
+        cmd = [sys.executable, str(REPO / "scripts" / "evaluate_default_npc.py"), "--sets"]
+        cmd += ["validation", "--policies", "constant_velocity", "--out", str(out[workers])]
+        subprocess.run(cmd + ["--workers", str(workers)], check=True, capture_output=True)
+    one, two = ((out[w] / "results.json").read_text() for w in (1, 2))
+    assert one == two
+    scenes = json.loads(one)["validation generated/constant_velocity/wosac2025"]["scenarios"]
+    expected = _script("evaluate_default_npc").VALIDATION_GENERATED
+    assert [s["scenario_id"] for s in scenes] == [f"gen-{lay}-{seed}" for lay, seed in expected]
