@@ -5,9 +5,10 @@ Held-out sets (never in the training cache, see scripts/train_default_npc.sh):
     (gpudrive/tfrecord-00000-of-01000_4.json);
   * generated: seeds 10000-10007, two of each layout (the shipped weights trained on seeds
     0-1759).
-A third set, ``validation`` (generated seeds 20000-20007, two of each layout, also never
+A third set, ``validation`` (generated seeds 20000-20023, six of each layout, also never
 trained on), is for choosing between checkpoints, so that the held-out sets stay untouched by
-that choice.
+that choice. (Until session 6 it was seeds 20000-20007: eight scenes, about 40 scored agents,
+which could not separate checkpoints a few points apart.)
 
 Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a JSON of every
 per-scenario field, plus a rollout picture.
@@ -44,7 +45,7 @@ HELD_OUT_REAL = (
     "gpudrive/tfrecord-00000-of-01000_4.json",
 )
 HELD_OUT_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 10000 + s) for s in range(8))
-VALIDATION_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 20000 + s) for s in range(8))
+VALIDATION_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 20000 + s) for s in range(24))
 SETS = ("real", "generated", "validation")
 POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
 COLUMNS = (

@@ -53,8 +53,9 @@ def first_true(flags: torch.Tensor) -> torch.Tensor:
 def travel(
     sc: Scenario, seed: int, checkpoint: str | None, replay: tuple[int, ...] = ()
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One episode: ([N] metres each agent slot drives, [N] episode step of its first overlap
-    with another agent, -1 if none). The SDC and the ``replay`` tracks follow their logs."""
+    """One episode: ([N] metres each agent slot drives, [N] index of the step (0: the first) after
+    which it first overlaps another agent, -1 if never). The SDC and the ``replay`` tracks
+    follow their logs."""
     controlled = [sc.sdc_id, *[r for r in replay if r != sc.sdc_id]]
     env = TrafficEnv(
         [sc],
@@ -118,7 +119,7 @@ def main() -> None:
         row = int(np.flatnonzero(t.id == tid)[0])
         print(f"\ntrack {tid}, metres per episode (steps until it first overlaps another agent):")
         for name, runs in per_track:
-            cells = (f"{d[row]:.1f} ({hit[row] + 1 if hit[row] >= 0 else '-'})" for d, hit in runs)
+            cells = (f"{m[row]:.1f} ({h[row] + 1 if h[row] >= 0 else '-'})" for m, h in runs)
             print(f"  {name}: " + ", ".join(cells))
 
 

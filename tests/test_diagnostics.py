@@ -100,10 +100,10 @@ def test_evaluation_scores_do_not_depend_on_the_number_of_workers(tmp_path):
     for workers in (1, 2):
         out[workers] = tmp_path / f"w{workers}"
         cmd = [sys.executable, str(REPO / "scripts" / "evaluate_default_npc.py"), "--sets"]
-        cmd += ["validation", "--policies", "constant_velocity", "--out", str(out[workers])]
+        cmd += ["generated", "--policies", "constant_velocity", "--out", str(out[workers])]
         subprocess.run(cmd + ["--workers", str(workers)], check=True, capture_output=True)
     one, two = ((out[w] / "results.json").read_text() for w in (1, 2))
     assert one == two
-    scenes = json.loads(one)["validation generated/constant_velocity/wosac2025"]["scenarios"]
-    expected = _script("evaluate_default_npc").VALIDATION_GENERATED
+    scenes = json.loads(one)["held-out generated/constant_velocity/wosac2025"]["scenarios"]
+    expected = _script("evaluate_default_npc").HELD_OUT_GENERATED
     assert [s["scenario_id"] for s in scenes] == [f"gen-{lay}-{seed}" for lay, seed in expected]
