@@ -30,7 +30,6 @@ import json
 import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
-from functools import partial
 from pathlib import Path
 
 import torch
@@ -47,6 +46,7 @@ HELD_OUT_REAL = (
 HELD_OUT_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 10000 + s) for s in range(8))
 VALIDATION_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 20000 + s) for s in range(24))
 SETS = ("real", "generated", "validation")
+VERSIONS = ("wosac2025", "wosac2024")
 POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
 COLUMNS = (
     ("realism_meta_metric", "meta"),
@@ -57,9 +57,6 @@ COLUMNS = (
     ("simulated_collision_rate", "collision rate"),
     ("simulated_offroad_rate", "off-road rate"),
 )
-
-
-VERSIONS = ("wosac2025", "wosac2024")
 
 
 @functools.cache
@@ -141,7 +138,7 @@ def main() -> None:
     )
     for set_name, scenarios in sets.items():
         for pol in policies:
-            job = partial(score_scene, pol, args.checkpoint, args.samples)
+            job = functools.partial(score_scene, pol, args.checkpoint, args.samples)
             # In scene order either way; each scene's seed comes from its id, so the scores do
             # not depend on the number of workers.
             results = pool.map(job, scenarios) if pool else map(job, scenarios)
