@@ -12,10 +12,10 @@ import gymnasium as gym
 import numpy as np
 import pytest
 from pettingzoo import ParallelEnv
-from pettingzoo.test import parallel_api_test
 
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env.wrappers import SingleAgentTrafficEnv, SlotAgentsParallelEnv
+from tests.conftest import check_parallel_api
 
 
 @pytest.fixture(scope="module")
@@ -76,7 +76,7 @@ def test_single_agent_env_follows_trafficenv(scenes):
 
 def test_slot_agents_env_is_a_valid_parallel_env(scenes):
     env = SlotAgentsParallelEnv(scenes, controlled="tracks_to_predict", npc_policy="log_replay")
-    parallel_api_test(env, num_cycles=30)
+    check_parallel_api(env, num_cycles=30)
     obs, infos = env.reset(seed=0)
     assert set(obs) == set(env.possible_agents)
     active = [s for s in env.agents if infos[s]["active"]]

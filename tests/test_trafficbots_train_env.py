@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 import torch
-from pettingzoo.test import parallel_api_test
 
 from policies import make_policy
 from policies.trafficbots import TrafficBots, TrafficBotsConfig, save_checkpoint
@@ -16,6 +15,7 @@ from tbsim_env.config import EnvConfig, TerminationConfig
 from tbsim_env.data.cache import build_cache
 from tbsim_env.env import TrafficEnv
 from tbsim_env.errors import CheckpointError
+from tests.conftest import check_parallel_api
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -87,7 +87,7 @@ def test_train_init_fine_tunes_from_a_checkpoint(tmp_path, random_checkpoint):
 
 def test_trafficbots_npcs_pass_the_parallel_api(random_checkpoint):
     env = TrafficEnv(npc_policy="trafficbots", npc_checkpoint=random_checkpoint)
-    parallel_api_test(env, num_cycles=15)
+    check_parallel_api(env, num_cycles=15)
 
 
 def test_trafficbots_npcs_react_to_the_controlled_agent(random_checkpoint):
