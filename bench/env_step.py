@@ -1,7 +1,8 @@
 """Environment and simulation-core throughput.
 
 Prints (a) PettingZoo ``TrafficEnv`` steps/s on a real WOMD scenario with one controlled agent,
-log-replayed NPCs and full observations, and (b) batched-core agent steps/s (dynamics + log
+log-replayed NPCs and full observations, eager and with ``compile=True`` (the step as one
+``torch.compile`` graph; its compile time is printed apart), and (b) batched-core agent steps/s (dynamics + log
 replay merge) at batch 1, 16 and 64, all in one run on the current machine.
 
 Targets on the 2-core CI machine: (a) >= 1,000 env steps/s, (b) >= 500,000 agent steps/s at
@@ -23,7 +24,7 @@ import torch
 
 from tbsim_env.data import load_scenarios
 from tbsim_env.env import TrafficEnv
-from tbsim_env.env import parallel_env as pe
+from tbsim_env.env import fused as fu
 from tbsim_env.env import transition as tr
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
@@ -31,10 +32,14 @@ from tbsim_env.sim.build import build_sim_state
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
 
 
-def bench_env(scenarios, episodes: int) -> tuple[float, float, int]:
-    """(env steps/s, agent steps/s, steps) of ``episodes`` log-replay episodes (resets included)."""
-    env = TrafficEnv(scenarios, controlled="sdc", npc_policy="log_replay")
+def make_env(scenarios, compile: bool = False) -> TrafficEnv:
+    env = TrafficEnv(scenarios, controlled="sdc", npc_policy="log_replay", compile=compile)
     env.reset(seed=0)
+    return env
+
+
+def bench_env(env: TrafficEnv, episodes: int) -> tuple[float, float, int]:
+    """(env steps/s, agent steps/s, steps) of ``episodes`` log-replay episodes (resets included)."""
     n_agents = int(env.sim_state.agents.mask.sum())
     steps = 0
     start = time.perf_counter()
@@ -53,15 +58,15 @@ def timed_parts(totals: dict[str, float]):
     """Accumulate the seconds ``TrafficEnv`` spends in each part of a step into ``totals``.
 
     Wraps the functions ``TrafficEnv.step`` calls (in ``tbsim_env.env.transition`` and
-    ``parallel_env``; restored on exit); what is not in a part is the env's own Python glue
+    ``fused``; restored on exit); what is not in a part is the env's own Python glue
     (dicts, numpy conversion, infos).
     """
     parts = {
         "core.step": (tr.core, "step"),
         "step_metrics": (tr, "step_metrics"),
         "reward": (tr, "reward_and_termination"),
-        "push_history": (pe, "push_history"),
-        "observe": (pe, "observe"),
+        "push_history": (fu, "push_history"),
+        "observe": (fu, "observe"),
     }
     saved = {name: getattr(mod, attr) for name, (mod, attr) in parts.items()}
 
@@ -118,18 +123,29 @@ def main() -> None:
 
         scenarios, label = default_scenarios(2), "generated scenes (no WOMD data found)"
     print(f"torch {torch.__version__}, {args.threads} threads, scenario: {label}")
-    env_sps, env_asps, _ = bench_env(scenarios, args.episodes)
+    eager = make_env(scenarios)
+    env_sps, env_asps, _ = bench_env(eager, args.episodes)
     print(
         f"(a) TrafficEnv, 1 controlled + log replay, obs: {env_sps:8.0f} env steps/s "
         f"({env_asps:,.0f} agent steps/s)   target >= 1,000 env steps/s"
     )
+    compiled = make_env(scenarios, compile=True)
+    start = time.perf_counter()
+    bench_env(compiled, 1)  # compiles on the first step
+    warm = time.perf_counter() - start
+    c_sps, c_asps, _ = bench_env(compiled, args.episodes)
+    print(
+        f"    the same with compile=True:                 {c_sps:8.0f} env steps/s "
+        f"({c_asps:,.0f} agent steps/s; {c_sps / env_sps:.2f}x eager; first episode, "
+        f"compile included, {warm:.1f} s; {compiled._step_fn.eager_redos} steps redone eagerly)"
+    )
     totals: dict[str, float] = {}
     with timed_parts(totals):
-        sps, _, steps = bench_env(scenarios, args.episodes)
+        sps, _, steps = bench_env(eager, args.episodes)
     per_step = {k: 1e3 * v / steps for k, v in totals.items()}
     rest = 1e3 / sps - sum(per_step.values())
     print(
-        f"    per step (separate timed run, {1e3 / sps:.3f} ms): "
+        f"    eager per step (separate timed run, {1e3 / sps:.3f} ms): "
         + ", ".join(f"{k} {v:.3f}" for k, v in per_step.items())
         + f", env glue and resets {rest:.3f} ms"
     )

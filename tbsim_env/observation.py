@@ -426,10 +426,11 @@ def observe(
 def _lights_at(ctx: MapContext, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """The lights at ``step`` [B] (clamped to T - 1): (invalid [B, 1, L], tokens [B, L, F]).
 
-    A batch of one on the CPU reads the step as a number (views instead of indexing).
+    A batch of one on the CPU reads the step as a number (views instead of indexing), except
+    under ``torch.compile``, where reading it would break the graph.
     """
     n_t = ctx.tl_tokens.shape[1]
-    if step.shape[0] == 1 and step.device.type == "cpu":
+    if step.shape[0] == 1 and step.device.type == "cpu" and not torch.compiler.is_compiling():
         t = min(int(step.item()), n_t - 1)
         return ctx.tl_invalid[:, t], ctx.tl_tokens[:, t]
     at = (cached_arange(step.shape[0], step.device), step.clamp(max=n_t - 1))

@@ -366,6 +366,9 @@ def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
             bare = replace(bare, **{f.name: None for f in fields(bare)[9:]})
             two, _ = step_metrics(sub, query[b : b + 1], bare)
             for f in fields(got):
+                if f.name == "offroad_stale":  # set under torch.compile only
+                    assert got.offroad_stale is one.offroad_stale is two.offroad_stale is None
+                    continue
                 x = getattr(got, f.name)[b : b + 1]
                 if f.name == "agent_distance":
                     x = x[..., :n]  # the batch pads the agent slots

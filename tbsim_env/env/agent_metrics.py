@@ -19,7 +19,11 @@ from tbsim_env.sim.collision import (
     near_limits,
 )
 from tbsim_env.sim.geometry import cos_sin
-from tbsim_env.sim.offroad import EdgeCandidates, box_offroad_distance
+from tbsim_env.sim.offroad import (
+    EdgeCandidates,
+    box_offroad_distance,
+    candidate_offroad_distance,
+)
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange, const, gather_rows
 
@@ -93,6 +97,9 @@ class StepMetrics:
         log_valid: bool, the log has the agent at this step.
         agent_distance: [B, Q, N] m, centre distance to every agent slot (``observe`` of the
             same poses can reuse it); None when not computed.
+        offroad_stale: [B, Q] bool, set only under ``torch.compile``, where the road-edge
+            candidates are not refreshed inside the graph: the off-road distance may be wrong
+            where it is True, and the caller must redo the step eagerly (``env.fused``).
     """
 
     collision: torch.Tensor
@@ -103,6 +110,7 @@ class StepMetrics:
     log_divergence: torch.Tensor
     log_valid: torch.Tensor
     agent_distance: torch.Tensor | None = None
+    offroad_stale: torch.Tensor | None = None
 
 
 def build_route(state: SimState, query: torch.Tensor) -> Route:
@@ -194,9 +202,13 @@ def step_metrics(
     if candidates is None:
         candidates = EdgeCandidates.build(pose, state.road_edges)
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
-    off_d, candidates = box_offroad_distance(
-        pose, size, state.road_edges, candidates, corners, route.radius
-    )
+    stale = None
+    if torch.compiler.is_compiling():  # one graph: the refresh is the caller's (see above)
+        off_d, stale = candidate_offroad_distance(candidates, pose, corners, route.radius)
+    else:
+        off_d, candidates = box_offroad_distance(
+            pose, size, state.road_edges, candidates, corners, route.radius
+        )
     log_valid, log_xy = _log_at(route, state.step)
     xy = pose[..., :2]
     log_gap = torch.linalg.vector_norm(xy - log_xy, dim=-1) * log_valid
@@ -209,6 +221,7 @@ def step_metrics(
         log_divergence=log_gap,
         log_valid=log_valid,
         agent_distance=gap,
+        offroad_stale=stale,
     )
     return metrics, candidates
 
@@ -216,10 +229,11 @@ def step_metrics(
 def _log_at(route: Route, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(log_valid [B, Q], log_xy [B, Q, 2]) of the query agents at ``step`` [B] (clamped to T - 1).
 
-    A batch of one on the CPU reads the step as a number (views instead of indexing).
+    A batch of one on the CPU reads the step as a number (views instead of indexing), except
+    under ``torch.compile``, where reading it would break the graph.
     """
     n_t = route.log_valid.shape[-1]
-    if step.shape[0] == 1 and step.device.type == "cpu":
+    if step.shape[0] == 1 and step.device.type == "cpu" and not torch.compiler.is_compiling():
         t = min(int(step.item()), n_t - 1)
         return route.log_valid[:, :, t], route.log_xy[:, :, t]
     at = (

@@ -3,12 +3,14 @@
 The order of a step is defined here once: NPC actions, merge with the external actions,
 dynamics and log replay (``core.step``), per-agent metrics of the externally controlled agents,
 rewards and terminations, then (when the config asks for it) terminated agents leave the
-scene. The envs add only what their API needs around it (action parsing, dicts or tensors,
-episode bookkeeping, observations).
+scene. Everything after the NPC actions is ``advance``, pure tensor code that
+``torch.compile`` can trace whole (``tbsim_env.env.fused``). The envs add only what their
+API needs around it (action parsing, dicts or tensors, episode bookkeeping, observations).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +23,7 @@ from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
 from tbsim_env.sim import core
 from tbsim_env.sim.offroad import EdgeCandidates
 from tbsim_env.sim.state import SimState
+from tbsim_env.torch_utils import cached_arange
 
 
 @dataclass(frozen=True)
@@ -76,7 +79,7 @@ def transition(
     config: EnvConfig,
     active: torch.Tensor | None = None,
 ) -> Transition:
-    """Advance a batch of scenarios by one step.
+    """Advance a batch of scenarios by one step: the NPCs act, then ``advance``.
 
     Args:
         state: current state.
@@ -85,6 +88,50 @@ def transition(
         query: [B, Q] int64, slots of the externally controlled agents (metrics, rewards).
         policy_state: the NPC policy's state (not read without NPCs).
         generator: random stream of stochastic policies.
+        route, candidates, progress, goal_reached, has_goal, config, active: as ``advance``.
+    """
+    action, policy_state = npc_actions(state, ext_action, ctrl, policy_state, generator)
+    out = advance(
+        state, action, query, route, candidates, progress, goal_reached, has_goal, config, active
+    )
+    return dataclasses.replace(out, policy_state=policy_state)
+
+
+def npc_actions(
+    state: SimState,
+    ext_action: torch.Tensor,
+    ctrl: Controllers,
+    policy_state: Any,
+    generator: torch.Generator,
+) -> tuple[torch.Tensor, Any]:
+    """(The actions of every slot [B, N, 2]: the NPC policy's merged with ``ext_action``, the
+    policy's next state); ``ext_action`` and ``policy_state`` unchanged without NPCs."""
+    if not ctrl.has_npc:
+        return ext_action, policy_state
+    npc_action, policy_state = ctrl.policy.act(state, policy_state, generator)
+    action = core.merge_actions((ctrl.npc, npc_action), (ctrl.external, ext_action))
+    return action, policy_state
+
+
+def advance(
+    state: SimState,
+    action: torch.Tensor,
+    query: torch.Tensor,
+    route: Route,
+    candidates: EdgeCandidates | None,
+    progress: torch.Tensor,
+    goal_reached: torch.Tensor,
+    has_goal: torch.Tensor,
+    config: EnvConfig,
+    active: torch.Tensor | None = None,
+) -> Transition:
+    """The step after the actions are known: dynamics and log replay, metrics, rewards,
+    terminations and removals. Pure tensor code (``torch.compile`` traces it in one graph).
+
+    Args:
+        state: current state.
+        action: [B, N, 2] actions of every slot (only controlled slots are read).
+        query: [B, Q] int64, slots of the externally controlled agents (metrics, rewards).
         route: logged routes of the query agents.
         candidates: road-edge candidates of the previous step (None: built here).
         progress: [B, Q] m, best progress along the route so far.
@@ -93,33 +140,31 @@ def transition(
         config: rewards, terminations and whether terminated agents leave.
         active: optional [B, Q] bool, the query agents whose termination removes them (e.g.
             not the padding of a batch); all by default.
+
+    Returns:
+        The transition, with ``policy_state`` None.
     """
-    if ctrl.has_npc:
-        npc_action, policy_state = ctrl.policy.act(state, policy_state, generator)
-        action = core.merge_actions((ctrl.npc, npc_action), (ctrl.external, ext_action))
-    else:
-        action = ext_action
     state = core.step(state, action)
     metrics, candidates = step_metrics(state, query, route, candidates)
     outcome = reward_and_termination(
         metrics, progress, goal_reached, has_goal, config.reward, config.termination
     )
     leaving = outcome.terminated if active is None else outcome.terminated & active
-    if config.remove_terminated and bool(leaving.any()):
+    # Eagerly, skip the removal when nobody leaves; a compiled graph cannot branch on data.
+    if config.remove_terminated and (torch.compiler.is_compiling() or bool(leaving.any())):
         state = remove_agents(state, query, leaving)
     return Transition(
         state=state,
         metrics=metrics,
         outcome=outcome,
         goal_reached=goal_reached | outcome.goal_now,
-        policy_state=policy_state,
+        policy_state=None,
         candidates=candidates,
     )
 
 
 def remove_agents(state: SimState, query: torch.Tensor, remove: torch.Tensor) -> SimState:
     """``state`` without the query agents flagged in ``remove`` [B, Q] (they leave for good)."""
-    gone = torch.zeros_like(state.valid)
-    b_idx, q_idx = remove.nonzero(as_tuple=True)
-    gone[b_idx, query[b_idx, q_idx]] = True
+    slots = cached_arange(state.num_agents, state.device)
+    gone = ((query.unsqueeze(-1) == slots) & remove.unsqueeze(-1)).any(1)  # [B, N]
     return state.replace(valid=state.valid & ~gone)

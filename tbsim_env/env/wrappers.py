@@ -46,7 +46,7 @@ class SingleAgentTrafficEnv(gym.Env, EzPickle):
             (what SB3 recommends); otherwise physical units.
         render_mode: None or ``"rgb_array"``.
         env_kwargs: further ``TrafficEnv`` keyword arguments (config, obs_config,
-            scenario_order, device, torch_threads).
+            scenario_order, device, torch_threads, compile).
 
     The action is ``np.float32[2]`` (acceleration m/s^2, yaw rate rad/s); the info dict is the
     SDC's ``TrafficEnv`` info (collision, offroad, progress, goal_reached, ...).

@@ -180,12 +180,14 @@ def collided_with_others(
     if gap is None:
         gap = agent_distances(pose_q, pose)
     near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
-    if not bool(near.any()):
+    # The early exits skip work in eager mode; a compiled graph cannot branch on data.
+    eager = not torch.compiler.is_compiling()
+    if eager and not bool(near.any()):
         return torch.zeros_like(query, dtype=torch.bool)
     # ``pairwise_overlap & near``, b's axes only tested when a's leave a near pair unseparated.
     pairs, yaw_q = _box_pairs(pose_q, size_q, pose, size)
     near = near & ~_separated_on_axes_of_a(pairs, *(cos_sin_q or cos_sin(yaw_q)))
-    if not bool(near.any()):
+    if eager and not bool(near.any()):
         return torch.zeros_like(query, dtype=torch.bool)
     return (near & ~_separated_on_axes_of_b(pairs)).any(-1)
 

@@ -79,10 +79,11 @@ def _log_at(state: SimState, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
     """The log at step ``t`` [B] of each scenario: (valid [B, N], pose [B, N, 3], speed [B, N]).
 
     A batch of one on the CPU reads the step as a number (a view per field instead of an
-    indexing operation); otherwise one index per field, b-th row at t[b].
+    indexing operation; not under ``torch.compile``, where that would break the graph);
+    otherwise one index per field, b-th row at t[b].
     """
     log = state.log
-    if state.batch_size == 1 and t.device.type == "cpu":
+    if state.batch_size == 1 and t.device.type == "cpu" and not torch.compiler.is_compiling():
         i = int(t.item())
         return log.valid[:, :, i], log.pose[:, :, i], log.speed[:, :, i]
     at = (cached_arange(state.batch_size, state.device)[:, None], _agent_index(state), t[:, None])

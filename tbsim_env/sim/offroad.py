@@ -242,6 +242,32 @@ def _candidate_signed_and_unsigned(
     return out, d
 
 
+def candidate_offroad_distance(
+    candidates: EdgeCandidates,
+    pose: torch.Tensor,
+    corners: tuple[torch.Tensor, torch.Tensor],
+    half_diag: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``box_offroad_distance`` from the cached candidates alone: no refresh, no branch (so it
+    compiles to one graph), and a flag where the cache cannot vouch for the answer.
+
+    Args:
+        candidates: the cached candidate segments of these K boxes.
+        pose: [B, K, 3]; corners: their corners (x, y [B, K, 4]); half_diag: [B, K] m,
+            ``0.5 * |size|``.
+
+    Returns:
+        (max signed distance over the corners [B, K] m, stale [B, K] bool: a segment outside
+        the candidates could be nearer to a corner, so the distance may be wrong there).
+    """
+    x, y = corners[0].unsqueeze(-1), corners[1].unsqueeze(-1)  # [B, K, 4, 1]
+    moved = torch.linalg.vector_norm(pose[..., :2] - candidates.center, dim=-1) + half_diag
+    signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
+    # Exact while every segment that could be nearest to a corner is in the candidate set.
+    stale = nearest.amax((-2, -1)) + moved > candidates.reach
+    return signed.amax((-2, -1)), stale
+
+
 def box_offroad_distance(
     pose: torch.Tensor,
     size: torch.Tensor,
@@ -270,19 +296,19 @@ def box_offroad_distance(
     if candidates is None:
         flat = box_corners(pose, length, width).reshape(bsz, k * 4, 2)
         return signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1), None
-    x, y = box_corner_xy(pose, length, width) if corners is None else corners
-    x, y = x.unsqueeze(-1), y.unsqueeze(-1)  # [B, K, 4, 1]
+    if corners is None:
+        corners = box_corner_xy(pose, length, width)
     if half_diag is None:
         half_diag = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)
-    stale = torch.linalg.vector_norm(pose[..., :2] - candidates.center, dim=-1) + half_diag
-    signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
-    # Exact while every segment that could be nearest to a corner is in the candidate set.
-    if bool((nearest.amax((-2, -1)) + stale > candidates.reach).any()):
+    dist, stale = candidate_offroad_distance(candidates, pose, corners, half_diag)
+    if bool(stale.any()):
         candidates = EdgeCandidates.build(pose, edges, candidates.index.shape[-1])
+        x, y = corners[0].unsqueeze(-1), corners[1].unsqueeze(-1)
         signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
         if bool((nearest.amax((-2, -1)) + half_diag > candidates.reach).any()):
             # The cache cannot vouch for these boxes (e.g. far from every edge): use all.
             flat = torch.stack([x, y], -1).reshape(bsz, k * 4, 2)
             full = signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1)
             return full, candidates
-    return signed.amax((-2, -1)), candidates
+        return signed.amax((-2, -1)), candidates
+    return dist, candidates

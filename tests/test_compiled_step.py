@@ -1,0 +1,126 @@
+"""``TrafficEnv(compile=True)``: the step as one ``torch.compile`` graph gives the eager results.
+
+Compiling needs a C++ compiler (inductor on the CPU): without one these tests skip, except
+under CI, where they fail. Each compile takes ~15 s, so the tests share scenarios of two shapes.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from tbsim_env.data import load_scenarios
+from tbsim_env.data.generator import default_scenarios
+from tbsim_env.env import TrafficEnv
+from tbsim_env.env.fused import StepFunction, advance_and_observe
+from tbsim_env.sim.offroad import EdgeCandidates
+
+if not (shutil.which("c++") or shutil.which("g++")):
+    reason = "torch.compile on the CPU needs a C++ compiler (c++ / g++ not found)"
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(reason + "; under CI it is required", pytrace=False)
+    pytest.skip(reason, allow_module_level=True)
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+
+@pytest.fixture(scope="module")
+def scenes(womd_dir):
+    """A real scene and a generated one: two shapes, so the env compiles a second graph."""
+    real = load_scenarios(womd_dir / "waymo-open-dataset" / "motion_data_one_scenario.tfrecord")
+    return [real[0], default_scenarios(1)[0]]
+
+
+def _play(env, episodes: int, seed: int) -> list:
+    """Per step of ``episodes`` episodes: (agents, obs, rewards, terms, truncs, infos)."""
+    rng = np.random.default_rng(seed)
+    trace = []
+    env.reset(seed=seed)
+    for ep in range(episodes):
+        if ep:
+            env.reset()
+        while env.agents:
+            acts = {a: rng.uniform(-3, 3, 2).astype(np.float32) for a in env.agents}
+            trace.append((list(env.agents), *env.step(acts)))
+    return trace
+
+
+def test_compiled_env_matches_eager_on_two_scenario_shapes(scenes):
+    kwargs = dict(controlled="tracks_to_predict", npc_policy="log_replay")
+    eager = _play(TrafficEnv(scenes, **kwargs), episodes=2, seed=3)
+    compiled_env = TrafficEnv(scenes, compile=True, **kwargs)
+    compiled = _play(compiled_env, episodes=2, seed=3)
+    assert compiled_env._step_fn.compiled
+    assert len(compiled) == len(eager) > 100
+    collided = 0
+    for (agents_e, obs_e, rew_e, term_e, trunc_e, info_e), (
+        agents_c,
+        obs_c,
+        rew_c,
+        term_c,
+        trunc_c,
+        info_c,
+    ) in zip(eager, compiled):
+        assert agents_c == agents_e
+        assert term_c == term_e and trunc_c == trunc_e
+        for a in agents_e:
+            assert rew_c[a] == pytest.approx(rew_e[a], abs=1e-5)
+            for key, want in obs_e[a].items():
+                np.testing.assert_allclose(obs_c[a][key], want, atol=1e-5, err_msg=key)
+            for key, want in info_e[a].items():
+                if isinstance(want, float):
+                    assert info_c[a][key] == pytest.approx(want, abs=1e-4), key
+                else:
+                    assert info_c[a][key] == want, key
+            collided += info_e[a]["collision"]
+    # The random actions drive agents into others: the graph's removal path ran too.
+    assert collided > 0
+
+
+def test_stale_road_edge_candidates_redo_the_step_eagerly(scenes):
+    env = TrafficEnv(scenes[:1], controlled="tracks_to_predict", npc_policy="log_replay")
+    env.reset(seed=0)
+    state = env.sim_state
+    # Candidates gathered 500 m away cannot vouch for the distance where the agents are.
+    pose = state.pose[:, env._ext_index]
+    far = EdgeCandidates.build(pose + torch.tensor([500.0, 500.0, 0.0]), state.road_edges)
+    args = (
+        state,
+        torch.zeros(1, state.num_agents, 2),
+        env._ext_slots,
+        env._route,
+        far,
+        env._progress,
+        env._goal_reached,
+        env._has_goal,
+        env.config,
+        env._history,
+        env._ctx,
+        env.obs_config,
+        env._agent_static,
+    )
+    step = StepFunction(compile=True)
+    with torch.inference_mode():
+        got = step(*args)
+        want = advance_and_observe(*args)
+        near = step(*args[:4], want.transition.candidates, *args[5:])
+    assert step.eager_redos == 1
+    assert got.transition.metrics.offroad_stale is None, "the eager redo's result"
+    torch.testing.assert_close(
+        got.transition.metrics.offroad_distance, want.transition.metrics.offroad_distance
+    )
+    assert not torch.equal(got.transition.candidates.center, far.center)
+    # With fresh candidates the compiled graph's own result stands.
+    assert step.eager_redos == 1
+    assert near.transition.metrics.offroad_stale is not None
+    assert not near.transition.metrics.offroad_stale.any()
+    torch.testing.assert_close(
+        near.transition.metrics.offroad_distance,
+        want.transition.metrics.offroad_distance,
+        atol=1e-5,
+        rtol=0,
+    )
