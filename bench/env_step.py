@@ -2,8 +2,9 @@
 
 Prints (a) PettingZoo ``TrafficEnv`` steps/s on a real WOMD scenario with one controlled agent,
 log-replayed NPCs and full observations, eager and with ``compile=True`` (the step as one
-``torch.compile`` graph; its compile time is printed apart), and (b) batched-core agent steps/s (dynamics + log
-replay merge) at batch 1, 16 and 64, all in one run on the current machine.
+``torch.compile`` graph; its compile time is printed apart), and (b) batched-core agent
+steps/s (dynamics + log replay merge) at batch 1, 16 and 64, all in one run on the current
+machine.
 
 Targets on the 2-core CI machine: (a) >= 1,000 env steps/s, (b) >= 500,000 agent steps/s at
 batch 64.
