@@ -34,8 +34,11 @@ def cached_arange(n: int, device: torch.device | str) -> torch.Tensor:
 
     Hot per-step code indexes with it (e.g. the batch index ``cached_arange(B)[:, None]``);
     building it anew costs about as much as the indexing itself. It is made outside
-    inference mode so that autograd code may use it too.
+    inference mode so that autograd code may use it too. Under ``torch.compile`` it is a plain
+    ``arange`` (free in a graph; a cache lookup would only add guards on the cache).
     """
+    if torch.compiler.is_compiling():
+        return torch.arange(n, device=device)
     key = (n, torch.device(device))
     out = _ARANGE.get(key)
     if out is None:
@@ -55,10 +58,16 @@ def const(value: float | tuple[float, ...], like: torch.Tensor) -> torch.Tensor 
     the multiplication of a small tensor; ``x * const(0.5, x)`` gives the same bits (a
     Python scalar takes a float32 / float64 operand's dtype) without that. A tuple gives a
     1-d tensor. Other dtypes get ``value`` back unchanged. Never modify the returned tensor.
+    Under ``torch.compile`` nothing is cached (a graph holds its constants; a cache lookup
+    would only add guards on the cache): a number comes back as is, a tuple as a new tensor.
     """
     dtype = like.dtype
     if dtype not in _CONST_DTYPES:
         return value
+    if torch.compiler.is_compiling():
+        return (
+            torch.tensor(value, dtype=dtype, device=like.device) if type(value) is tuple else value
+        )
     key = (value, dtype, like.device)
     out = _CONST.get(key)
     if out is None:
@@ -82,6 +91,9 @@ def gather_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     rows = x.flatten(0, 1)
     if b == 1:
         flat = index.reshape(-1)
+    elif torch.compiler.is_compiling():  # no cache inside a graph (see ``cached_arange``)
+        shape = (b,) + (1,) * (index.dim() - 1)
+        flat = (index + (torch.arange(b, device=x.device) * n).view(shape)).reshape(-1)
     else:
         key = (b, n, index.dim(), x.device)
         offset = _ROW_OFFSETS.get(key)
