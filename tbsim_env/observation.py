@@ -228,10 +228,17 @@ def build_map_context(
         **t,
         tokens=tokens,
         invalid=~t["valid"][:, None],
-        tl_tokens=tl_tokens.transpose(1, 2).contiguous(),
-        tl_invalid=~t["tl_valid"].transpose(1, 2)[:, :, None].contiguous(),
-        knn_xy=torch.cat([map_xy, t["tl_pose"][..., :2]], 1)[:, None].contiguous(),
+        tl_tokens=_dense(tl_tokens.transpose(1, 2)),
+        tl_invalid=_dense(~t["tl_valid"].transpose(1, 2)[:, :, None]),
+        knn_xy=_dense(torch.cat([map_xy, t["tl_pose"][..., :2]], 1)[:, None]),
     )
+
+
+def _dense(x: torch.Tensor) -> torch.Tensor:
+    """``x`` in row-major memory with the standard strides even along size-1 dims (which
+    ``contiguous()`` leaves as they were): ``torch.compile`` guards on strides, so a scene with
+    one traffic light would otherwise compile a graph of its own."""
+    return x.clone(memory_format=torch.contiguous_format)
 
 
 def init_history(state: SimState, length: int) -> History:
@@ -306,8 +313,11 @@ def _nearest(
     """
     m = dist.shape[-1]
     d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
-    if m < k:
-        d = torch.nn.functional.pad(d, (0, k - m), value=float("inf"))
+    # Fewer targets than k: pad with +inf. A compiled graph always pads (by k), so that scenes
+    # with fewer and with more than k targets share one graph instead of specialising on it.
+    pad = k if torch.compiler.is_compiling() else max(k - m, 0)
+    if pad:
+        d = torch.nn.functional.pad(d, (0, pad), value=float("inf"))
     # Equal distances (lane pieces branching from one point) go to the lower index, so the
     # choice does not depend on padding (batched envs) or the device; plain topk does not say.
     if d.numel() <= _SORT_MAX_ELEMENTS:  # small rows: one stable sort is the cheapest
@@ -319,7 +329,7 @@ def _nearest(
         )
         idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
         top = torch.gather(d, -1, idx)
-    if m < k:
+    if pad:
         idx = idx.clamp(max=m - 1)
     return idx, top
 

@@ -30,9 +30,10 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 @pytest.fixture(scope="module")
 def scenes(womd_dir):
-    """A real scene and a generated one: two shapes, so the env compiles a second graph."""
+    """A real scene and two generated ones: three shapes. The second makes the env compile a
+    graph with dynamic shapes, which the third must reuse."""
     real = load_scenarios(womd_dir / "waymo-open-dataset" / "motion_data_one_scenario.tfrecord")
-    return [real[0], default_scenarios(1)[0]]
+    return [real[0], *default_scenarios(2)]
 
 
 def _play(env, episodes: int, seed: int) -> list:
@@ -49,13 +50,20 @@ def _play(env, episodes: int, seed: int) -> list:
     return trace
 
 
-def test_compiled_env_matches_eager_on_two_scenario_shapes(scenes):
+def test_compiled_env_matches_eager_on_three_scenario_shapes(scenes):
+    from torch._dynamo.utils import counters  # what PyTorch's own tests count graphs with
+
     kwargs = dict(controlled="tracks_to_predict", npc_policy="log_replay")
-    eager = _play(TrafficEnv(scenes, **kwargs), episodes=2, seed=3)
+    eager = _play(TrafficEnv(scenes, **kwargs), episodes=3, seed=3)
     compiled_env = TrafficEnv(scenes, compile=True, **kwargs)
-    compiled = _play(compiled_env, episodes=2, seed=3)
-    assert compiled_env._step_fn.compiled
-    assert len(compiled) == len(eager) > 100
+    graphs = counters["stats"]["unique_graphs"]
+    compiled = _play(compiled_env, episodes=3, seed=3)
+    # One graph for the first shape, then dynamic ones: the merge has a single traffic light,
+    # and dynamo specialises dims of size 0 and 1, so it gets a graph of its own. No more: a
+    # guard on a Python-side cache once made it recompile on every new key, and the padding
+    # of ``_nearest`` on whether a scene has fewer than k targets.
+    assert 1 <= counters["stats"]["unique_graphs"] - graphs <= 3
+    assert len(compiled) == len(eager) > 150
     collided = 0
     for (agents_e, obs_e, rew_e, term_e, trunc_e, info_e), (
         agents_c,
