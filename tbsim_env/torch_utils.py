@@ -79,6 +79,20 @@ def const(value: float | tuple[float, ...], like: torch.Tensor) -> torch.Tensor 
 _ROW_OFFSETS: dict[tuple[int, int, int, torch.device], torch.Tensor] = {}
 
 
+def _row_offsets(b: int, n: int, dim: int, device: torch.device) -> torch.Tensor:
+    """``arange(b) * n`` shaped [b, 1, ...] (``dim`` dims) to add to a row index, cached like
+    ``cached_arange`` (and, like it, built anew under ``torch.compile``)."""
+    shape = (b,) + (1,) * (dim - 1)
+    if torch.compiler.is_compiling():
+        return (torch.arange(b, device=device) * n).view(shape)
+    key = (b, n, dim, device)
+    out = _ROW_OFFSETS.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _ROW_OFFSETS[key] = (torch.arange(b, device=device) * n).view(shape)
+    return out
+
+
 def gather_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``x[b, index[b, ...]]`` for every batch row b: ``x`` [B, N, ...], ``index`` [B, ...]
     int64 in [0, N) -> [B, ..., ...] (``index``'s shape, then ``x``'s trailing dims).
@@ -91,15 +105,6 @@ def gather_rows(x: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     rows = x.flatten(0, 1)
     if b == 1:
         flat = index.reshape(-1)
-    elif torch.compiler.is_compiling():  # no cache inside a graph (see ``cached_arange``)
-        shape = (b,) + (1,) * (index.dim() - 1)
-        flat = (index + (torch.arange(b, device=x.device) * n).view(shape)).reshape(-1)
     else:
-        key = (b, n, index.dim(), x.device)
-        offset = _ROW_OFFSETS.get(key)
-        if offset is None:
-            with torch.inference_mode(False):
-                shape = (b,) + (1,) * (index.dim() - 1)
-                offset = _ROW_OFFSETS[key] = (torch.arange(b, device=x.device) * n).view(shape)
-        flat = (index + offset).reshape(-1)
+        flat = (index + _row_offsets(b, n, index.dim(), x.device)).reshape(-1)
     return rows.index_select(0, flat).view(*index.shape, *x.shape[2:])

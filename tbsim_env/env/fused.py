@@ -94,13 +94,11 @@ class StepFunction:
     """``advance_and_observe``, eager or compiled with ``torch.compile``.
 
     Attributes:
-        compiled: whether steps run through ``torch.compile``.
         eager_redos: compiled steps redone eagerly because the road-edge candidates went
             stale (see the module docstring).
     """
 
     def __init__(self, compile: bool = False) -> None:
-        self.compiled = compile
         self.eager_redos = 0
         self._fn = torch.compile(advance_and_observe, fullgraph=True) if compile else None
 

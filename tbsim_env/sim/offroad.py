@@ -302,13 +302,12 @@ def box_offroad_distance(
         half_diag = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)
     dist, stale = candidate_offroad_distance(candidates, pose, corners, half_diag)
     if bool(stale.any()):
+        # Rebuilt around the boxes themselves (centre = pose, so the check is nearest +
+        # half_diag <= reach).
         candidates = EdgeCandidates.build(pose, edges, candidates.index.shape[-1])
-        x, y = corners[0].unsqueeze(-1), corners[1].unsqueeze(-1)
-        signed, nearest = _candidate_signed_and_unsigned(x, y, candidates)
-        if bool((nearest.amax((-2, -1)) + half_diag > candidates.reach).any()):
+        dist, stale = candidate_offroad_distance(candidates, pose, corners, half_diag)
+        if bool(stale.any()):
             # The cache cannot vouch for these boxes (e.g. far from every edge): use all.
-            flat = torch.stack([x, y], -1).reshape(bsz, k * 4, 2)
-            full = signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1)
-            return full, candidates
-        return signed.amax((-2, -1)), candidates
+            flat = torch.stack(corners, -1).reshape(bsz, k * 4, 2)
+            return signed_distance_to_edges(flat, edges).view(bsz, k, 4).amax(-1), candidates
     return dist, candidates
