@@ -14,8 +14,8 @@ Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a 
 per-scenario field, plus a rollout picture.
 
     python scripts/evaluate_default_npc.py --out docs/model_card [--checkpoint PATH]
-        [--samples 64] [--sets real,generated] [--policies log_replay,trafficbots] [--keep]
-        [--workers 2]
+        [--samples 64] [--road-edge-weight 0] [--sets real,generated]
+        [--policies log_replay,trafficbots] [--keep] [--workers 2]
 
 With ``--keep``, the sets and policies not evaluated in this run keep their results from the
 ``results.json`` already in ``--out`` (e.g. re-evaluate a new checkpoint, keep the baselines);
@@ -60,18 +60,23 @@ COLUMNS = (
 
 
 @functools.cache
-def rollout_fn(policy: str, checkpoint: str | None, samples: int):
+def rollout_fn(policy: str, checkpoint: str | None, samples: int, road_edge_weight: float):
     """The ``(scenario, num_rollouts, seed) -> Rollouts`` of ``policy``, built once per process."""
     if policy == "trafficbots":
         from policies.trafficbots.wosac import trafficbots_rollout_fn
 
-        return trafficbots_rollout_fn(checkpoint=checkpoint, num_samples=samples)
+        return trafficbots_rollout_fn(
+            checkpoint=checkpoint, num_samples=samples, road_edge_weight=road_edge_weight
+        )
     return make_rollout_fn(policy)
 
 
-def score_scene(policy: str, checkpoint: str | None, samples: int, sc) -> dict:
+def score_scene(
+    policy: str, checkpoint: str | None, samples: int, road_edge_weight: float, sc
+) -> dict:
     """{version: ``ScenarioScore``} of 32 rollouts of ``policy`` on ``sc``, seeded by its id."""
-    r = rollout_fn(policy, checkpoint, samples)(sc, 32, scenario_seed(0, sc.scenario_id))
+    fn = rollout_fn(policy, checkpoint, samples, road_edge_weight)
+    r = fn(sc, 32, scenario_seed(0, sc.scenario_id))
     return {v: score_scenario(sc, r, v) for v in VERSIONS}
 
 
@@ -89,6 +94,12 @@ def main() -> None:
     p.add_argument("--out", default="docs/model_card")
     p.add_argument("--checkpoint", default=None)
     p.add_argument("--samples", type=int, default=32, help="TrafficBots rollouts sampled (>=32)")
+    p.add_argument(
+        "--road-edge-weight",
+        type=float,
+        default=0.0,
+        help="TrafficBots: keep the rollouts with fewest collided + this x off-road agents",
+    )
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument(
         "--sets",
@@ -138,7 +149,8 @@ def main() -> None:
     )
     for set_name, scenarios in sets.items():
         for pol in policies:
-            job = functools.partial(score_scene, pol, args.checkpoint, args.samples)
+            weight = args.road_edge_weight if pol == "trafficbots" else 0.0
+            job = functools.partial(score_scene, pol, args.checkpoint, args.samples, weight)
             # In scene order either way; each scene's seed comes from its id, so the scores do
             # not depend on the number of workers.
             results = pool.map(job, scenarios) if pool else map(job, scenarios)

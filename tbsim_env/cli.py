@@ -121,6 +121,7 @@ def _cmd_export_wosac(args: argparse.Namespace) -> int:
                 num_rollouts=args.rollouts,
                 seed=args.seed,
                 checkpoint=args.checkpoint,
+                road_edge_weight=args.road_edge_weight,
             )
             print(f"wrote {out / name}: {n} scenarios from {src}")
         return 0
@@ -131,6 +132,7 @@ def _cmd_export_wosac(args: argparse.Namespace) -> int:
         num_rollouts=args.rollouts,
         seed=args.seed,
         checkpoint=args.checkpoint,
+        road_edge_weight=args.road_edge_weight,
     )
     print(f"wrote {out}: {n} scenarios, {args.rollouts} rollouts each, policy {args.policy}")
     return 0
@@ -176,6 +178,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         version=args.version,
         checkpoint=args.checkpoint,
         keep_rollouts=bool(args.plot),
+        road_edge_weight=args.road_edge_weight,
     )
     _report(scores, args.json)
     if args.plot:
@@ -262,6 +265,13 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--checkpoint", default=None, help="TrafficBots checkpoint path")
         sp.add_argument("--rollouts", type=int, default=32)
         sp.add_argument("--seed", type=int, default=0)
+        sp.add_argument(
+            "--road-edge-weight",
+            type=float,
+            default=0.0,
+            help="trafficbots: rank sampled rollouts by collided + this x off-road agents "
+            "(spec: 0, collisions only)",
+        )
 
     e = sub.add_parser("export-wosac", help="write a WOSAC SimAgentsChallengeSubmission")
     wosac_common(e)

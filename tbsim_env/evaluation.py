@@ -36,15 +36,27 @@ def scenario_seed(seed: int, scenario_id: str) -> int:
 
 
 def make_rollout_fn(
-    policy: str, *, checkpoint: str | None = None, device: str = "cpu"
+    policy: str,
+    *,
+    checkpoint: str | None = None,
+    device: str = "cpu",
+    road_edge_weight: float = 0.0,
 ) -> Callable[[Scenario, int, int], Rollouts]:
-    """A function ``(scenario, num_rollouts, seed) -> Rollouts`` for a policy name."""
+    """A function ``(scenario, num_rollouts, seed) -> Rollouts`` for a policy name.
+
+    ``road_edge_weight`` (TrafficBots only): weight of off-road agents, beside collided ones,
+    when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``, 0 there).
+    """
+    if road_edge_weight and policy != "trafficbots":
+        raise ValueError(f"road_edge_weight applies to trafficbots only, not {policy!r}")
     if policy == "linear_extrapolation":
         return lambda sc, n, seed: linear_extrapolation_rollouts(sc, num_rollouts=n, seed=seed)
     if policy == "trafficbots":
         from policies.trafficbots.wosac import trafficbots_rollout_fn
 
-        return trafficbots_rollout_fn(checkpoint=checkpoint, device=device)
+        return trafficbots_rollout_fn(
+            checkpoint=checkpoint, device=device, road_edge_weight=road_edge_weight
+        )
     if policy not in WOSAC_POLICIES:
         raise ValueError(f"unknown policy {policy!r}; choose from {', '.join(WOSAC_POLICIES)}")
     from policies import make_policy
@@ -63,9 +75,12 @@ def iter_rollouts(
     device: str = "cpu",
     progress: bool = True,
     total: int | None = None,
+    road_edge_weight: float = 0.0,
 ):
     """Yield ``(scenario, rollouts)`` for every scenario, with a progress bar."""
-    fn = make_rollout_fn(policy, checkpoint=checkpoint, device=device)
+    fn = make_rollout_fn(
+        policy, checkpoint=checkpoint, device=device, road_edge_weight=road_edge_weight
+    )
     for sc in tqdm(
         scenarios, desc=f"rollouts {policy}", unit="scenario", disable=not progress, total=total
     ):
@@ -82,6 +97,7 @@ def export_submission(
     checkpoint: str | None = None,
     metadata: SubmissionMetadata | None = None,
     device: str = "cpu",
+    road_edge_weight: float = 0.0,
 ) -> int:
     """Write a ``SimAgentsChallengeSubmission`` of the scenarios' rollouts; returns their count."""
     metadata = metadata or SubmissionMetadata(
@@ -101,6 +117,7 @@ def export_submission(
             checkpoint=checkpoint,
             device=device,
             total=len(scenarios),
+            road_edge_weight=road_edge_weight,
         )
     ]
     Path(out).parent.mkdir(parents=True, exist_ok=True)
@@ -118,6 +135,7 @@ def evaluate_policy(
     checkpoint: str | None = None,
     device: str = "cpu",
     keep_rollouts: bool = False,
+    road_edge_weight: float = 0.0,
 ) -> tuple[list[ScenarioScores], list[Rollouts]]:
     """Roll out and score every scenario (no proto written)."""
     scores, kept = [], []
@@ -129,6 +147,7 @@ def evaluate_policy(
         checkpoint=checkpoint,
         device=device,
         total=len(scenarios),
+        road_edge_weight=road_edge_weight,
     ):
         scores.append(score_scenario(sc, r, version))
         if keep_rollouts:

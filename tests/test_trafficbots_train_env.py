@@ -58,6 +58,42 @@ def test_train_writes_checkpoints_and_resumes(tmp_path):
     make_policy("trafficbots", checkpoint=str(tmp_path / "run" / "last"))
 
 
+def test_train_warms_up_and_keeps_an_ema_across_a_resume(tmp_path, random_checkpoint):
+    from safetensors.torch import load_file
+
+    build_cache(["generated:merge:0-0"], tmp_path / "cache", workers=1, progress=False)
+    run = tmp_path / "run"
+    cfg = TrainConfig(
+        data=str(tmp_path / "cache"),
+        out=str(run),
+        steps=3,
+        stop_at=1,
+        lr=1e-3,
+        warmup_steps=2,
+        ema_decay=0.75,
+        rollout_steps=13,
+        log_every=1,
+        ckpt_every=1,
+        workers=0,
+        threads=1,
+        init=random_checkpoint,
+    )
+    train(cfg, progress=False)
+    w1, e1 = load_file(str(run / "last.safetensors")), load_file(str(run / "ema.safetensors"))
+    assert all(torch.equal(w1[k], e1[k]) for k in w1)  # the average starts at the weights
+    train(TrainConfig(**{**cfg.__dict__, "stop_at": 2}), progress=False)  # resumes at step 1
+    w2, e2 = load_file(str(run / "last.safetensors")), load_file(str(run / "ema.safetensors"))
+    moved = [k for k in w2 if not torch.equal(w1[k], w2[k])]
+    assert moved
+    for k in moved:
+        torch.testing.assert_close(e2[k], 0.75 * e1[k] + 0.25 * w2[k])
+    train(TrainConfig(**{**cfg.__dict__, "stop_at": None}), progress=False)
+    lrs = [json.loads(x)["lr"] for x in (run / "metrics.jsonl").read_text().splitlines()]
+    assert lrs == pytest.approx([5e-4, 1e-3, 1e-3])  # linear warm-up over 2 steps
+    with pytest.raises(ValueError, match="ema_decay"):
+        train(TrainConfig(**{**cfg.__dict__, "out": str(tmp_path / "r2"), "ema_decay": 1.0}))
+
+
 def test_train_init_fine_tunes_from_a_checkpoint(tmp_path, random_checkpoint):
     from safetensors.torch import load_file
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import torch
 from safetensors.torch import load_file, save_file
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torch.utils.data import DataLoader, DistributedSampler, RandomSampler
 from tqdm import tqdm
 
@@ -80,6 +81,15 @@ class TrainConfig:
             e.g. the shipped ``policies/trafficbots/weights/trafficbots_small``) with a fresh
             optimiser at step 0: fine-tuning. Its config must match ``model``. Ignored when
             ``out`` already holds a run to resume.
+        warmup_steps: the learning rate rises linearly from ``lr / warmup_steps`` to ``lr`` over
+            the first ``warmup_steps`` steps (0: none). A fresh AdamW's first updates are about
+            ``lr`` times the sign of the gradient for every weight, so a fine-tune without
+            warm-up starts by shaking every weight by ``lr``.
+        ema_decay: also keep an exponential moving average of the weights with this decay per
+            step (None: none), saved beside ``last`` as ``<out>/ema.safetensors`` + ``.json``.
+            With the small batches of a CPU run, single checkpoints move a lot from one to the
+            next; the average evens that out (its horizon is about ``1 / (1 - ema_decay)``
+            steps).
     """
 
     data: str
@@ -106,6 +116,8 @@ class TrainConfig:
     cache_shards: int = 0
     stop_at: int | None = None
     init: str | None = None
+    warmup_steps: int = 0
+    ema_decay: float | None = None
 
     def model_config(self) -> TrafficBotsConfig:
         if self.model == "small":
@@ -119,6 +131,12 @@ class TrainConfig:
         return self.teacher_forcing_start + frac * (
             self.teacher_forcing_end - self.teacher_forcing_start
         )
+
+    def lr_at(self, step: int) -> float:
+        """Learning rate of optimiser step ``step`` (0-based): linear warm-up, then constant."""
+        if step < self.warmup_steps:
+            return self.lr * (step + 1) / self.warmup_steps
+        return self.lr
 
 
 def _collate(items: list) -> list:
@@ -257,6 +275,14 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         load_state_into(model, cfg.init)  # CheckpointError names the file and the mismatch
         if main:
             print(f"fine-tuning from {cfg.init}")
+    ema = None
+    if cfg.ema_decay is not None:
+        if not 0.0 < cfg.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must lie in (0, 1), got {cfg.ema_decay}")
+        ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay))
+        if (out / "ema.safetensors").exists() and start > 0:
+            load_state_into(ema.module, out / "ema")
+            ema.n_averaged.fill_(start)
     objective: torch.nn.Module = TrainingObjective(model)
     if world > 1:
         # Prior-latent batches leave the posterior encoders unused: find_unused_parameters.
@@ -317,11 +343,15 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         if not math.isfinite(float(loss.detach())):
             raise FloatingPointError(f"non-finite loss at step {step}: {logs}")
         opt.zero_grad(set_to_none=True)
+        for group in opt.param_groups:
+            group["lr"] = cfg.lr_at(step)
         scaler.scale(loss).backward()
         scaler.unscale_(opt)
         grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip))
         scaler.step(opt)
         scaler.update()
+        if ema is not None:
+            ema.update_parameters(model)
         step += 1
         seen += len(items) * world
         bar.update(1)
@@ -332,11 +362,14 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
                 "grad_norm": grad_norm,
                 "scenarios_per_s": rate,
                 "teacher_forcing": cfg.teacher_forcing(step - 1),
+                "lr": cfg.lr_at(step - 1),
             }
             logger.log(step, scalars)
             bar.set_postfix(loss=f"{logs['loss']:.3f}", il=f"{logs['imitation']:.3f}")
         if main and (step % cfg.ckpt_every == 0 or step == end):
             save_checkpoint(model, last)
+            if ema is not None:
+                save_checkpoint(ema.module, out / "ema")
             _optimizer_state_to_files(opt, step, out / "optimizer")
     bar.close()
     logger.close()
@@ -363,6 +396,8 @@ def build_parser() -> argparse.ArgumentParser:
             p.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default)
         elif f.type in ("int | None",):
             p.add_argument(name, type=int, default=f.default)
+        elif f.type in ("float | None",):
+            p.add_argument(name, type=float, default=f.default)
         elif f.type in ("str | None",):
             p.add_argument(name, type=str, default=f.default)
         else:

@@ -9,6 +9,7 @@ boundary) keeps its last pose instead of jumping to the scene origin (spec 8, qu
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -21,7 +22,9 @@ from policies.trafficbots.model import TrafficBots
 from tbsim_env.config import TokenConfig
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
+from tbsim_env.data.tokens import SceneTokens
 from tbsim_env.metrics.wosac.rollouts import Rollouts
+from tbsim_env.metrics.wosac.scoring import offroad_indication
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "trafficbots_small"
 """Base path of the shipped checkpoint (``.safetensors`` + ``.json``)."""
@@ -44,13 +47,37 @@ def trafficbots_rollouts(
     num_samples: int = 128,
     seed: int = 0,
     token_config: TokenConfig | None = None,
+    road_edge_weight: float = 0.0,
 ) -> Rollouts:
-    """``num_rollouts`` joint futures of every sim agent (``num_samples`` sampled, best kept)."""
+    """``num_rollouts`` joint futures of every sim agent (``num_samples`` sampled, best kept).
+
+    A rollout's score is the number of relevant agents that collide in it (spec 7.3), plus
+    ``road_edge_weight`` times the number of evaluated agents that leave the road (the WOSAC
+    off-road indication); the lowest scores are kept, ties in sampling order. The spec's
+    submission uses ``w_road_edge = 0``, the default here too.
+    """
+    if not math.isfinite(road_edge_weight) or road_edge_weight < 0:
+        raise ValueError(f"road_edge_weight must be finite and >= 0, got {road_edge_weight}")
     tokens = preprocess_scenario(scenario, token_config or TokenConfig())
     gen = torch.Generator(device=model.device).manual_seed(int(seed))
-    samples = sample_rollouts(
-        model, tokens, n=max(num_samples, num_rollouts), k=num_rollouts, generator=gen
-    )
+    n = max(num_samples, num_rollouts)
+    # With a road-edge weight, keep every sample (ordered by collisions) and rank them below.
+    k = n if road_edge_weight > 0 else num_rollouts
+    samples = sample_rollouts(model, tokens, n=n, k=k, generator=gen)
+    rollouts = _to_rollouts(scenario, tokens, samples.pose[0], samples.valid[0])
+    if road_edge_weight == 0:
+        return rollouts
+    offroad = offroad_indication(scenario, rollouts).sum(-1)  # [n]
+    score = samples.score[0].to(offroad.device) + road_edge_weight * offroad
+    keep = torch.sort(score, stable=True).indices[:num_rollouts]
+    return rollouts.select(keep)
+
+
+def _to_rollouts(
+    scenario: Scenario, tokens: SceneTokens, pose: torch.Tensor, valid: torch.Tensor
+) -> Rollouts:
+    """Scenario-frame ``Rollouts`` of every sim agent from token-frame poses [R, N, T, 3]."""
+    num_rollouts = pose.shape[0]
     t0 = scenario.current_index
     tr = scenario.tracks
     sim = np.flatnonzero(tr.valid[:, t0])
@@ -64,8 +91,8 @@ def trafficbots_rollouts(
     xy = p10[None, :, None, :2] + k[None, None, :, None] * step[None, :, None, :2]
     xy = np.repeat(xy, num_rollouts, axis=0)  # [R, A, S, 2]
     heading = np.repeat(np.repeat(tr.heading[sim, t0][None, :, None], n_fut, 2), num_rollouts, 0)
-    pose = samples.pose[0].cpu().numpy().astype(np.float64)  # [R, N, T, 3] token frame
-    valid = samples.valid[0].cpu().numpy()
+    pose = pose.cpu().numpy().astype(np.float64)  # [R, N, T, 3] token frame
+    valid = valid.cpu().numpy()
     track_row = {int(r): j for j, r in enumerate(sim)}
     for n_idx, row in enumerate(tokens.agent_track_index):
         j = track_row.get(int(row))
@@ -91,7 +118,11 @@ def trafficbots_rollouts(
 
 
 def trafficbots_rollout_fn(
-    *, checkpoint: str | None = None, device: str = "cpu", num_samples: int = 128
+    *,
+    checkpoint: str | None = None,
+    device: str = "cpu",
+    num_samples: int = 128,
+    road_edge_weight: float = 0.0,
 ) -> Callable[[Scenario, int, int], Rollouts]:
     """``(scenario, num_rollouts, seed) -> Rollouts`` with a loaded model (default: shipped)."""
     model = (
@@ -102,7 +133,12 @@ def trafficbots_rollout_fn(
 
     def fn(scenario: Scenario, num_rollouts: int, seed: int) -> Rollouts:
         return trafficbots_rollouts(
-            model, scenario, num_rollouts=num_rollouts, num_samples=num_samples, seed=seed
+            model,
+            scenario,
+            num_rollouts=num_rollouts,
+            num_samples=num_samples,
+            seed=seed,
+            road_edge_weight=road_edge_weight,
         )
 
     return fn

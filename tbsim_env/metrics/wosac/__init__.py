@@ -24,6 +24,7 @@ from tbsim_env.metrics.wosac.scoring import (
     ScenarioScores,
     ScoringError,
     aggregate,
+    offroad_indication,
     scenario_features,
     score_scenario,
 )
@@ -55,6 +56,7 @@ __all__ = [
     "build_submission",
     "get_config",
     "log_replay_rollouts",
+    "offroad_indication",
     "parse_version",
     "read_submission",
     "rollouts_from_proto",

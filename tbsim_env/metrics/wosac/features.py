@@ -72,10 +72,10 @@ def compute_metric_features(
     kin = kinematic_features(traj.x[:, ev], traj.y[:, ev], traj.z[:, ev], traj.heading[:, ev])
     # Only the future steps are needed for the pairwise features; the speeds of TTC use one
     # step of history, so it gets the step before the future too.
-    future_traj = _slice_steps(traj, slice(first_future_step - 1, None))
-    dist_obj = distance_to_nearest_object(_slice_steps(traj, fut))
+    future_traj = slice_steps(traj, slice(first_future_step - 1, None))
+    dist_obj = distance_to_nearest_object(slice_steps(traj, fut))
     ttc = time_to_collision(future_traj)[:, :, 1:]
-    dist_edge = distance_to_road_edge(_slice_steps(traj, fut), road_edges)
+    dist_edge = distance_to_road_edge(slice_steps(traj, fut), road_edges)
     tl = traffic_light_violation(traj, traffic_lights)[:, :, fut]
     return MetricFeatures(
         linear_speed=kin.linear_speed[..., fut],
@@ -91,7 +91,8 @@ def compute_metric_features(
     )
 
 
-def _slice_steps(traj: ObjectTrajectories, steps: slice) -> ObjectTrajectories:
+def slice_steps(traj: ObjectTrajectories, steps: slice) -> ObjectTrajectories:
+    """The same objects over a slice of the steps."""
     return ObjectTrajectories(
         x=traj.x[..., steps],
         y=traj.y[..., steps],

@@ -70,6 +70,18 @@ class Rollouts:
     def num_steps(self) -> int:
         return int(self.x.shape[2])
 
+    def select(self, index: torch.Tensor) -> Rollouts:
+        """The rollouts at ``index`` ([K] int64), in that order."""
+        index = index.to(self.x.device)
+        return Rollouts(
+            scenario_id=self.scenario_id,
+            object_id=self.object_id,
+            x=self.x[index],
+            y=self.y[index],
+            z=self.z[index],
+            heading=self.heading[index],
+        )
+
     def to(self, device: torch.device | str) -> Rollouts:
         """The same rollouts on another device."""
         return Rollouts(

@@ -30,9 +30,17 @@ from tbsim_env.metrics.wosac.estimators import (
     histogram_log_likelihood,
     masked_likelihood,
 )
-from tbsim_env.metrics.wosac.features import MetricFeatures, compute_metric_features
+from tbsim_env.metrics.wosac.features import (
+    MetricFeatures,
+    compute_metric_features,
+    slice_steps,
+)
 from tbsim_env.metrics.wosac.features_kinematic import acceleration_validity, speed_validity
-from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_light_map
+from tbsim_env.metrics.wosac.features_map import (
+    distance_to_road_edge,
+    road_edge_segments,
+    traffic_light_map,
+)
 from tbsim_env.metrics.wosac.rollouts import Rollouts
 from tbsim_env.metrics.wosac.trajectories import (
     MetricObjects,
@@ -231,15 +239,10 @@ class ScenarioFeatures:
     log_valid: torch.Tensor
 
 
-def scenario_features(
-    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None = None
-) -> ScenarioFeatures:
-    """Check the rollouts against the scenario and compute every WOSAC feature of both.
-
-    Raises:
-        ScoringError: wrong scenario id, missing sim agents, or a step count that does not fit.
-        MapFeatureError: the scenario has no road edge.
-    """
+def _trajectories(
+    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None
+) -> tuple[MetricObjects, ObjectTrajectories, ObjectTrajectories]:
+    """Check the rollouts against the scenario; (objects, log [1, N, T], sim [R, N, T])."""
     device = rollouts.x.device if device is None else torch.device(device)
     if rollouts.scenario_id != scenario.scenario_id:
         raise ScoringError(
@@ -260,8 +263,22 @@ def scenario_features(
         raise ScoringError(f"scenario {scenario.scenario_id}: no evaluated object is a sim agent")
     log = log_trajectories(scenario, objects, device)
     sim = simulated_trajectories(log, objects, rollouts.to(device), scenario.current_index)
-    edges = road_edge_segments(scenario, device)
-    lights = traffic_light_map(scenario, device)
+    return objects, log, sim
+
+
+def scenario_features(
+    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None = None
+) -> ScenarioFeatures:
+    """Check the rollouts against the scenario and compute every WOSAC feature of both.
+
+    Raises:
+        ScoringError: wrong scenario id, missing sim agents, or a step count that does not fit.
+        MapFeatureError: the scenario has no road edge.
+    """
+    objects, log, sim = _trajectories(scenario, rollouts, device)
+    first = scenario.current_index + 1
+    edges = road_edge_segments(scenario, log.x.device)
+    lights = traffic_light_map(scenario, log.x.device)
     both = compute_metric_features(concat_rollouts(log, sim), edges, lights, first)
     log_feat, sim_feat = _split_first_rollout(both)
     return ScenarioFeatures(
@@ -272,6 +289,29 @@ def scenario_features(
         sim_features=sim_feat,
         log_valid=log.valid[0, : objects.num_eval, first:],
     )
+
+
+def offroad_indication(
+    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """Which evaluated objects leave the road in each rollout: the WOSAC off-road indication.
+
+    The same flag as behind ``simulated_offroad_rate`` (a box corner past the road edge at a
+    future step where the log is valid), without the other features: cheap enough to rank many
+    candidate rollouts by.
+
+    Returns:
+        [R, E] bool, E = the evaluated objects (SDC and tracks to predict that are sim agents).
+
+    Raises:
+        ScoringError, MapFeatureError: as ``score_scenario``.
+    """
+    objects, log, sim = _trajectories(scenario, rollouts, device)
+    first = scenario.current_index + 1
+    dist = distance_to_road_edge(
+        slice_steps(sim, slice(first, None)), road_edge_segments(scenario, log.x.device)
+    )
+    return _indication(dist > 0.0, log.valid[0, : objects.num_eval, first:])
 
 
 def score_scenario(
