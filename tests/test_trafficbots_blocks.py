@@ -11,7 +11,7 @@ import tbsim_env  # noqa: F401  (first: avoids the policies <-> tbsim_env.env im
 
 # isort: split
 
-from policies.trafficbots.attention import KnarpeAttention, SelfAttentionLayer
+from policies.trafficbots.attention import KnarpeAttention, SelfAttentionLayer, knarpe_reference
 from policies.trafficbots.collision import rounded_box_collision
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import (
@@ -24,7 +24,6 @@ from policies.trafficbots.encodings import (
 )
 from policies.trafficbots.knn import knn_relative, knn_select
 from policies.trafficbots.pointnet import PointNet
-from tbsim_env.torch_utils import gather_rows
 
 
 def test_sinusoid_and_angle_encoding_layout() -> None:
@@ -105,14 +104,86 @@ def test_knarpe_equals_dense_attention_when_k_covers_all_tokens() -> None:
     valid = torch.rand(n_sc, n) > 0.3
     valid[:, 0] = True
     idx, mask, rel = knn_relative(pose, pose, valid, k=n, dist_limit=1e9)
+    ref = _dense_reference(attn, x, pose, valid, cfg).detach()
+    for dense in (True, False):
+        with torch.no_grad():
+            got = attn(x, x, idx, rpe(rel, cfg), mask, dense=dense)
+            # A query whose neighbours are all invalid outputs zeros.
+            none = attn(x, x, idx, rpe(rel, cfg), torch.zeros_like(mask), dense=dense)
+        assert torch.allclose(got, ref, atol=1e-5)
+        assert torch.count_nonzero(none) == 0
+
+
+def _attention_case(seed: int, n_src: int, k: int):
+    """Random cross-attention inputs: 3 scenes, 9 queries, k neighbours among n_src rows,
+    some masked, and one query with none."""
+    gen = torch.Generator().manual_seed(seed)
+    cfg = TrafficBotsConfig.small()
+    x = torch.randn(3, 9, cfg.hidden_dim, generator=gen)
+    src = torch.randn(3, n_src, cfg.hidden_dim, generator=gen)
+    idx = torch.randint(0, n_src, (3, 9, k), generator=gen)
+    r = torch.randn(3, 9, k, cfg.rpe_dim, generator=gen)
+    mask = torch.rand(3, 9, k, generator=gen) > 0.3
+    mask[1, 4] = False
+    return cfg, x, src, idx, r, mask
+
+
+@pytest.mark.parametrize("dense", [True, False, None])
+@pytest.mark.parametrize("n_src", [5, 300])
+def test_factored_knarpe_matches_the_spec_formula_with_gradients(dense, n_src: int) -> None:
+    """The factored attention (both ways of reaching the neighbours) is the spec's
+    gather-then-project formula: outputs and the gradients of inputs and parameters."""
+    cfg, x, src, idx, r, mask = _attention_case(3, n_src, k=6)
+    torch.manual_seed(0)
+    attn = KnarpeAttention(cfg.hidden_dim, cfg.n_heads, cfg.rpe_dim, dropout=0.1).eval()
+    with torch.no_grad():  # non-zero biases, so that every bias term is checked
+        attn.in_proj_bias.normal_()
+        attn.out_proj.bias.normal_()
+    outs, grads = [], []
+    for fn in (lambda *a: attn(*a, dense=dense), lambda *a: knarpe_reference(attn, *a)):
+        xs = [t.clone().requires_grad_() for t in (x, src, r)]
+        attn.zero_grad()
+        y = fn(xs[0], xs[1], idx, xs[2], mask)
+        (y * torch.linspace(-1, 1, y.numel()).view_as(y)).sum().backward()
+        outs.append(y.detach())
+        grads.append([t.grad for t in xs] + [p.grad.clone() for p in attn.parameters()])
+    assert torch.allclose(outs[0], outs[1], atol=1e-5)
+    assert torch.count_nonzero(outs[0][1, 4]) == 0
+    for g, g_ref in zip(*grads):
+        assert torch.allclose(g, g_ref, atol=1e-4), (g - g_ref).abs().max()
+
+
+class _FixedDropout(torch.nn.Module):
+    """Dropout with a given keep mask [B, Q, K, h] (scaled by 1 / keep rate), applied in either
+    layout of the attention weights: [..., K, h] or [..., h, K]."""
+
+    def __init__(self, keep: torch.Tensor, rate: float) -> None:
+        super().__init__()
+        self.scale = keep / (1.0 - rate)
+
+    def forward(self, a: torch.Tensor) -> torch.Tensor:
+        same = a.shape[-2:] == self.scale.shape[-2:]
+        return a * (self.scale if same else self.scale.transpose(-1, -2))
+
+
+def test_factored_knarpe_dropout_keeps_the_value_bias_exact() -> None:
+    """With dropout on the attention weights they no longer sum to 1: the value biases must
+    be scaled by their sum, as gathering biased value rows does. Same dropped weights in the
+    factored attention (both ways) and in the spec's formula, same result."""
+    cfg, x, src, idx, r, mask = _attention_case(4, 40, k=7)
+    attn = KnarpeAttention(cfg.hidden_dim, cfg.n_heads, cfg.rpe_dim, dropout=0.5)
     with torch.no_grad():
-        got = attn(x, gather_rows(x, idx), rpe(rel, cfg), mask)
-        ref = _dense_reference(attn, x, pose, valid, cfg)
-    assert torch.allclose(got, ref, atol=1e-5)
-    # A query whose neighbours are all invalid outputs zeros.
+        attn.in_proj_bias.normal_()
+        attn.rpe_proj.bias.normal_(std=3.0)
+    gen = torch.Generator().manual_seed(6)
+    keep = (torch.rand(*mask.shape, cfg.n_heads, generator=gen) > 0.5).float()
+    attn.dropout = _FixedDropout(keep, 0.5)
     with torch.no_grad():
-        none = attn(x, gather_rows(x, idx), rpe(rel, cfg), torch.zeros_like(mask))
-    assert torch.count_nonzero(none) == 0
+        ref = knarpe_reference(attn, x, src, idx, r, mask)
+        for dense in (True, False):
+            assert torch.allclose(attn(x, src, idx, r, mask, dense=dense), ref, atol=1e-5)
+        attn.dropout = torch.nn.Identity()
+        assert not torch.allclose(attn(x, src, idx, r, mask), ref, atol=1e-3)  # it did act
 
 
 def test_self_layer_zeroes_invalid_tokens_and_ignores_their_features() -> None:

@@ -183,7 +183,7 @@ def test_paper_config_size_and_full_scale_step() -> None:
         out, state = model.step(ctx, state, *args)
         t2 = time.perf_counter()
     print(f"paper: prepare {1e3 * (t1 - t0):.0f} ms, one step {1e3 * (t2 - t1):.0f} ms")
-    assert ctx.mp.feat.shape == (1, 1024, 128) and ctx.tl.map_feat.shape == (1, 128, 24, 128)
+    assert ctx.mp.feat.shape == (1, 1024, 128) and ctx.tl.map_idx.shape == (1, 128, 24)
     assert out.action.shape == (1, 64, 2) and out.tl_logits.shape == (1, 128, 5)
     assert torch.isfinite(out.action).all() and (out.action[valid] != 0).any()
     assert (out.action[~valid] == 0).all()

@@ -15,7 +15,6 @@ from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
 from tbsim_env.constants import ObjectType
-from tbsim_env.torch_utils import gather_rows
 
 N_AGENT_TYPES = 3
 """Type branches of the model: vehicle, pedestrian, cyclist (spec 1.4)."""
@@ -165,10 +164,11 @@ class AgentEncoder(nn.Module):
         t_idx, t_mask, t_rel = knn_relative(
             ag_pose, tl_pose, tl_valid, cfg.ag_tl_knn, cfg.ag_tl_dist
         )
-        ctx = torch.cat([gather_rows(mp.feat, m_idx), gather_rows(tl_feat, t_idx)], dim=2)
+        ctx = torch.cat([mp.feat, tl_feat], dim=1)  # [B, M + L, d]
+        ctx_idx = torch.cat([m_idx, t_idx + mp.feat.shape[1]], dim=2)  # [B, N, Km + Kt]
         ctx_mask = torch.cat([m_mask, t_mask], dim=2)  # [B, N, Km + Kt]
         ctx_rpe = rpe(torch.cat([m_rel, t_rel], dim=2), cfg)
         s_rpe = rpe(s_rel, cfg)
         for layer in self.layers:
-            x = layer(x, ag_valid, s_idx, s_mask, s_rpe, ctx, ctx_mask, ctx_rpe)
+            x = layer(x, ag_valid, s_idx, s_mask, s_rpe, ctx, ctx_idx, ctx_mask, ctx_rpe)
         return x, ag_pose, ag_valid

@@ -13,11 +13,25 @@ from tbsim_env.torch_utils import gather_rows
 
 
 class KnarpeAttention(nn.Module):
-    """Multi-head attention of each query over its own gathered neighbours.
+    """Multi-head attention of each query over its own K neighbours, rows of a source.
 
-    ``q_i = W_q x_i``, ``k_ij = W_k x_j + r^k_ij``, ``v_ij = W_v x_j + r^v_ij`` with
+    ``q_i = W_q x_i``, ``k_ij = W_k s_j + r^k_ij``, ``v_ij = W_v s_j + r^v_ij`` with
     ``[r^k, r^v] = W_r RPE_ij + b_r``; queries get no RPE. A query without a valid neighbour
     outputs zeros.
+
+    The products are factored so that nothing d-wide is made per (query, neighbour, layer)
+    except the gathered source projections (spec 2.5 gives the formula, not the order):
+
+    * ``W_k`` and ``W_v`` project the S source rows once, and the projections are gathered
+      (instead of projecting S' >= S gathered copies);
+    * ``q_i . (W_rk RPE_ij)`` is ``(W_rk^T q_i) . RPE_ij``, and
+      ``sum_j a_ij W_rv RPE_ij`` is ``W_rv (sum_j a_ij RPE_ij)``, so ``W_r`` acts once per
+      query instead of once per pair;
+    * per-head products over the neighbours run as one batched matmul per query with a
+      block-diagonal query (or weight) matrix, so no operand is permuted into a copy.
+
+    This is the same function as the direct transcription (``knarpe_reference``, kept for
+    tests and ``bench/policy_step.py``) up to float rounding, with the same parameters.
 
     Args:
         dim: token width d.
@@ -40,34 +54,95 @@ class KnarpeAttention(nn.Module):
         nn.init.zeros_(self.out_proj.bias)
 
     def forward(
-        self, x: torch.Tensor, kv: torch.Tensor, rpe: torch.Tensor, mask: torch.Tensor
+        self,
+        x: torch.Tensor,
+        src: torch.Tensor,
+        idx: torch.Tensor,
+        rpe: torch.Tensor,
+        mask: torch.Tensor,
+        dense: bool | None = None,
     ) -> torch.Tensor:
         """Attend.
 
         Args:
             x: [B, Q, d] query features.
-            kv: [B, Q, K, d] gathered neighbour features.
+            src: [B, S, d] source features; query i's neighbours are rows ``idx[:, i]``.
+            idx: [B, Q, K] int64 neighbour rows of ``src`` (any value where masked).
             rpe: [B, Q, K, rpe_dim] encoding of each neighbour's pose in the query frame.
             mask: [B, Q, K] bool valid neighbours.
+            dense: score every source row and pick the neighbours' scores (True), or gather
+                the neighbours' projected rows (False). None picks the one with the smaller
+                per-query intermediate (dense when h S <= 2 d K), the faster one in
+                ``bench/policy_step.py``'s shapes. Both give the same result.
 
         Returns:
             [B, Q, d].
         """
-        w_q, w_k, w_v = self.in_proj_weight.chunk(3, dim=0)
-        b_q, b_k, b_v = self.in_proj_bias.chunk(3, dim=0)
         h, c = self.n_heads, self.head_dim
-        q = F.linear(x, w_q, b_q).unflatten(-1, (h, c))  # [B, Q, h, c]
-        r_k, r_v = self.rpe_proj(rpe).chunk(2, dim=-1)  # [B, Q, K, d] each
-        k = (F.linear(kv, w_k, b_k) + r_k).unflatten(-1, (h, c))  # [B, Q, K, h, c]
-        v = (F.linear(kv, w_v, b_v) + r_v).unflatten(-1, (h, c))  # [B, Q, K, h, c]
-        logits = torch.einsum("...hc,...khc->...hk", q, k) / math.sqrt(c)  # [B, Q, h, K]
+        d = h * c
+        w_q, w_kv = self.in_proj_weight.split((d, 2 * d))
+        b_q, b_kv = self.in_proj_bias.split((d, 2 * d))
+        w_rk, w_rv = self.rpe_proj.weight.view(2, h, c, -1).unbind(0)  # [h, c, r] each
+        b_rk, b_rv = self.rpe_proj.bias.view(2, h, c).unbind(0)  # [h, c] each
+        q = F.linear(x, w_q, b_q).unflatten(-1, (h, c)) / math.sqrt(c)  # [B, Q, h, c]
+        q_rpe = torch.einsum("bqhc,hcr->bqrh", q, w_rk)  # [B, Q, r, h]
+        logits = rpe @ q_rpe + (q * b_rk).sum(-1)[..., None, :]  # [B, Q, K, h]
+        n_src, n_k = src.shape[1], idx.shape[-1]
+        if dense is None:
+            dense = h * n_src <= 2 * d * n_k
+        eye = torch.eye(h, dtype=x.dtype, device=x.device)
+        if dense:
+            k_src, v_src = F.linear(src, w_kv, b_kv).unflatten(-1, (2, h, c)).unbind(-3)
+            scores = q.transpose(1, 2) @ k_src.permute(0, 2, 3, 1)  # [B, h, Q, S]
+            pick = idx[:, None].expand(-1, h, -1, -1)  # [B, h, Q, K]
+            logits = logits + scores.gather(-1, pick).permute(0, 2, 3, 1)
+        else:
+            kv = gather_rows(F.linear(src, w_kv, b_kv), idx)  # [B, Q, K, 2d]
+            k, v = kv[..., :d], kv[..., d:]  # views, [B, Q, K, d]
+            q_blk = (q[..., None] * eye[:, None, :]).flatten(-3, -2)  # [B, Q, d, h] block diag
+            logits = logits + k @ q_blk
         any_valid = mask.any(dim=-1)  # [B, Q]
         # Rows without a valid neighbour attend uniformly (no NaN) and are zeroed below.
         keep = mask | ~any_valid[..., None]
-        logits = logits.masked_fill(~keep[..., None, :], float("-inf"))
-        attn = self.dropout(torch.softmax(logits, dim=-1))
-        out = torch.einsum("...hk,...khc->...hc", attn, v).flatten(-2)  # [B, Q, d]
-        return self.out_proj(out) * any_valid[..., None]
+        logits = logits.masked_fill(~keep[..., None], float("-inf"))
+        attn = self.dropout(torch.softmax(logits, dim=-2)).transpose(-1, -2)  # [B, Q, h, K]
+        if dense:
+            weights = torch.zeros_like(scores).scatter_add_(-1, pick, attn.transpose(1, 2))
+            out = (weights @ v_src.transpose(1, 2)).transpose(1, 2)  # [B, Q, h, c]
+        else:
+            out = (attn @ v).unflatten(-1, (h, c))  # [B, Q, h, h, c]: head g's weights, head h
+            out = (out * eye[:, :, None]).sum(-2)  # [B, Q, h, c]: the diagonal
+        out = out + torch.einsum("bqhr,hcr->bqhc", attn @ rpe, w_rv)
+        out = out + attn.sum(-1)[..., None] * b_rv  # sum_j a_ij is 1 unless dropout is on
+        return self.out_proj(out.flatten(-2)) * any_valid[..., None]
+
+
+def knarpe_reference(
+    attn: KnarpeAttention,
+    x: torch.Tensor,
+    src: torch.Tensor,
+    idx: torch.Tensor,
+    rpe: torch.Tensor,
+    mask: torch.Tensor,
+) -> torch.Tensor:
+    """``attn`` computed as spec 2.5 writes it: gather, then project every (query, neighbour)
+    pair. The oracle of ``KnarpeAttention`` in the tests and its baseline in
+    ``bench/policy_step.py``; same arguments and result."""
+    h, c = attn.n_heads, attn.head_dim
+    w_q, w_k, w_v = attn.in_proj_weight.chunk(3, dim=0)
+    b_q, b_k, b_v = attn.in_proj_bias.chunk(3, dim=0)
+    kv = gather_rows(src, idx)  # [B, Q, K, d]
+    q = F.linear(x, w_q, b_q).unflatten(-1, (h, c))  # [B, Q, h, c]
+    r_k, r_v = attn.rpe_proj(rpe).chunk(2, dim=-1)  # [B, Q, K, d] each
+    k = (F.linear(kv, w_k, b_k) + r_k).unflatten(-1, (h, c))  # [B, Q, K, h, c]
+    v = (F.linear(kv, w_v, b_v) + r_v).unflatten(-1, (h, c))  # [B, Q, K, h, c]
+    logits = torch.einsum("...hc,...khc->...hk", q, k) / math.sqrt(c)  # [B, Q, h, K]
+    any_valid = mask.any(dim=-1)
+    keep = mask | ~any_valid[..., None]
+    logits = logits.masked_fill(~keep[..., None, :], float("-inf"))
+    p = attn.dropout(torch.softmax(logits, dim=-1))
+    out = torch.einsum("...hk,...khc->...hc", p, v).flatten(-2)  # [B, Q, d]
+    return attn.out_proj(out) * any_valid[..., None]
 
 
 class FeedForward(nn.Module):
@@ -124,7 +199,7 @@ class SelfAttentionLayer(nn.Module):
             [B, N, d], zero for invalid tokens.
         """
         h = self.norm1(x)
-        x = x + self.dropout(self.attn(h, gather_rows(h, idx), rpe, mask))
+        x = x + self.dropout(self.attn(h, h, idx, rpe, mask))
         x = x + self.ffn(self.norm2(x))
         return x * valid[..., None]
 
@@ -132,8 +207,8 @@ class SelfAttentionLayer(nn.Module):
 class DecoderLayer(nn.Module):
     """Pre-LN self + cross layer ("dec_cross_attn"), used by the TL and agent encoders.
 
-    The cross-attention context (other-type neighbour features) is gathered by the caller and
-    fixed across layers; the same-type neighbours are re-gathered from the current ``x``.
+    The cross-attention context (other-type source tokens and each token's neighbour rows in
+    them) is fixed across layers; the same-type neighbours are rows of the current ``x``.
     """
 
     def __init__(self, dim: int, n_heads: int, ff_dim: int, rpe_dim: int, dropout: float) -> None:
@@ -155,6 +230,7 @@ class DecoderLayer(nn.Module):
         self_mask: torch.Tensor,
         self_rpe: torch.Tensor,
         ctx: torch.Tensor,
+        ctx_idx: torch.Tensor,
         ctx_mask: torch.Tensor,
         ctx_rpe: torch.Tensor,
     ) -> torch.Tensor:
@@ -166,7 +242,8 @@ class DecoderLayer(nn.Module):
             self_idx: [B, N, Ks] same-type neighbour rows.
             self_mask: [B, N, Ks] bool.
             self_rpe: [B, N, Ks, rpe_dim].
-            ctx: [B, N, Kc, d] other-type neighbour features (not normalised).
+            ctx: [B, S, d] other-type source tokens (not normalised).
+            ctx_idx: [B, N, Kc] their rows that are each token's neighbours.
             ctx_mask: [B, N, Kc] bool.
             ctx_rpe: [B, N, Kc, rpe_dim].
 
@@ -174,7 +251,8 @@ class DecoderLayer(nn.Module):
             [B, N, d], zero for invalid tokens.
         """
         h = self.norm_self(x)
-        x = x + self.dropout(self.self_attn(h, gather_rows(h, self_idx), self_rpe, self_mask))
-        x = x + self.dropout(self.cross_attn(self.norm1(x), self.norm_ctx(ctx), ctx_rpe, ctx_mask))
+        x = x + self.dropout(self.self_attn(h, h, self_idx, self_rpe, self_mask))
+        ctx = self.norm_ctx(ctx)  # per row, so the same as normalising the gathered rows
+        x = x + self.dropout(self.cross_attn(self.norm1(x), ctx, ctx_idx, ctx_rpe, ctx_mask))
         x = x + self.ffn(self.norm2(x))
         return x * valid[..., None]

@@ -1,7 +1,7 @@
 """Traffic-light encoder and TL-state head (spec 3.2).
 
 TL tokens sit on the map piece of their controlled lane (``tl_mode: lane``): pose = node 0 of
-that piece. Everything that depends only on the static poses (KNN, RPE, gathered map features)
+that piece. Everything that depends only on the static poses (KNN, RPE, map neighbour rows)
 is precomputed once per scenario in a ``TLContext``.
 """
 
@@ -22,7 +22,6 @@ from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
 from tbsim_env.constants import NUM_TL_STATES
-from tbsim_env.torch_utils import gather_rows
 
 
 def _rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -41,7 +40,8 @@ class TLContext:
         lane_feat: [B, L, d] map feature of the lane piece, detached (spec 3.2 step 3).
         self_idx, self_mask, self_rpe: TL -> TL neighbours [B, L, Ks], [B, L, Ks],
             [B, L, Ks, rpe_dim].
-        map_feat, map_mask, map_rpe: TL -> map neighbours [B, L, Km, d] (not detached),
+        map_feat: [B, M, d] map token features (not detached).
+        map_idx, map_mask, map_rpe: TL -> map neighbours, rows of ``map_feat`` [B, L, Km],
             [B, L, Km], [B, L, Km, rpe_dim].
     """
 
@@ -52,6 +52,7 @@ class TLContext:
     self_mask: torch.Tensor
     self_rpe: torch.Tensor
     map_feat: torch.Tensor
+    map_idx: torch.Tensor
     map_mask: torch.Tensor
     map_rpe: torch.Tensor
 
@@ -94,7 +95,8 @@ def tl_context(
         self_idx=s_idx,
         self_mask=s_mask,
         self_rpe=rpe(s_rel, cfg),
-        map_feat=gather_rows(mp.feat, m_idx),
+        map_feat=mp.feat,
+        map_idx=m_idx,
         map_mask=m_mask,
         map_rpe=rpe(m_rel, cfg),
     )
@@ -151,6 +153,7 @@ class TLEncoder(nn.Module):
                 ctx.self_mask,
                 ctx.self_rpe,
                 ctx.map_feat,
+                ctx.map_idx,
                 ctx.map_mask,
                 ctx.map_rpe,
             )
