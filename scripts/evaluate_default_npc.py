@@ -9,6 +9,9 @@ A third set, ``validation`` (generated seeds 20000-20023, six of each layout, al
 trained on), is for choosing between checkpoints, so that the held-out sets stay untouched by
 that choice. (Until session 6 it was seeds 20000-20007: eight scenes, about 40 scored agents,
 which could not separate checkpoints a few points apart.)
+A fourth, ``permissive`` (seeds 30000-30007 of the permissive intersection, a layout added
+after the shipped weights were trained), probes the failure the model card describes: queues
+behind a vehicle that waits at a green light.
 
 Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a JSON of every
 per-scenario field, plus a rollout picture.
@@ -35,7 +38,7 @@ from pathlib import Path
 import torch
 
 from tbsim_env.data import load_scenarios
-from tbsim_env.data.generator import LAYOUTS, generate_scenario
+from tbsim_env.data.generator import generate_scenario
 from tbsim_env.evaluation import make_rollout_fn, scenario_seed
 from tbsim_env.metrics.wosac import score_scenario, scores_to_json
 
@@ -43,9 +46,13 @@ HELD_OUT_REAL = (
     "waymo-open-dataset/motion_data_one_scenario.tfrecord",
     "gpudrive/tfrecord-00000-of-01000_4.json",
 )
-HELD_OUT_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 10000 + s) for s in range(8))
-VALIDATION_GENERATED = tuple((LAYOUTS[s % len(LAYOUTS)], 20000 + s) for s in range(24))
-SETS = ("real", "generated", "validation")
+EVAL_LAYOUTS = ("intersection", "merge", "stop_intersection", "t_junction")
+"""The layouts of the held-out and validation sets, fixed when the sets were drawn (layouts
+added to the generator later are not in them)."""
+HELD_OUT_GENERATED = tuple((EVAL_LAYOUTS[s % 4], 10000 + s) for s in range(8))
+VALIDATION_GENERATED = tuple((EVAL_LAYOUTS[s % 4], 20000 + s) for s in range(24))
+PERMISSIVE_PROBE = tuple(("permissive_intersection", 30000 + s) for s in range(8))
+SETS = ("real", "generated", "validation", "permissive")
 VERSIONS = ("wosac2025", "wosac2024")
 POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
 COLUMNS = (
@@ -104,7 +111,8 @@ def main() -> None:
     p.add_argument(
         "--sets",
         default="real,generated",
-        help="comma-separated sets: real, generated (held out), validation (for choosing)",
+        help="comma-separated sets: real, generated (held out), validation (for choosing), "
+        "permissive (probe of queues at a green light)",
     )
     p.add_argument("--policies", default=",".join(POLICIES), help="comma-separated policies")
     p.add_argument(
@@ -139,6 +147,8 @@ def main() -> None:
         sets["validation generated"] = [
             generate_scenario(lay, seed) for lay, seed in VALIDATION_GENERATED
         ]
+    if "permissive" in wanted:
+        sets["permissive probe"] = [generate_scenario(lay, seed) for lay, seed in PERMISSIVE_PROBE]
     dump = {}
     if args.keep and (out / "results.json").exists():
         dump = json.loads((out / "results.json").read_text())

@@ -45,7 +45,12 @@ from tbsim_env.data.generator.roads import (
 from tbsim_env.data.generator.routes import build_routes
 from tbsim_env.data.generator.scenes import MAP_MARGIN_M
 from tbsim_env.data.scenario import Scenario, wrap_angle_np
-from tests.test_generator import box_corners, boxes_overlap, signed_edge_distance
+from tests.test_generator import (
+    box_corners,
+    boxes_overlap,
+    signed_edge_distance,
+    stop_line_crossings,
+)
 
 SEEDS10 = tuple(range(10))
 ALL_CASES = [(layout, seed) for layout in LAYOUTS for seed in SEEDS10]
@@ -118,8 +123,14 @@ def vehicles(sc: Scenario) -> np.ndarray:
 
 
 def test_layouts_are_registered() -> None:
-    assert set(LAYOUTS) == {"intersection", "merge", "stop_intersection", "t_junction"}
-    assert LAYOUTS[:2] == ("intersection", "merge")
+    # New layouts go last: the held-out and validation sets cycle through the first four.
+    assert LAYOUTS == (
+        "intersection",
+        "merge",
+        "stop_intersection",
+        "t_junction",
+        "permissive_intersection",
+    )
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
@@ -155,11 +166,12 @@ def test_training_mix_round_robin() -> None:
         training_mix(0, ())
 
 
-def test_default_scenarios_cover_every_layout_and_are_fast() -> None:
+def test_default_scenarios_cover_the_first_four_layouts_and_are_fast() -> None:
     start = time.perf_counter()
     scenes = default_scenarios(8)
     elapsed = time.perf_counter() - start
-    assert {s.scenario_id.split("-")[1] for s in scenes} == set(LAYOUTS)
+    # The embedded default was fixed before the permissive intersection was added.
+    assert {s.scenario_id.split("-")[1] for s in scenes} == set(LAYOUTS[:4])
     assert elapsed < 4.0  # < 3 s on an idle core; slack for shared CI machines
 
 
@@ -432,7 +444,8 @@ def test_generated_scenes_contain_long_vehicles() -> None:
 
 # ----------------------------------------------------------------------------- cyclists
 
-URBAN = ("intersection", "stop_intersection", "t_junction")
+URBAN = ("intersection", "stop_intersection", "t_junction", "permissive_intersection")
+SIGNALISED = ("intersection", "permissive_intersection")
 
 
 def cyclists(sc: Scenario) -> np.ndarray:
@@ -580,10 +593,11 @@ def through_lanes(sc: Scenario, poly: object) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(through), np.asarray(beside)
 
 
-def test_signalised_crossings_start_while_traffic_through_them_has_red() -> None:
+@pytest.mark.parametrize("layout", SIGNALISED)
+def test_signalised_crossings_start_while_traffic_through_them_has_red(layout: str) -> None:
     starts = 0
     for seed in range(10):
-        sc = scene("intersection", seed)
+        sc = scene(layout, seed)
         polys = crosswalk_polygons(sc)
         state = sc.signals.state
         for a in pedestrians(sc):
@@ -600,8 +614,9 @@ def test_signalised_crossings_start_while_traffic_through_them_has_red() -> None
     assert starts >= 3, starts
 
 
-def test_walk_windows_follow_the_perpendicular_green() -> None:
-    net = LAYOUT_BUILDERS["intersection"]()
+@pytest.mark.parametrize("layout", SIGNALISED)
+def test_walk_windows_follow_the_perpendicular_green(layout: str) -> None:
+    net = LAYOUT_BUILDERS[layout]()
     plan = net.signals
     times = np.arange(0.0, plan.cycle_s, 0.1)
     left = walk_time_left(net, times, 0.0)
@@ -651,3 +666,79 @@ def test_no_vehicle_drives_through_a_pedestrian_or_cyclist(layout: str) -> None:
             near = (veh | cyc)[:, None] & t.valid & (d < 10.0) & (speed < 0.1) & on[None, :]
             waits += int(near.any())
     assert waits >= 4, waits
+
+
+# ----------------------------------------------------------------------------- permissive turns
+
+
+def test_permissive_intersection_runs_opposite_arms_together() -> None:
+    """Two phases: opposite arms share every state, perpendicular arms never go together;
+    left turns rank below the oncoming through and right turns."""
+    net = LAYOUT_BUILDERS["permissive_intersection"]()
+    plan = net.signals
+    states = signal_states(plan, np.arange(0.0, plan.cycle_s, 0.1), 0.0)
+    arms = np.asarray([net.lane(int(lid)).approach for lid in plan.lane_ids])
+    by_arm = {a: states[arms == a] for a in range(4)}
+    for a in range(4):
+        assert (by_arm[a] == by_arm[a][:1]).all()  # both lanes of an arm together
+    np.testing.assert_array_equal(by_arm[0], by_arm[2])
+    np.testing.assert_array_equal(by_arm[1], by_arm[3])
+    go = {a: by_arm[a][0] != int(SignalState.STOP) for a in range(4)}
+    assert not (go[0] & go[1]).any() and go[0].any() and go[1].any()
+    conflict = connector_conflicts(net)
+    ranks = net.junction.rank
+    lefts = [c for c, k in ranks.items() if k == 1]
+    assert len(lefts) == 4 and len(ranks) == 16  # 2 through, 1 left, 1 right per arm
+    for c in lefts:  # each left turn crosses rank-0 movements of the oncoming arm
+        arm = net.lane(c).approach
+        crossed = [o for o, k in ranks.items() if conflict[c, o] and k == 0]
+        assert any(net.lane(o).approach == (arm + 2) % 4 for o in crossed)
+
+
+@pytest.mark.parametrize("layout", SIGNALISED)
+def test_signalised_layouts_stop_for_red(layout: str) -> None:
+    total = 0
+    for seed in range(5):
+        sc = generate_scenario(layout, seed)
+        crossings, violations = stop_line_crossings(sc, sc.signals.state)
+        assert violations == 0, (seed, violations)
+        total += crossings
+    assert total > 0
+
+
+def standing_at_green(sc: Scenario) -> int:
+    """Steps at which a vehicle stands (< 0.3 m/s) first in line at a green light, its front
+    bumper within 4 m of the stop point, with another vehicle standing behind it in the same
+    lane (within 20 m of the line), summed over the signalised lanes."""
+    t = sc.tracks
+    veh = np.flatnonzero(t.object_type == int(ObjectType.VEHICLE))
+    lanes = sc.road_map.index_of_id()
+    speed = np.linalg.norm(t.velocity[veh, :, :2], axis=-1)
+    count = 0
+    for lid, state, stop in zip(sc.signals.lane_id, sc.signals.state, sc.signals.stop_point):
+        pl = sc.road_map.polylines[lanes[int(lid)]][:, :2]
+        d = (pl[-1] - pl[-2]) / np.linalg.norm(pl[-1] - pl[-2])
+        rel = t.xyz[veh, :, :2] - stop[:2]
+        lon = rel @ d + 0.5 * t.size[veh, :, 0]
+        lat = np.abs(rel @ np.array([-d[1], d[0]]))
+        head = np.cos(t.heading[veh]) * d[0] + np.sin(t.heading[veh]) * d[1]
+        on = t.valid[veh] & (lat < 1.75) & (head > 0.9) & (speed < 0.3)
+        first = (on & (lon > -4.0) & (lon <= 0.5)).any(axis=0)
+        behind = (on & (lon > -20.0) & (lon <= -4.0)).any(axis=0)
+        count += int((first & behind & (state == int(SignalState.GO))).sum())
+    return count
+
+
+def test_permissive_left_turns_hold_queues_at_a_green_light() -> None:
+    """The layout's purpose: a queue standing behind a vehicle that waits at a green light
+    (for a gap in oncoming traffic or for a crossing pedestrian), the situation the shipped
+    NPC mishandles (docs/MODEL_CARD.md). Over seeds 0-9: 278 such steps in 7 scenes, against
+    26 in 4 scenes of the split-phase intersection, where only pedestrians cause it."""
+    split = [standing_at_green(scene("intersection", s)) for s in SEEDS10]
+    permissive = [standing_at_green(scene("permissive_intersection", s)) for s in SEEDS10]
+    assert sum(permissive) >= 5 * max(sum(split), 1), (permissive, split)
+    assert sum(c > 0 for c in permissive) >= 5, permissive
+    # Not more: vehicles that their light holds take no part in the priority rules. When the
+    # cross street's queue at its red light counted as approaching traffic, left turns
+    # waited for it through their green (711 steps on these seeds).
+    assert sum(permissive) <= 400, permissive

@@ -5,8 +5,9 @@ rule-based driver in ``driver``, pedestrians cross on the crosswalks as planned 
 ``crossings`` (the driver yields to them) and ``scenes`` packs the result into the same
 ``Scenario`` type the WOMD reader produces. Layouts: "intersection" (signalised, split
 phasing), "merge" (freeway on-ramp), "stop_intersection" (all-way stop, first come first
-served) and "t_junction" (minor road with a stop sign yielding to the major road).
-``training_mix(seed)`` cycles through them.
+served), "t_junction" (minor road with a stop sign yielding to the major road) and
+"permissive_intersection" (signalised, two phases: left turns wait on the green for gaps in
+oncoming traffic, with the queue behind them). ``training_mix(seed)`` cycles through them.
 """
 
 from __future__ import annotations

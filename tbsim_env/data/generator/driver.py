@@ -14,7 +14,9 @@ Each step a vehicle takes the lowest of these IDM accelerations:
 * at an unsignalised junction (``RoadNetwork.junction``), stopping at the line until the
   vehicle's connector is granted: stop-sign approaches first come to a full stop, lower
   priority movements wait for an accepted time gap to higher priority traffic, and a
-  connector is never granted while a conflicting one is held by another vehicle;
+  connector is never granted while a conflicting one is held by another vehicle; at a
+  signalised junction with permissive turns the same rules order the vehicles whose light
+  lets them go (a left turn waits on the green for a gap in oncoming traffic);
 * stopping before a crosswalk on its route while a pedestrian crossing there has not yet
   passed the vehicle's path, or is about to step off the kerb and the vehicle can stop
   comfortably (the pedestrians move in the same loop, see ``crossings``).
@@ -325,6 +327,7 @@ class _Static:
     signal_row: np.ndarray  # [R] row in the signal table of the route's stop line, -1 if none
     line_s: np.ndarray  # [R] route s of that stop line (inf if none)
     route_arm: np.ndarray  # [R] approach of the route (-1 if none)
+    arm_phase: np.ndarray  # [A] signal phase of each approach arm (-1 if none)
     merge_virtual: np.ndarray  # [R, L+1] merge-frame lane offsets for yielding routes
     merge_prio: np.ndarray  # [R, L+1] merge-frame lane offsets of the yield lane for priority
     conflict_s: np.ndarray  # [R] route s of the merge conflict point for yielding routes
@@ -351,7 +354,10 @@ def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
     signal_row = np.full(n_r, -1, np.int64)
     line_s = np.full(n_r, np.inf)
     route_arm = np.full(n_r, -1, np.int64)
+    arm_phase = np.full(max(int(conn_arm.max()) + 1, 1), -1, np.int64)
     if net.signals is not None:
+        for lid, ph in zip(net.signals.lane_ids, net.signals.phase):
+            arm_phase[net.lane(lid).approach] = ph
         rows = {lid: k for k, lid in enumerate(net.signals.lane_ids)}
         for r, path in enumerate(routes.lanes):
             for lid in path:
@@ -406,6 +412,7 @@ def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
         signal_row=signal_row,
         line_s=line_s,
         route_arm=route_arm,
+        arm_phase=arm_phase,
         merge_virtual=merge_virtual,
         merge_prio=merge_prio,
         conflict_s=conflict_s,
@@ -715,6 +722,7 @@ def simulate(
 
         # ---------------------------------------------------------------- stop lines
         stop_at = np.full(n, np.inf)
+        sig_hold = np.zeros(n, bool)  # held at its stop line by the light
         has_line = st.signal_row[r] >= 0
         line = st.line_s[r]
         before = has_line & (front < line)
@@ -733,10 +741,13 @@ def simulate(
             for lane in (lane_c, lane_f, lane_b):
                 arm = st.conn_arm[lane]
                 occupied[arm[alive & (arm >= 0)]] = True
-            other = np.arange(occupied.size)[None, :] != st.route_arm[r][:, None]
+            arm_r = st.route_arm[r]
+            phase_r = np.where(arm_r >= 0, st.arm_phase[np.maximum(arm_r, 0)], -1)
+            other = st.arm_phase[None, : occupied.size] != phase_r[:, None]  # another phase
             busy = (occupied[None, :] & other).any(axis=1)
             must = must | busy
-            stop_at = np.where(before & must, line, stop_at)
+            sig_hold = before & must
+            stop_at = np.where(sig_hold, line, stop_at)
 
         # ---------------------------------------------------------------- merge gaps
         yielding = alive & np.isfinite(st.conflict_s[r]) & ~committed
@@ -762,8 +773,11 @@ def simulate(
             jr = alive & (st.j_kind[r] >= 0)
             j_line = st.j_line[r]
             granted |= jr & (front >= j_line)
+            # At a signalised junction a vehicle its light holds neither keeps a grant nor
+            # yields or is yielded to (the light orders the phases; the rules order a green).
+            granted &= ~sig_hold
             held = jr & granted & (s - 0.5 * length < st.j_exit[r] + 1.0)
-            waiting = jr & ~granted
+            waiting = jr & ~granted & ~sig_hold
             to_line = j_line - front
             is_stop = st.j_kind[r] == STOP
             zone = waiting & is_stop & (to_line < 3.5)

@@ -74,7 +74,8 @@ STOP = 1
 
 @dataclass(frozen=True)
 class JunctionControl:
-    """Right-of-way rules of an unsignalised junction.
+    """Right-of-way rules of a junction: an unsignalised one, or the permissive turns of a
+    signalised one (there only vehicles whose light lets them go take part).
 
     Every controlled lane ends at a stop line where its connector lanes begin. A vehicle
     crosses the line only once it has been granted its connector, which the driver does when
@@ -101,6 +102,10 @@ class StopSign:
 
     position: np.ndarray
     lanes: tuple[int, ...]
+
+
+PERMISSIVE_GREEN_S = 18.0
+"""Green time of each of the two phases of ``build_permissive_intersection``, seconds."""
 
 
 @dataclass(frozen=True)
@@ -280,9 +285,11 @@ def _build_junction(
         layout: layout name.
         arms: the present arms, a subset of (0, 1, 2, 3) in increasing order; a missing arm
             must have both neighbours present.
-        control: "signal" (split phasing, one arm at a time), "all_stop" (stop sign on every
-            arm) or "minor_stop" (stop sign on arms whose opposite arm is missing; the through
-            road has priority and its left turns yield to oncoming traffic).
+        control: "signal" (split phasing, one arm at a time), "signal_permissive" (two
+            phases, opposite arms together; left turns yield to oncoming through and
+            right-turning traffic on the green), "all_stop" (stop sign on every arm) or
+            "minor_stop" (stop sign on arms whose opposite arm is missing; the through road
+            has priority and its left turns yield to oncoming traffic).
         arm_length: distance from the centre to the map border along each arm, metres.
     """
     w, n_lanes, stop, half = LANE_WIDTH, 2, 14.0, 2 * LANE_WIDTH
@@ -396,6 +403,21 @@ def _build_junction(
             yellow_s=3.5,
             all_red_s=2.5,
         )
+    elif control == "signal_permissive":
+        plan = SignalPlan(
+            lane_ids=inbound_ids,
+            phase=tuple(k % 2 for k in arms for _ in range(n_lanes)),
+            num_phases=2,
+            green_s=PERMISSIVE_GREEN_S,
+            yellow_s=3.5,
+            all_red_s=2.0,
+        )
+        # Every approach has right of way on its green; left turns rank below the oncoming
+        # through and right turns they cross.
+        rank = {c + 1: 1 if turn[c] == 1 else 0 for c in turn}
+        junction = JunctionControl(
+            lane_ids=inbound_ids, kind=(PRIORITY,) * len(inbound_ids), rank=rank
+        )
     elif control in ("all_stop", "minor_stop"):
         kinds: list[int] = []
         rank: dict[int, int] = {}
@@ -415,7 +437,7 @@ def _build_junction(
     return RoadNetwork(
         layout=layout,
         lane_type=LaneType.SURFACE_STREET,
-        speed_limit_mph=35.0 if control == "signal" else 30.0,
+        speed_limit_mph=35.0 if control.startswith("signal") else 30.0,
         lanes=lanes,
         road_lines=tuple(road_lines),
         road_line_types=tuple(line_types),
@@ -441,6 +463,21 @@ def build_intersection(arm_length: float = 100.0) -> RoadNetwork:
         arm_length: distance from the centre to the map border along each arm, metres.
     """
     return _build_junction("intersection", (0, 1, 2, 3), "signal", arm_length)
+
+
+def build_permissive_intersection(arm_length: float = 100.0) -> RoadNetwork:
+    """Signalised 4-way intersection with two-phase signals and permissive left turns.
+
+    Opposite arms share a green; a left-turning vehicle waits at its line, at a green light,
+    for a gap in the oncoming through and right-turning traffic (the driver's accepted
+    time gap), and the vehicles queued behind it in the inner lane wait with it. Turning
+    vehicles also yield to pedestrians crossing on the walk phase. Same geometry as
+    ``build_intersection``.
+
+    Args:
+        arm_length: distance from the centre to the map border along each arm, metres.
+    """
+    return _build_junction("permissive_intersection", (0, 1, 2, 3), "signal_permissive", arm_length)
 
 
 def build_stop_intersection(arm_length: float = 100.0) -> RoadNetwork:
@@ -630,5 +667,6 @@ LAYOUT_BUILDERS = {
     "merge": build_merge,
     "stop_intersection": build_stop_intersection,
     "t_junction": build_t_junction,
+    "permissive_intersection": build_permissive_intersection,
 }
 """Layout name -> builder of its ``RoadNetwork``."""
