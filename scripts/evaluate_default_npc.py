@@ -49,8 +49,8 @@ HELD_OUT_REAL = (
 EVAL_LAYOUTS = ("intersection", "merge", "stop_intersection", "t_junction")
 """The layouts of the held-out and validation sets, fixed when the sets were drawn (layouts
 added to the generator later are not in them)."""
-HELD_OUT_GENERATED = tuple((EVAL_LAYOUTS[s % 4], 10000 + s) for s in range(8))
-VALIDATION_GENERATED = tuple((EVAL_LAYOUTS[s % 4], 20000 + s) for s in range(24))
+HELD_OUT_GENERATED = tuple((EVAL_LAYOUTS[s % len(EVAL_LAYOUTS)], 10000 + s) for s in range(8))
+VALIDATION_GENERATED = tuple((EVAL_LAYOUTS[s % len(EVAL_LAYOUTS)], 20000 + s) for s in range(24))
 PERMISSIVE_PROBE = tuple(("permissive_intersection", 30000 + s) for s in range(8))
 SETS = ("real", "generated", "validation", "permissive")
 VERSIONS = ("wosac2025", "wosac2024")

@@ -281,42 +281,54 @@ def test_signal_offset_depends_on_seed() -> None:
         np.testing.assert_allclose(sc.road_map.polylines[lanes[int(lid)]][-1], sp)
 
 
+def on_signalled_lane(sc: Scenario, veh: np.ndarray, lane_id: int, stop: np.ndarray):
+    """Where vehicles ``veh`` are relative to a signalled lane's stop point ``stop`` [>= 2]:
+    (front-bumper distance past the stop point [V, T] m, on the lane [V, T] bool).
+
+    A vehicle is on the lane when it is valid, its centre is within 1.75 m of the lane's line
+    through the stop point and it heads along the lane.
+    """
+    t = sc.tracks
+    pl = sc.road_map.polylines[sc.road_map.index_of_id()[int(lane_id)]][:, :2]
+    d = (pl[-1] - pl[-2]) / np.linalg.norm(pl[-1] - pl[-2])
+    rel = t.xyz[veh, :, :2] - stop[:2]
+    lon = rel @ d + 0.5 * t.size[veh, :, 0]
+    lat = np.abs(rel @ np.array([-d[1], d[0]]))
+    head = np.cos(t.heading[veh]) * d[0] + np.sin(t.heading[veh]) * d[1]
+    return lon, t.valid[veh] & (lat < 1.75) & (head > 0.9)
+
+
 def stop_line_crossings(sc: Scenario, states: np.ndarray) -> tuple[int, int]:
     """(front-bumper crossings of signalled stop lines, crossings into a STOP state).
 
-    A vehicle is on a controlled lane when its centre is within 1.75 m of the lane's line
-    through the stop point and it heads along the lane; it crosses between t and t+1 when
-    its front bumper goes from before the stop point to past it.
+    A vehicle on a controlled lane (``on_signalled_lane``) crosses between t and t+1 when its
+    front bumper goes from before the stop point to past it.
     """
-    t = sc.tracks
     veh = vehicles(sc)
-    lanes = sc.road_map.index_of_id()
     crossings = violations = 0
     for lid, st, sp in zip(sc.signals.lane_id, states, sc.signals.stop_point):
-        pl = sc.road_map.polylines[lanes[int(lid)]][:, :2]
-        d = pl[-1] - pl[-2]
-        d = d / np.linalg.norm(d)
-        rel = t.xyz[veh, :, :2] - sp[:2]
-        lon = rel @ d + 0.5 * t.size[veh, :, 0]
-        lat = np.abs(rel @ np.array([-d[1], d[0]]))
-        head = np.cos(t.heading[veh]) * d[0] + np.sin(t.heading[veh]) * d[1]
-        on = t.valid[veh] & (lat < 1.75) & (head > 0.9)
+        lon, on = on_signalled_lane(sc, veh, lid, sp)
         cross = on[:, :-1] & on[:, 1:] & (lon[:, :-1] <= 0) & (lon[:, 1:] > 0)
         crossings += int(cross.sum())
         violations += int((cross & (st[1:] == int(SignalState.STOP))[None, :]).sum())
     return crossings, violations
 
 
-@pytest.mark.parametrize("seed", SEEDS)
-def test_vehicles_stop_for_red(seed: int) -> None:
-    sc = scene("intersection", seed)
+SIGNALISED = ("intersection", "permissive_intersection")
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("layout", SIGNALISED)
+def test_vehicles_stop_for_red(layout: str, seed: int) -> None:
+    sc = scene(layout, seed)
     assert stop_line_crossings(sc, sc.signals.state)[1] == 0
 
 
-def test_red_light_check_is_not_vacuous() -> None:
+@pytest.mark.parametrize("layout", SIGNALISED)
+def test_red_light_check_is_not_vacuous(layout: str) -> None:
     total = flipped = 0
     for seed in SEEDS:
-        sc = scene("intersection", seed)
+        sc = scene(layout, seed)
         total += stop_line_crossings(sc, sc.signals.state)[0]
         # With GO and STOP swapped, vehicles that crossed on green now cross "on red".
         swap = np.where(

@@ -83,14 +83,15 @@ class KnarpeAttention(nn.Module):
         w_q, w_kv = self.in_proj_weight.split((d, 2 * d))
         b_q, b_kv = self.in_proj_bias.split((d, 2 * d))
         w_rk, w_rv = self.rpe_proj.weight.view(2, h, c, -1).unbind(0)  # [h, c, r] each
-        b_rk, b_rv = self.rpe_proj.bias.view(2, h, c).unbind(0)  # [h, c] each
+        # The key part of b_r adds q_i . b_rk to every logit of query i and head h alike, so
+        # it cancels in the softmax; only the value part acts.
+        b_rv = self.rpe_proj.bias[d:].view(h, c)
         q = F.linear(x, w_q, b_q).unflatten(-1, (h, c)) / math.sqrt(c)  # [B, Q, h, c]
         q_rpe = torch.einsum("bqhc,hcr->bqrh", q, w_rk)  # [B, Q, r, h]
-        logits = rpe @ q_rpe + (q * b_rk).sum(-1)[..., None, :]  # [B, Q, K, h]
+        logits = rpe @ q_rpe  # [B, Q, K, h]
         n_src, n_k = src.shape[1], idx.shape[-1]
         if dense is None:
             dense = h * n_src <= 2 * d * n_k
-        eye = torch.eye(h, dtype=x.dtype, device=x.device)
         if dense:
             k_src, v_src = F.linear(src, w_kv, b_kv).unflatten(-1, (2, h, c)).unbind(-3)
             scores = q.transpose(1, 2) @ k_src.permute(0, 2, 3, 1)  # [B, h, Q, S]
@@ -99,6 +100,7 @@ class KnarpeAttention(nn.Module):
         else:
             kv = gather_rows(F.linear(src, w_kv, b_kv), idx)  # [B, Q, K, 2d]
             k, v = kv[..., :d], kv[..., d:]  # views, [B, Q, K, d]
+            eye = torch.eye(h, dtype=x.dtype, device=x.device)
             q_blk = (q[..., None] * eye[:, None, :]).flatten(-3, -2)  # [B, Q, d, h] block diag
             logits = logits + k @ q_blk
         any_valid = mask.any(dim=-1)  # [B, Q]
@@ -111,7 +113,7 @@ class KnarpeAttention(nn.Module):
             out = (weights @ v_src.transpose(1, 2)).transpose(1, 2)  # [B, Q, h, c]
         else:
             out = (attn @ v).unflatten(-1, (h, c))  # [B, Q, h, h, c]: head g's weights, head h
-            out = (out * eye[:, :, None]).sum(-2)  # [B, Q, h, c]: the diagonal
+            out = out.diagonal(dim1=-3, dim2=-2).transpose(-1, -2)  # [B, Q, h, c]
         out = out + torch.einsum("bqhr,hcr->bqhc", attn @ rpe, w_rv)
         out = out + attn.sum(-1)[..., None] * b_rv  # sum_j a_ij is 1 unless dropout is on
         return self.out_proj(out.flatten(-2)) * any_valid[..., None]

@@ -327,7 +327,7 @@ class _Static:
     signal_row: np.ndarray  # [R] row in the signal table of the route's stop line, -1 if none
     line_s: np.ndarray  # [R] route s of that stop line (inf if none)
     route_arm: np.ndarray  # [R] approach of the route (-1 if none)
-    arm_phase: np.ndarray  # [A] signal phase of each approach arm (-1 if none)
+    other_phase: np.ndarray  # [R, A] bool, arm A's signal phase is not the route's
     merge_virtual: np.ndarray  # [R, L+1] merge-frame lane offsets for yielding routes
     merge_prio: np.ndarray  # [R, L+1] merge-frame lane offsets of the yield lane for priority
     conflict_s: np.ndarray  # [R] route s of the merge conflict point for yielding routes
@@ -354,7 +354,7 @@ def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
     signal_row = np.full(n_r, -1, np.int64)
     line_s = np.full(n_r, np.inf)
     route_arm = np.full(n_r, -1, np.int64)
-    arm_phase = np.full(max(int(conn_arm.max()) + 1, 1), -1, np.int64)
+    arm_phase = np.full(max(int(conn_arm.max()) + 1, 1), -1, np.int64)  # -1: no signal
     if net.signals is not None:
         for lid, ph in zip(net.signals.lane_ids, net.signals.phase):
             arm_phase[net.lane(lid).approach] = ph
@@ -399,6 +399,7 @@ def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
                     j_conn[r], j_in[r] = conn, lid
                     j_rank[r] = net.junction.rank[conn]
                     break
+    route_phase = np.where(route_arm >= 0, arm_phase[np.maximum(route_arm, 0)], -1)
     return _Static(
         j_kind=j_kind,
         j_line=j_line,
@@ -412,7 +413,7 @@ def _prepare(net: RoadNetwork, routes: RouteTable) -> _Static:
         signal_row=signal_row,
         line_s=line_s,
         route_arm=route_arm,
-        arm_phase=arm_phase,
+        other_phase=arm_phase[None, :] != route_phase[:, None],
         merge_virtual=merge_virtual,
         merge_prio=merge_prio,
         conflict_s=conflict_s,
@@ -737,14 +738,11 @@ def simulate(
             must = (red & ((latch != 2) | (need <= cfg.max_decel))) | (
                 (state == int(SignalState.CAUTION)) & (latch == 1)
             )
-            occupied = np.zeros(max(int(st.conn_arm.max()) + 1, 1), bool)
+            occupied = np.zeros(st.other_phase.shape[1], bool)  # per approach arm
             for lane in (lane_c, lane_f, lane_b):
                 arm = st.conn_arm[lane]
                 occupied[arm[alive & (arm >= 0)]] = True
-            arm_r = st.route_arm[r]
-            phase_r = np.where(arm_r >= 0, st.arm_phase[np.maximum(arm_r, 0)], -1)
-            other = st.arm_phase[None, : occupied.size] != phase_r[:, None]  # another phase
-            busy = (occupied[None, :] & other).any(axis=1)
+            busy = (occupied[None, :] & st.other_phase[r]).any(axis=1)
             must = must | busy
             sig_hold = before & must
             stop_at = np.where(sig_hold, line, stop_at)

@@ -98,13 +98,8 @@ TRAFFIC = {
         crossing_pedestrians=(0, 2),
         stop_source_boost=2.5,
     ),
-    "permissive_intersection": LayoutTraffic(
-        driver=DriverConfig(desired_speed=(9.0, 14.0), inflow=0.07, cyclist_share=CYCLISTS),
-        initial_vehicles=(18, 24),
-        pedestrians=4,
-        crossing_pedestrians=(1, 3),
-    ),
 }
+TRAFFIC["permissive_intersection"] = TRAFFIC["intersection"]  # same roads, other signals
 
 
 FRAME_OFFSET_RANGE_M: tuple[float, float] = (1000.0, 5000.0)
