@@ -71,6 +71,29 @@ def test_knn_ranks_valid_targets_includes_self_and_limits_range() -> None:
     assert torch.allclose(rel[0, 2, 1], torch.tensor([-2.0, 0.0, 0.0]))
 
 
+def test_knn_breaks_distance_ties_by_the_lower_row_whatever_follows() -> None:
+    # Pieces that start at the same node are equally far from everything. 300 targets on a
+    # circle around the query, shuffled into 3 groups of 100 at exactly the same points.
+    gen = torch.Generator().manual_seed(0)
+    angle = torch.rand(100, generator=gen) * 6.283
+    ring = torch.stack([angle.cos(), angle.sin()], -1) * 10.0
+    xy = ring[torch.randperm(100, generator=gen).repeat(3)][None]  # [1, 300, 2]
+    query = torch.zeros(1, 1, 2)
+    idx, mask = knn_select(query, xy, torch.ones(1, 300, dtype=torch.bool), k=40, dist_limit=50.0)
+    dist = (xy[0, idx[0, 0]]).norm(dim=-1)
+    assert (dist[1:] >= dist[:-1]).all() and mask.all()
+    # Among equal distances the lower rows win: every pick precedes its unpicked twins.
+    chosen = set(idx[0, 0].tolist())
+    for row in chosen:
+        twins = [r for r in range(300) if torch.equal(xy[0, r], xy[0, row])]
+        assert all(r in chosen for r in twins if r < row)
+    # Padding rows after the targets (and their count) change nothing.
+    pad = torch.cat([xy, torch.zeros(1, 77, 2)], 1)
+    pad_valid = torch.arange(377)[None] < 300
+    idx_pad, _ = knn_select(query, pad, pad_valid, k=40, dist_limit=50.0)
+    assert torch.equal(idx_pad, idx)
+
+
 def _dense_reference(attn: KnarpeAttention, x, pose, valid, cfg) -> torch.Tensor:
     """Plain dense multi-head attention of every token over all valid tokens, with RPE."""
     n_sc, n, d = x.shape

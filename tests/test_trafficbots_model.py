@@ -205,3 +205,35 @@ def test_sampling_on_the_real_scenario(one_scenario_path, small_model) -> None:
     assert alive.sum() > 0 and not alive[~hist.any(-1)].any()
     moved = (out.pose[0, 0, :, -1, :2] - out.pose[0, 0, :, 10, :2]).norm(dim=-1)
     assert torch.isfinite(moved[alive]).all()
+
+
+def test_trimmed_padding_changes_no_sample_and_no_step(small_model) -> None:
+    """``TokenBatch.trim`` (what inference runs on) computes the function of the padded batch.
+
+    A generated scene padded to the token limits (64 agents, 1024 pieces, 128 TL tokens):
+    the same latents and destinations are drawn, and the closed-loop rollout agrees to float
+    rounding (which grows in closed loop, so 30 steps are compared).
+    """
+    from tbsim_env.data.generator import generate_scenario
+    from tbsim_env.data.preprocess import preprocess_scenario
+    from tbsim_env.sim.geometry import wrap_angle
+
+    full = TokenBatch.from_tokens(preprocess_scenario(generate_scenario("intersection", 10000)))
+    trim = full.trim()
+    n, m, n_tl = trim.ag_type.shape[1], trim.mp_cls.shape[1], trim.tl_piece.shape[1]
+    assert (n, m, n_tl) < (64, 1024, 128) and trim.padded_sizes == (64, 1024)
+    assert not full.ag_valid[:, n:].any() and not full.mp_valid[:, m:].any()
+    runs = []
+    for batch in (full, trim):
+        with torch.no_grad():
+            ctx = small_model.prepare(batch, 3, torch.Generator().manual_seed(7))
+            runs.append((ctx, rollout(small_model, ctx, batch, gt_steps=11, n_steps=41)))
+    (c_full, t_full), (c_trim, t_trim) = runs
+    assert torch.equal(c_full.z[:, :n], c_trim.z)
+    assert torch.equal(c_full.dest[:, :n][c_trim.dest_valid], c_trim.dest[c_trim.dest_valid])
+    assert torch.allclose(c_full.mp.feat[:, :m], c_trim.mp.feat, atol=1e-5)
+    assert torch.equal(t_full.valid[:, :n], t_trim.valid) and not t_full.valid[:, n:].any()
+    pose_full, pose_trim = t_full.pose[:, :n], t_trim.pose
+    assert torch.allclose(pose_full[..., :2], pose_trim[..., :2], atol=1e-3)
+    assert wrap_angle(pose_full[..., 2] - pose_trim[..., 2]).abs().max() < 1e-3
+    assert torch.equal(t_full.tl_state[:, :n_tl], t_trim.tl_state)

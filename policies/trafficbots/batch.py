@@ -11,6 +11,11 @@ import torch
 
 from tbsim_env.data.tokens import SceneTokens
 
+_AGENT_FIELDS = ("ag_valid", "ag_pose", "ag_motion", "ag_type", "ag_size", "ag_role", "ag_dest")
+_MAP_FIELDS = ("mp_pose", "mp_valid", "mp_cls")
+_TL_FIELDS = ("tl_piece", "tl_state", "tl_valid")
+"""``TokenBatch`` fields whose axis 1 is the agent (N), map piece (M) or TL token (L) axis."""
+
 
 @dataclass(frozen=True)
 class TokenBatch:
@@ -34,6 +39,8 @@ class TokenBatch:
         ag_role: [B, N, 3] bool (SDC, object of interest, track to predict).
         ag_dest: [B, N] int64 destination map row, -1 none.
         scenario_id: B scenario ids.
+        padded_sizes: (N, M) of the arrays this batch was ``trim``-med from, or None if it
+            was not; ``TrafficBots.prepare`` draws its random samples at these sizes.
     """
 
     mp_pose: torch.Tensor
@@ -51,6 +58,7 @@ class TokenBatch:
     ag_role: torch.Tensor
     ag_dest: torch.Tensor
     scenario_id: tuple[str, ...]
+    padded_sizes: tuple[int, int] | None = None
 
     @property
     def n_scenes(self) -> int:
@@ -88,6 +96,30 @@ class TokenBatch:
         out = self._map(lambda x: x[rows_t])
         return dataclasses.replace(out, scenario_id=tuple(self.scenario_id[i] for i in rows_t))
 
+    def trim(self) -> TokenBatch:
+        """Drop the trailing map pieces, TL tokens and agents that are padding in every scene.
+
+        Preprocessing pads each scene to the token limits (1024 pieces, 128 TL tokens, 64
+        agents) so that cached scenes stack; a scene fills a fraction of them (the real
+        scenario of ``bench/policy_step.py``: 648, 34 and 55), and every policy step would
+        otherwise run its MLPs, KNN and attention over the padding. Padding is masked
+        everywhere, so the model computes the same function on the trimmed batch (to float
+        rounding), and ``TrafficBots.prepare`` draws its samples at ``padded_sizes``, so the
+        samples are the same too. Rows that stay keep their indices.
+
+        Returns:
+            The batch with M, L and N cut to the last row used by any scene (at least 1).
+        """
+        n = _rows_used(self.ag_valid.any(-1))
+        m = _rows_used(self.mp_valid.any(-1) | (self.mp_cls >= 0))
+        m = max(m, int(self.ag_dest.max()) + 1, int(self.tl_piece.max()) + 1)
+        n_tl = _rows_used((self.tl_piece >= 0) | self.tl_valid.any(-1))
+        sizes = self.padded_sizes or (self.ag_valid.shape[1], self.mp_valid.shape[1])
+        changes = {}
+        for names, size in ((_AGENT_FIELDS, n), (_MAP_FIELDS, m), (_TL_FIELDS, n_tl)):
+            changes.update({name: getattr(self, name)[:, :size] for name in names})
+        return dataclasses.replace(self, **changes, padded_sizes=sizes)
+
     @classmethod
     def from_tokens(
         cls, tokens: SceneTokens | Sequence[SceneTokens], device: torch.device | str = "cpu"
@@ -116,6 +148,12 @@ class TokenBatch:
             padded = [_pad0(a, size, pad.get(name, 0)) for a in arrays]
             out[name] = torch.from_numpy(np.stack(padded)).to(device)
         return cls(**out, scenario_id=tuple(s.scenario_id for s in scenes))
+
+
+def _rows_used(used: torch.Tensor) -> int:
+    """1 + the last row index used by any scene of ``used`` [B, X] (at least 1)."""
+    rows = used.any(0).nonzero()
+    return int(rows[-1, 0]) + 1 if len(rows) else 1
 
 
 def _pad0(a: np.ndarray, size: int, fill: float | int) -> np.ndarray:

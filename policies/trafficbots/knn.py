@@ -19,7 +19,10 @@ def knn_select(
     """Rank valid targets by 2-D distance and keep the ``k`` nearest within ``dist_limit``.
 
     For same-type attention the query itself is among the targets (distance 0), so it is
-    selected first. ``k`` is capped at the number of targets.
+    selected first. ``k`` is capped at the number of targets. Equal distances are common (map
+    pieces that start at the same node are equally far from everything) and are broken by the
+    lower target row, so the selection does not depend on the device, on ``topk``'s
+    algorithm or on padding rows after the targets (``TokenBatch.trim``).
 
     Args:
         query_xy: [B, Q, 2] query positions.
@@ -35,7 +38,12 @@ def knn_select(
     diff = query_xy[:, :, None, :] - target_xy[:, None, :, :]  # [B, Q, T, 2]
     dist = torch.linalg.vector_norm(diff, dim=-1)
     dist = dist.masked_fill(~target_valid[:, None, :], float("inf"))
-    dist, idx = torch.topk(dist, k, dim=-1, largest=False, sorted=True)
+    # Unique keys (distance, row): the bit pattern of a non-negative float32 orders as its
+    # value, so the distance goes in the high 32 bits and the row in the low ones.
+    rows = torch.arange(dist.shape[-1], device=dist.device)
+    key = (dist.view(torch.int32).long() << 32) | rows
+    key, idx = torch.topk(key, k, dim=-1, largest=False, sorted=True)
+    dist = (key >> 32).to(torch.int32).view(torch.float32)
     return idx, dist <= dist_limit
 
 

@@ -197,12 +197,19 @@ class TrafficBots(nn.Module):
         """
         cfg, dev = self.cfg, batch.device
         n_hist = cfg.n_history
+        n_sc, n_ag = batch.ag_type.shape
+        n_mp, n_node = batch.mp_valid.shape[1:]
+        # Random draws are made at the padded sizes of a trimmed batch and cut, so trimming
+        # the padding (``TokenBatch.trim``) changes no sample.
+        n_ag_pad, n_mp_pad = batch.padded_sizes or (n_ag, n_mp)
         enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
         if self.training and input_dropout_p > 0.0:
-            keep = rand(tuple(batch.mp_valid.shape), generator, dev) >= input_dropout_p
+            u = rand((n_sc, n_mp_pad, n_node), generator, dev)[:, :n_mp]
+            keep = u >= input_dropout_p
             keep[..., 0] = True  # node 0 (the token pose) is never dropped
             enc_node_valid = batch.mp_valid & keep
-            keep = rand(tuple(dest_hist_valid.shape), generator, dev) >= input_dropout_p
+            u = rand((n_sc, n_ag_pad, n_hist), generator, dev)[:, :n_ag]
+            keep = u >= input_dropout_p
             keep[..., -1] = True  # the current step is never dropped
             dest_hist_valid = dest_hist_valid & keep
         mp = self.map_encoder(batch.mp_pose, enc_node_valid, batch.mp_cls)
@@ -226,15 +233,15 @@ class TrafficBots(nn.Module):
             )
 
         n = n_rollouts
-        n_sc, n_ag = batch.ag_type.shape
-        shape = (n_sc * n, n_ag, cfg.latent_dim)
+        shape = (n_sc * n, n_ag_pad, cfg.latent_dim)
         if latent == "prior":
-            z = randn(shape, generator, dev)
+            z = randn(shape, generator, dev)[:, :n_ag]
             z_valid = h_valid.any(-1).repeat_interleave(n, 0)
         else:
             z = post_mean.repeat_interleave(n, 0)
             if latent == "posterior":
-                z = z + post_log_std.exp().repeat_interleave(n, 0) * randn(shape, generator, dev)
+                eps = randn(shape, generator, dev)[:, :n_ag]
+                z = z + post_log_std.exp().repeat_interleave(n, 0) * eps
             z_valid = post_valid.repeat_interleave(n, 0)
         if dest == "gt":
             dest_idx = batch.ag_dest.repeat_interleave(n, 0)
@@ -242,7 +249,8 @@ class TrafficBots(nn.Module):
         else:
             # Categorical sample by Gumbel-max (reproducible from the generator alone).
             logits = dest_logits.detach().repeat_interleave(n, 0)
-            u = rand(logits.shape, generator, dev).clamp(1e-12, 1.0 - 1e-7)
+            u = rand((n_sc * n, n_ag_pad, n_mp_pad), generator, dev)[:, :n_ag, :n_mp]
+            u = u.clamp(1e-12, 1.0 - 1e-7)
             dest_idx = (logits - torch.log(-torch.log(u))).argmax(-1)
             dest_valid = dest_usable.repeat_interleave(n, 0)
         return RolloutContext(
