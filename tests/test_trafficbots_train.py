@@ -44,6 +44,34 @@ def test_training_step_is_differentiable(batch) -> None:
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
 
+def test_training_on_the_trimmed_batch_is_training_on_the_padded_one() -> None:
+    """``tbsim train`` trims each batch's padding (``TokenBatch.trim``): same draws (latent
+    choice, posterior samples, teacher forcing), same loss and gradients to float rounding.
+    Eval mode, so that dropout (whose masks follow the tensor shapes) is off."""
+    from tbsim_env.data.generator import generate_scenario
+    from tbsim_env.data.preprocess import preprocess_scenario
+
+    torch.manual_seed(0)
+    model = TrafficBots(TrafficBotsConfig.small()).eval()
+    scenes = [preprocess_scenario(generate_scenario(k, 3)) for k in ("merge", "t_junction")]
+    padded = TokenBatch.from_tokens(scenes)
+    trimmed = padded.trim()
+    assert trimmed.ag_type.shape[1] < padded.ag_type.shape[1]
+    results = []
+    for batch in (padded, trimmed):
+        model.zero_grad()
+        gen = torch.Generator().manual_seed(3)
+        loss, logs = training_step(model, batch, generator=gen, teacher_forcing_p=0.5, n_steps=21)
+        loss.backward()
+        results.append((logs, [p.grad.clone() for p in model.parameters() if p.grad is not None]))
+    (logs_p, grads_p), (logs_t, grads_t) = results
+    for key in ("imitation", "kl", "destination", "tl_state", "n_loss_valid"):
+        assert logs_t[key] == pytest.approx(logs_p[key], rel=1e-4, abs=1e-6), key
+    assert len(grads_p) == len(grads_t)
+    for g_p, g_t in zip(grads_p, grads_t, strict=True):
+        assert torch.allclose(g_p, g_t, rtol=1e-3, atol=1e-6)
+
+
 def test_gradient_routing_and_bptt(batch) -> None:
     torch.manual_seed(1)
     model = TrafficBots(TrafficBotsConfig.small()).train()
