@@ -12,7 +12,7 @@ import tbsim_env  # noqa: F401  (first: avoids the policies <-> tbsim_env.env im
 # isort: split
 
 from policies.trafficbots.attention import KnarpeAttention, SelfAttentionLayer, knarpe_reference
-from policies.trafficbots.collision import rounded_box_collision
+from policies.trafficbots.collision import collision_flags, rounded_box_collision
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import (
     angle_pe,
@@ -284,3 +284,26 @@ def test_rounded_box_collision_matches_shapely() -> None:
     agree = (got == torch.tensor(ref)).float().mean().item()
     assert shapely is not None and agree > 0.99, agree
     assert 0 < sum(ref) < n
+
+
+def test_collision_flags_broad_phase_is_exact() -> None:
+    """The broad-phase ``collision_flags`` equals the exact test on every pair and step."""
+    gen = torch.Generator().manual_seed(5)
+    n_b, n_ag, n_t = 3, 14, 23
+    # Agents crowded into 30 m x 30 m so that many pairs come near and some collide.
+    xy = torch.rand(n_b, n_ag, 1, 2, generator=gen) * 30
+    xy = xy + torch.cumsum(torch.randn(n_b, n_ag, n_t, 2, generator=gen) * 0.6, 2)
+    yaw = torch.rand(n_b, n_ag, n_t, 1, generator=gen) * 6.3
+    pose = torch.cat([xy, yaw], -1)
+    valid = torch.rand(n_b, n_ag, n_t, generator=gen) > 0.2
+    size = torch.rand(n_b, n_ag, 3, generator=gen) * torch.tensor([5.0, 2.0, 1.0]) + 0.5
+    start = 4
+    want = torch.zeros(n_b, n_ag, dtype=torch.bool)
+    for t in range(start, n_t):  # every pair, every step
+        p, v, lw = pose[:, :, t], valid[:, :, t], size[..., :2]
+        hit = rounded_box_collision(p[:, :, None], lw[:, :, None], p[:, None], lw[:, None])
+        hit = hit & v[:, :, None] & v[:, None] & ~torch.eye(n_ag, dtype=torch.bool)
+        want |= hit.any(-1)
+    got = collision_flags(pose, valid, size, start, steps_per_chunk=5)
+    assert 0 < int(want.sum()) < want.numel()
+    assert torch.equal(got, want)
