@@ -3,7 +3,9 @@
 Samples TrafficBots rollouts on one generated scene and prints, per evaluated object, its logged
 turn, its off-road and collision rates over the rollouts, where the first off-road step of a
 rollout lies (layout frame: the junction is at the origin) next to the logged position, and
-whom the object hits first in the first rollout where it collides.
+whom the object hits first in the first rollout where it collides: where that partner is in
+the object's frame, both speeds, how far each has turned since the current step (left
+positive), and where the object is.
 
     python scripts/diagnose_npc_events.py intersection 10000 [--rollouts 16] [--checkpoint P]
 """
@@ -21,6 +23,7 @@ from tbsim_env.data.generator import frame_offset, generate_scenario
 from tbsim_env.metrics.wosac import scenario_features
 from tbsim_env.metrics.wosac.features_interactive import rectangle_signed_distance
 from tbsim_env.metrics.wosac.trajectories import ObjectTrajectories
+from tbsim_env.sim.geometry import wrap_angle
 
 
 def collision_partner(sim: ObjectTrajectories, r: int, e: int, t: int) -> tuple[int, float]:
@@ -34,6 +37,25 @@ def collision_partner(sim: ObjectTrajectories, r: int, e: int, t: int) -> tuple[
     d[e] = float("inf")
     j = int(d.argmin())
     return (j, float(d[j])) if torch.isfinite(d[j]) else (-1, float("inf"))
+
+
+def collision_geometry(
+    sim: ObjectTrajectories, r: int, e: int, j: int, t: int, offset: tuple[float, float]
+) -> str:
+    """Where object ``j`` is in object ``e``'s frame at step ``t`` of rollout ``r`` (ahead /
+    left, m), their speeds (m/s, from the step before) and ``e``'s layout-frame position."""
+    x, y, h = sim.x[r, :, t], sim.y[r, :, t], sim.heading[r, e, t]
+    ddx, ddy = float(x[j] - x[e]), float(y[j] - y[e])
+    c, s = float(torch.cos(h)), float(torch.sin(h))
+    ahead, left = c * ddx + s * ddy, -s * ddx + c * ddy
+    speed = torch.hypot(x - sim.x[r, :, t - 1], y - sim.y[r, :, t - 1]) / C.DT
+    turned = torch.rad2deg(wrap_angle(sim.heading[r, :, t] - sim.heading[r, :, C.CURRENT_INDEX]))
+    return (
+        f"partner {ahead:.1f} m ahead, {left:.1f} m left; speeds {float(speed[e]):.1f} and "
+        f"{float(speed[j]):.1f} m/s; turned {float(turned[e]):.0f} and {float(turned[j]):.0f} "
+        f"deg since the current step; at ({float(x[e]) - offset[0]:.1f}, "
+        f"{float(y[e]) - offset[1]:.1f})"
+    )
 
 
 def first_event(flags: torch.Tensor) -> tuple[int, int] | None:
@@ -97,6 +119,8 @@ def main() -> None:
                 )
             )
             line += f"; rollout {r} collides at step {first + k} with {whom}"
+            if j >= 0:
+                line += "; " + collision_geometry(sim, r, e, j, first + k, (dx, dy))
         print(line)
 
 
