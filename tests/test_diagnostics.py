@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
+import re
 import subprocess
 import sys
 
@@ -107,3 +108,46 @@ def test_evaluation_scores_do_not_depend_on_the_number_of_workers(tmp_path):
     scenes = json.loads(one)["held-out generated/constant_velocity/wosac2025"]["scenarios"]
     expected = _script("evaluate_default_npc").HELD_OUT_GENERATED
     assert [s["scenario_id"] for s in scenes] == [f"gen-{lay}-{seed}" for lay, seed in expected]
+
+
+def test_collision_geometry_in_the_agent_frame():
+    geometry = _script("diagnose_npc_events").collision_geometry
+    n_t = C.CURRENT_INDEX + 3
+    t = n_t - 1
+    x = torch.zeros(1, 2, n_t)
+    y = torch.zeros(1, 2, n_t)
+    heading = torch.zeros(1, 2, n_t)
+    heading[0, 0, t] = math.pi / 2  # object 0 turned left to face north
+    x[0, 1, t], y[0, 1, t] = 1000.0 - 1.0, 2000.0 + 3.0  # 3 m ahead of it, 1 m to its left
+    x[0, 1, t - 1], y[0, 1, t - 1] = 1000.0 - 1.0, 2000.0 + 2.5  # moved 0.5 m in 0.1 s
+    x[0, 0, :], y[0, 0, :] = 1000.0, 2000.0
+    sim = ObjectTrajectories(
+        x=x,
+        y=y,
+        z=torch.zeros_like(x),
+        heading=heading,
+        valid=torch.ones(1, 2, n_t, dtype=torch.bool),
+        length=torch.full((2,), 4.0),
+        width=torch.full((2,), 2.0),
+        height=torch.full((2,), 1.5),
+        object_type=torch.full((2,), int(C.ObjectType.VEHICLE)),
+        num_eval=2,
+    )
+    text = geometry(sim, 0, 0, 1, t, (990.0, 2010.0))
+    assert "partner 3.0 m ahead, 1.0 m left" in text
+    assert "speeds 0.0 and 5.0 m/s" in text and "turned 90 and 0 deg" in text
+    assert text.endswith("at (10.0, -10.0)")
+
+
+def test_evaluation_sets_are_disjoint_and_never_trained_on():
+    ev = _script("evaluate_default_npc")
+    sets = (ev.HELD_OUT_GENERATED, ev.MORE_HELD_OUT_GENERATED, ev.VALIDATION_GENERATED)
+    seeds = [seed for s in sets + (ev.PERMISSIVE_PROBE,) for _, seed in s]
+    assert len(seeds) == len(set(seeds)) == 8 + 32 + 24 + 8
+    # The training caches of scripts/train_default_npc.sh hold seeds below 10000 only.
+    script = (REPO / "scripts" / "train_default_npc.sh").read_text()
+    trained = [int(hi) for hi in re.findall(r"generated:[a-z_,]+:\d+-(\d+)", script)]
+    assert trained and max(trained) < min(seeds)
+    for s in sets:  # every layout of the held-out and validation sets, equally often
+        layouts = [lay for lay, _ in s]
+        assert {layouts.count(lay) for lay in ev.EVAL_LAYOUTS} == {len(s) // 4}
