@@ -47,8 +47,7 @@ def test_policy_warm_history_is_the_log_in_the_token_frame(policy, scenario) -> 
     assert isinstance(policy, Policy)
     state = build_sim_state([scenario])
     ps = policy.initial_state(state, [scenario], torch.Generator().manual_seed(0))
-    gt = TokenBatch.from_tokens(preprocess_scenario(scenario)).trim()
-    assert ps.rollout.hist_valid.shape[1] == gt.ag_valid.shape[1] < 64  # padding not simulated
+    gt = TokenBatch.from_tokens(preprocess_scenario(scenario))
     assert ps.rollout.step == 10 and ps.rollout.hist_tl_present[0, :, -10:].all()
     hist_valid = ps.rollout.hist_valid[0, :, -10:]
     assert torch.equal(hist_valid, gt.ag_valid[0, :, :10] & hist_valid)

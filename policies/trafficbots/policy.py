@@ -93,15 +93,16 @@ class TrafficBotsPolicy:
         if dev != self.model.device:
             raise ValueError(f"simulator on {dev} but the TrafficBots model on {self.model.device}")
         tokens = [preprocess_scenario(sc, self.token_config) for sc in scenarios]
-        # The model runs on the scenes' used rows only (``TokenBatch.trim``: same samples).
-        batch = TokenBatch.from_tokens(tokens, device=self.model.device).trim()
-        n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
+        # Padded to the token limits, not trimmed (``TokenBatch.trim``): a vectorised env
+        # restarts one slot at a time and writes its fresh state into the batch's, so every
+        # state must have the same shapes.
+        batch = TokenBatch.from_tokens(tokens, device=self.model.device)
         ctx = self.model.prepare(batch, 1, generator, latent="prior", dest="sample")
-        tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])
-        slot = _match(torch.as_tensor(tok_track, device=dev), state.agents.track_index)
+        tok_track = torch.as_tensor(np.stack([t.agent_track_index for t in tokens]), device=dev)
+        slot = _match(tok_track, state.agents.track_index)
         lane_ids = []
         for t in tokens:
-            piece = np.asarray(t.tl_piece[:n_tl])
+            piece = np.asarray(t.tl_piece)
             lane_ids.append(np.where(piece >= 0, t.map_feature_id[np.maximum(piece, 0)], -1))
         tl_signal = _match(torch.as_tensor(np.stack(lane_ids), device=dev), state.signals.lane_id)
         token_origin = torch.as_tensor(np.stack([t.origin for t in tokens]), device=dev)
