@@ -78,3 +78,23 @@ def test_policy_in_the_parallel_env(policy, scenario) -> None:
     for _ in range(3):
         obs, rew, term, trunc, _ = env.step({a: [0.0, 0.0] for a in env.agents})
     assert set(obs) <= set(rew) and len(rew) >= 1
+
+
+def test_trimmed_policy_drives_like_the_padded_one(policy, scenario) -> None:
+    """``trim=True`` (what ``TrafficEnv`` uses) runs on the used token rows only and gives the
+    padded policy's actions; ``BatchedTrafficEnv`` refuses it (slot restarts need fixed
+    shapes)."""
+    from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
+
+    trimmed = TrafficBotsPolicy(policy.model, trim=True)
+    a_pad, ps_pad, _ = _drive(policy, scenario, seed=3, n_steps=12)
+    a_trim, ps_trim, _ = _drive(trimmed, scenario, seed=3, n_steps=12)
+    n_used = int(TokenBatch.from_tokens(preprocess_scenario(scenario)).trim().ag_type.shape[1])
+    assert ps_pad.rollout.hist_valid.shape[1] == 64 > n_used
+    assert ps_trim.rollout.hist_valid.shape[1] == n_used
+    assert torch.equal(ps_pad.slot[:, :n_used], ps_trim.slot)
+    assert not (ps_pad.slot[:, n_used:] >= 0).any()
+    assert (a_pad.abs() > 0).any() and torch.allclose(a_pad, a_trim, atol=1e-4)
+    assert TrafficEnv([scenario]).npc_policy.trim
+    with pytest.raises(ValueError, match="trim=False"):
+        BatchedTrafficEnv([scenario], 2, npc_policy=trimmed)

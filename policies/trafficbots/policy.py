@@ -64,14 +64,22 @@ class TrafficBotsPolicy:
     Args:
         model: the network (put in eval mode here).
         token_config: preprocessing limits (defaults: 64 agents, 1024 pieces, 128 TLs).
+        trim: run the model on the batch's used token rows (``TokenBatch.trim``: the same
+            function and samples, fewer FLOPs) instead of the padding up to the limits. The
+            policy state's shapes then depend on the scenes, so this is for callers that start
+            every rollout of a batch together (``TrafficEnv`` sets it); ``BatchedTrafficEnv``
+            restarts one slot at a time into a batch state of fixed shapes and refuses it.
     """
 
     name = "trafficbots"
     exact_replay = False
 
-    def __init__(self, model: TrafficBots, token_config: TokenConfig | None = None) -> None:
+    def __init__(
+        self, model: TrafficBots, token_config: TokenConfig | None = None, trim: bool = False
+    ) -> None:
         self.model = model.eval()
         self.token_config = token_config or TokenConfig()
+        self.trim = trim
 
     @classmethod
     def from_checkpoint(
@@ -93,16 +101,16 @@ class TrafficBotsPolicy:
         if dev != self.model.device:
             raise ValueError(f"simulator on {dev} but the TrafficBots model on {self.model.device}")
         tokens = [preprocess_scenario(sc, self.token_config) for sc in scenarios]
-        # Padded to the token limits, not trimmed (``TokenBatch.trim``): a vectorised env
-        # restarts one slot at a time and writes its fresh state into the batch's, so every
-        # state must have the same shapes.
         batch = TokenBatch.from_tokens(tokens, device=self.model.device)
+        if self.trim:
+            batch = batch.trim()
+        n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
         ctx = self.model.prepare(batch, 1, generator, latent="prior", dest="sample")
-        tok_track = torch.as_tensor(np.stack([t.agent_track_index for t in tokens]), device=dev)
-        slot = _match(tok_track, state.agents.track_index)
+        tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])
+        slot = _match(torch.as_tensor(tok_track, device=dev), state.agents.track_index)
         lane_ids = []
         for t in tokens:
-            piece = np.asarray(t.tl_piece)
+            piece = np.asarray(t.tl_piece[:n_tl])
             lane_ids.append(np.where(piece >= 0, t.map_feature_id[np.maximum(piece, 0)], -1))
         tl_signal = _match(torch.as_tensor(np.stack(lane_ids), device=dev), state.signals.lane_id)
         token_origin = torch.as_tensor(np.stack([t.origin for t in tokens]), device=dev)

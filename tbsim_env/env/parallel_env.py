@@ -203,7 +203,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.controlled_spec = controlled
         kwargs = {"checkpoint": npc_checkpoint} if npc_checkpoint else {}
         if npc_policy == "trafficbots":
-            kwargs["device"] = str(self.device)
+            # Every reset starts the whole batch, so the policy may run on the used tokens.
+            kwargs.update(device=str(self.device), trim=True)
         self.npc_policy = make_policy(npc_policy, **kwargs)
         start = self.config.start_step
         self._controlled: list[list[int]] = []

@@ -248,6 +248,11 @@ class BatchedTrafficEnv:
         if npc_policy == "trafficbots":
             kwargs.setdefault("device", str(self.device))
         self.npc_policy = make_policy(npc_policy, **kwargs)
+        if getattr(self.npc_policy, "trim", False):
+            raise ValueError(
+                "BatchedTrafficEnv restarts one slot at a time into a policy state of fixed "
+                "shapes; build the TrafficBots policy with trim=False (its default)"
+            )
         self.route_points = int(route_points)
         self.route_spacing = float(route_spacing)
         self.torch_threads = torch_threads
