@@ -7,7 +7,7 @@ achieved GFLOP/s, and a dense float32 matmul GFLOP/s measured in the same run as
 reference. Target on CPU: at least 30% of that reference.
 
 The policy runs on the scene's used rows (``TokenBatch.trim``, as ``sample_rollouts`` and the
-environment's NPC policy do). Each figure is also measured, in the same run, (a) on the batch
+``TrafficEnv``'s NPC policy do). Each figure is also measured, in the same run, (a) on the batch
 padded to the token limits (64 agents, 1024 map pieces, 128 TL tokens), as the policy ran
 before it trimmed, and (b) with the attention computed in the spec's order
 (``knarpe_reference``: gather the neighbours, then project every pair), the formulation this
