@@ -38,6 +38,7 @@ import os
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from tbsim_env.data import load_scenarios
@@ -99,6 +100,40 @@ def table(rows: dict[str, dict], version: str) -> str:
     lines = [f"**{version}**", "", head, sep]
     for pol, agg in rows.items():
         lines.append(f"| {pol} | " + " | ".join(f"{agg[c[0]]:.4f}" for c in COLUMNS) + " |")
+    return "\n".join(lines)
+
+
+INTERVAL_FIELDS = (
+    ("realism_meta_metric", "meta"),
+    ("simulated_collision_rate", "collision rate"),
+    ("simulated_offroad_rate", "off-road rate"),
+)
+
+
+def bootstrap_interval(
+    values: list[float], level: float = 0.9, draws: int = 10_000, seed: int = 0
+) -> tuple[float, float]:
+    """Percentile bootstrap interval of the mean of ``values`` (scenes resampled with
+    replacement, a fixed seed so that the report is reproducible)."""
+    x = np.asarray(values, dtype=np.float64)
+    means = np.random.default_rng(seed).choice(x, (draws, len(x))).mean(1)
+    tail = 100 * (1 - level) / 2
+    lo, hi = np.percentile(means, [tail, 100 - tail])
+    return float(lo), float(hi)
+
+
+def interval_table(per_policy: dict[str, list[dict]]) -> str:
+    """Markdown: mean [90% bootstrap interval over scenes] of the headline fields."""
+    head = "| policy | " + " | ".join(c[1] for c in INTERVAL_FIELDS) + " |"
+    lines = ["90% bootstrap intervals over scenes (wosac2025)", "", head]
+    lines.append("|---" * (len(INTERVAL_FIELDS) + 1) + "|")
+    for pol, scenes in per_policy.items():
+        cells = []
+        for field, _ in INTERVAL_FIELDS:
+            values = [sc[field] for sc in scenes]
+            lo, hi = bootstrap_interval(values)
+            cells.append(f"{np.mean(values):.4f} [{lo:.4f}, {hi:.4f}]")
+        lines.append(f"| {pol} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -203,6 +238,12 @@ def main() -> None:
                 if f"{set_name}/{pol}/{v}" in dump
             }
             report.append(table(rows, v) + "\n")
+        per_policy = {
+            pol: dump[f"{set_name}/{pol}/wosac2025"]["scenarios"]
+            for pol in POLICIES
+            if f"{set_name}/{pol}/wosac2025" in dump
+        }
+        report.append(interval_table(per_policy) + "\n")
     text = "\n".join(report)
     print(text)
     (out / "results.md").write_text(text)

@@ -151,3 +151,17 @@ def test_evaluation_sets_are_disjoint_and_never_trained_on():
     for s in sets:  # every layout of the held-out and validation sets, equally often
         layouts = [lay for lay, _ in s]
         assert {layouts.count(lay) for lay in ev.EVAL_LAYOUTS} == {len(s) // 4}
+
+
+def test_bootstrap_interval_of_the_mean_over_scenes():
+    interval = _script("evaluate_default_npc").bootstrap_interval
+    assert interval([0.25] * 5) == (0.25, 0.25)
+    values = [0.0, 0.0, 0.0, 0.4, 0.2, 0.0, 0.1, 0.0]
+    lo, hi = interval(values)
+    assert interval(values) == (lo, hi)  # seeded: the report is reproducible
+    assert 0.0 <= lo < float(np.mean(values)) < hi <= 0.4
+    lo80, hi80 = interval(values, level=0.8)
+    assert lo <= lo80 and hi80 <= hi
+    wide = hi - lo
+    lo4, hi4 = interval(values * 4)  # four times the scenes: about half the width
+    assert 0.35 * wide < hi4 - lo4 < 0.65 * wide
