@@ -69,6 +69,12 @@ class TokenBatch:
         return int(self.ag_valid.shape[-1])
 
     @property
+    def draw_sizes(self) -> tuple[int, int]:
+        """(N, M) at which random per-agent / per-piece samples are drawn: the padded sizes of
+        a trimmed batch, else the batch's own, so that trimming changes no sample."""
+        return self.padded_sizes or (self.ag_valid.shape[1], self.mp_valid.shape[1])
+
+    @property
     def device(self) -> torch.device:
         return self.ag_pose.device
 
@@ -114,11 +120,10 @@ class TokenBatch:
         m = _rows_used(self.mp_valid.any(-1) | (self.mp_cls >= 0))
         m = max(m, int(self.ag_dest.max()) + 1, int(self.tl_piece.max()) + 1)
         n_tl = _rows_used((self.tl_piece >= 0) | self.tl_valid.any(-1))
-        sizes = self.padded_sizes or (self.ag_valid.shape[1], self.mp_valid.shape[1])
         changes = {}
         for names, size in ((_AGENT_FIELDS, n), (_MAP_FIELDS, m), (_TL_FIELDS, n_tl)):
             changes.update({name: getattr(self, name)[:, :size] for name in names})
-        return dataclasses.replace(self, **changes, padded_sizes=sizes)
+        return dataclasses.replace(self, **changes, padded_sizes=self.draw_sizes)
 
     @classmethod
     def from_tokens(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from policies.trafficbots.encodings import relative_pose
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.torch_utils import cached_arange, gather_rows
 
 
 @torch.no_grad()
@@ -40,8 +40,7 @@ def knn_select(
     dist = dist.masked_fill(~target_valid[:, None, :], float("inf"))
     # Unique keys (distance, row): the bit pattern of a non-negative float32 orders as its
     # value, so the distance goes in the high 32 bits and the row in the low ones.
-    rows = torch.arange(dist.shape[-1], device=dist.device)
-    key = (dist.view(torch.int32).long() << 32) | rows
+    key = (dist.view(torch.int32).long() << 32) | cached_arange(dist.shape[-1], dist.device)
     key, idx = torch.topk(key, k, dim=-1, largest=False, sorted=True)
     dist = (key >> 32).to(torch.int32).view(torch.float32)
     return idx, dist <= dist_limit

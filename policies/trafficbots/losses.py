@@ -174,8 +174,8 @@ def training_step(
         input_dropout_p=input_dropout_p,
     )
     n_sc, n_ag = batch.ag_type.shape
-    n_ag_pad = batch.padded_sizes[0] if batch.padded_sizes else n_ag  # as ``prepare`` draws
-    force = rand((n_sc, n_ag_pad), generator, dev)[:, :n_ag] < teacher_forcing_p
+    u = rand((n_sc, batch.draw_sizes[0]), generator, dev)[:, :n_ag]  # as ``prepare`` draws
+    force = u < teacher_forcing_p
     traj = rollout(model, ctx, batch, gt_steps=batch.n_steps, teacher_force=force, n_steps=n_steps)
     l_il, loss_valid = imitation_loss(traj, batch, loss_cfg)
     has_loss = loss_valid.any(-1)  # [B, N]

@@ -199,9 +199,7 @@ class TrafficBots(nn.Module):
         n_hist = cfg.n_history
         n_sc, n_ag = batch.ag_type.shape
         n_mp, n_node = batch.mp_valid.shape[1:]
-        # Random draws are made at the padded sizes of a trimmed batch and cut, so trimming
-        # the padding (``TokenBatch.trim``) changes no sample.
-        n_ag_pad, n_mp_pad = batch.padded_sizes or (n_ag, n_mp)
+        n_ag_pad, n_mp_pad = batch.draw_sizes  # draws are cut to the (trimmed) sizes
         enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
         if self.training and input_dropout_p > 0.0:
             u = rand((n_sc, n_mp_pad, n_node), generator, dev)[:, :n_mp]

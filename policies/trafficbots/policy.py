@@ -106,7 +106,7 @@ class TrafficBotsPolicy:
             batch = batch.trim()
         n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
         ctx = self.model.prepare(batch, 1, generator, latent="prior", dest="sample")
-        tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])
+        tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])  # trimmed rows
         slot = _match(torch.as_tensor(tok_track, device=dev), state.agents.track_index)
         lane_ids = []
         for t in tokens:
