@@ -3,6 +3,11 @@
 A policy keeps no hidden per-rollout attributes: whatever it remembers (history windows, latent
 samples, destinations) lives in an explicit ``PolicyState`` that ``act`` returns and the caller
 passes back. One policy object can therefore drive many rollouts at once.
+
+Optional: ``for_scenarios(scenarios) -> Policy``. A caller that will only start rollouts from a
+known set of scenarios and restarts batch rows one at a time (``BatchedTrafficEnv``) calls it
+once and uses the returned policy, whose state shapes must then be the same for any batch drawn
+from the set (``TrafficBotsPolicy`` trims its token rows to those the set uses).
 """
 
 from __future__ import annotations

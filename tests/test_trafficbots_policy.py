@@ -82,9 +82,8 @@ def test_policy_in_the_parallel_env(policy, scenario) -> None:
 
 def test_trimmed_policy_drives_like_the_padded_one(policy, scenario) -> None:
     """``trim=True`` (what ``TrafficEnv`` uses) runs on the used token rows only and gives the
-    padded policy's actions; ``BatchedTrafficEnv`` refuses it (slot restarts need fixed
-    shapes)."""
-    from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
+    padded policy's actions (``BatchedTrafficEnv``'s fixed rows: ``test_vector_env``)."""
+    from tbsim_env.env import TrafficEnv
 
     trimmed = TrafficBotsPolicy(policy.model, trim=True)
     a_pad, ps_pad, _ = _drive(policy, scenario, seed=3, n_steps=12)
@@ -96,5 +95,3 @@ def test_trimmed_policy_drives_like_the_padded_one(policy, scenario) -> None:
     assert not (ps_pad.slot[:, n_used:] >= 0).any()
     assert (a_pad.abs() > 0).any() and torch.allclose(a_pad, a_trim, atol=1e-4)
     assert TrafficEnv([scenario]).npc_policy.trim
-    with pytest.raises(ValueError, match="trim=False"):
-        BatchedTrafficEnv([scenario], 2, npc_policy=trimmed)

@@ -257,6 +257,50 @@ def test_take_and_put_rows_round_trip(scenes):
         take_rows(object(), rows)
 
 
+def test_trimmed_trafficbots_npcs_match_the_padded_ones_across_slot_restarts(scenes):
+    """``BatchedTrafficEnv`` runs a trimming TrafficBots policy on the token rows its bank uses
+    (``for_scenarios``): fixed state shapes through restarts into differently sized scenes,
+    and the padded policy's observations and rewards."""
+    from policies.trafficbots.batch import TokenBatch
+    from policies.trafficbots.config import TrafficBotsConfig
+    from policies.trafficbots.model import TrafficBots
+    from policies.trafficbots.policy import TrafficBotsPolicy
+    from tbsim_env.data.preprocess import preprocess_scenario
+
+    torch.manual_seed(0)
+    model = TrafficBots(TrafficBotsConfig.small())
+    used = [TokenBatch.from_tokens(preprocess_scenario(sc)).rows_used() for sc in scenes]
+    union = tuple(max(u[i] for u in used) for i in range(3))
+    assert len(set(used)) == len(scenes) and union < (64, 1024, 128)
+
+    def run(trim: bool):
+        cfg = EnvConfig(termination=TerminationConfig(offroad=True))
+        policy = TrafficBotsPolicy(model, trim=trim)
+        venv = BatchedTrafficEnv(scenes, 2, npc_policy=policy, config=cfg, seed=4)
+        venv.reset(scenario_indices=[1, 0])
+        a = torch.zeros(2, 1, 2)
+        a[0, 0] = torch.tensor([5.0, 1.5])  # slot 0 leaves the road: its episodes restart
+        trace, drawn, n_rows = [], {1, 0}, set()
+        for _ in range(40):
+            obs, rew, *_, info = venv.step(a)
+            trace.append((obs["agents"].clone(), rew.clone()))
+            drawn.update(venv.scenario_index.tolist())
+            n_rows.add(venv._policy_state.ctx.mp.feat.shape[1])
+        return trace, drawn, n_rows, venv
+
+    padded, _, pad_rows, _ = run(False)
+    trimmed, drawn, trim_rows, venv = run(True)
+    assert venv.npc_policy.min_rows == union and drawn == {0, 1, 2}
+    assert pad_rows == {1024} and trim_rows == {union[1]}
+    for (oa, ra), (ob, rb) in zip(padded, trimmed, strict=True):
+        torch.testing.assert_close(oa, ob, rtol=0, atol=1e-3)
+        torch.testing.assert_close(ra, rb, rtol=0, atol=1e-4)
+    assert (
+        BatchedTrafficEnv(scenes, 1, npc_policy=TrafficBotsPolicy(model)).npc_policy.min_rows
+        is None
+    )
+
+
 def test_stateful_npc_policy_resets_one_slot_without_touching_the_others(scenes):
     """TrafficBots NPCs (random small model): a slot restart leaves the other slots' NPCs alone."""
     from policies.trafficbots.config import TrafficBotsConfig

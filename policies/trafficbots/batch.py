@@ -102,7 +102,7 @@ class TokenBatch:
         out = self._map(lambda x: x[rows_t])
         return dataclasses.replace(out, scenario_id=tuple(self.scenario_id[i] for i in rows_t))
 
-    def trim(self) -> TokenBatch:
+    def trim(self, min_rows: tuple[int, int, int] | None = None) -> TokenBatch:
         """Drop the trailing map pieces, TL tokens and agents that are padding in every scene.
 
         Preprocessing pads each scene to the token limits (1024 pieces, 128 TL tokens, 64
@@ -113,17 +113,34 @@ class TokenBatch:
         rounding), and ``TrafficBots.prepare`` draws its samples at ``padded_sizes``, so the
         samples are the same too. Rows that stay keep their indices.
 
+        Args:
+            min_rows: (N, M, L) rows to keep at least (capped at the arrays' sizes). With
+                the rows that a whole set of scenes uses (``rows_used``), every batch drawn
+                from the set trims to the same shapes.
+
         Returns:
-            The batch with M, L and N cut to the last row used by any scene (at least 1).
+            The batch with N, M and L cut to the last row used by any scene (at least 1),
+            or to ``min_rows`` where that is more.
         """
-        n = _rows_used(self.ag_valid.any(-1))
-        m = _rows_used(self.mp_valid.any(-1) | (self.mp_cls >= 0))
-        m = max(m, int(self.ag_dest.max()) + 1, int(self.tl_piece.max()) + 1)
-        n_tl = _rows_used((self.tl_piece >= 0) | self.tl_valid.any(-1))
+        n, m, n_tl = self.rows_used()
+        if min_rows is not None:
+            n, m, n_tl = (max(a, b) for a, b in zip((n, m, n_tl), min_rows, strict=True))
+        n = min(n, self.ag_valid.shape[1])
+        m = min(m, self.mp_valid.shape[1])
+        n_tl = min(n_tl, self.tl_piece.shape[1])
         changes = {}
         for names, size in ((_AGENT_FIELDS, n), (_MAP_FIELDS, m), (_TL_FIELDS, n_tl)):
             changes.update({name: getattr(self, name)[:, :size] for name in names})
         return dataclasses.replace(self, **changes, padded_sizes=self.draw_sizes)
+
+    def rows_used(self) -> tuple[int, int, int]:
+        """(N, M, L): 1 + the last agent, map piece and TL token row that any scene uses (a
+        piece counts when it is valid, classed, a destination or a TL token's lane)."""
+        n = _rows_used(self.ag_valid.any(-1))
+        m = _rows_used(self.mp_valid.any(-1) | (self.mp_cls >= 0))
+        m = max(m, int(self.ag_dest.max()) + 1, int(self.tl_piece.max()) + 1)
+        n_tl = _rows_used((self.tl_piece >= 0) | self.tl_valid.any(-1))
+        return n, m, n_tl
 
     @classmethod
     def from_tokens(

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.checkpoint import load_checkpoint
@@ -66,20 +67,47 @@ class TrafficBotsPolicy:
         token_config: preprocessing limits (defaults: 64 agents, 1024 pieces, 128 TLs).
         trim: run the model on the batch's used token rows (``TokenBatch.trim``: the same
             function and samples, fewer FLOPs) instead of the padding up to the limits. The
-            policy state's shapes then depend on the scenes, so this is for callers that start
-            every rollout of a batch together (``TrafficEnv`` sets it); ``BatchedTrafficEnv``
-            restarts one slot at a time into a batch state of fixed shapes and refuses it.
+            policy state's shapes then depend on the scenes, which suits callers that start
+            every rollout of a batch together (``TrafficEnv`` sets it). Callers that restart
+            one batch row at a time into a state of fixed shapes (``BatchedTrafficEnv``) use
+            ``for_scenarios``, which fixes the rows to those of their whole scenario set.
+        min_rows: (agents, map pieces, TL tokens) rows that a trimmed batch keeps at least.
     """
 
     name = "trafficbots"
     exact_replay = False
 
     def __init__(
-        self, model: TrafficBots, token_config: TokenConfig | None = None, trim: bool = False
+        self,
+        model: TrafficBots,
+        token_config: TokenConfig | None = None,
+        trim: bool = False,
+        min_rows: tuple[int, int, int] | None = None,
     ) -> None:
         self.model = model.eval()
         self.token_config = token_config or TokenConfig()
         self.trim = trim
+        self.min_rows = min_rows
+
+    def for_scenarios(self, scenarios: Sequence[Scenario]) -> TrafficBotsPolicy:
+        """This policy with state shapes fixed for any batch drawn from ``scenarios``.
+
+        A trimming policy's state has as many token rows as its batch uses, so restarting one
+        row of a running batch with another scene could need other shapes. The returned
+        policy trims every batch to the rows that the whole set uses (its ``min_rows``), which
+        is still far below the padded limits for most sets. A non-trimming policy is returned
+        as it is (its shapes are the limits).
+
+        Args:
+            scenarios: every scenario the caller will start rollouts from.
+        """
+        if not self.trim:
+            return self
+        rows = [0, 0, 0]
+        for sc in tqdm(scenarios, desc="token rows", disable=len(scenarios) < 256, leave=False):
+            used = TokenBatch.from_tokens(preprocess_scenario(sc, self.token_config)).rows_used()
+            rows = [max(a, b) for a, b in zip(rows, used, strict=True)]
+        return TrafficBotsPolicy(self.model, self.token_config, trim=True, min_rows=tuple(rows))
 
     @classmethod
     def from_checkpoint(
@@ -103,7 +131,7 @@ class TrafficBotsPolicy:
         tokens = [preprocess_scenario(sc, self.token_config) for sc in scenarios]
         batch = TokenBatch.from_tokens(tokens, device=self.model.device)
         if self.trim:
-            batch = batch.trim()
+            batch = batch.trim(self.min_rows)
         n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
         ctx = self.model.prepare(batch, 1, generator, latent="prior", dest="sample")
         tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])  # trimmed rows

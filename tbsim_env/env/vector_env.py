@@ -200,7 +200,9 @@ class BatchedTrafficEnv:
             (dataclass / dict / tuple) of tensors with the batch as leading dimension and
             trailing shapes that do not depend on the batch's scenarios, so that one slot can
             be reset by ``initial_state`` on that slot alone (other leaves are batch-wide
-            metadata and kept).
+            metadata and kept). A policy with a ``for_scenarios(scenarios)`` method is
+            replaced by what it returns for the scenario bank (``"trafficbots"`` then runs on
+            the token rows the bank uses instead of the padded limits).
         npc_kwargs: keyword arguments of the registered policy factory (e.g.
             ``{"checkpoint": path}`` for ``"trafficbots"``; its ``device`` is set to ours).
         device: torch device of the simulation and of the returned tensors.
@@ -246,13 +248,10 @@ class BatchedTrafficEnv:
         self.obs_config = obs_config or ObsConfig()
         kwargs = dict(npc_kwargs or {})
         if npc_policy == "trafficbots":
+            # Runs on the token rows the scenario bank uses (fixed by ``for_scenarios`` below).
             kwargs.setdefault("device", str(self.device))
-        self.npc_policy = make_policy(npc_policy, **kwargs)
-        if getattr(self.npc_policy, "trim", False):
-            raise ValueError(
-                "BatchedTrafficEnv restarts one slot at a time into a policy state of fixed "
-                "shapes; build the TrafficBots policy with trim=False (its default)"
-            )
+            kwargs.setdefault("trim", True)
+        npc = make_policy(npc_policy, **kwargs)
         self.route_points = int(route_points)
         self.route_spacing = float(route_spacing)
         self.torch_threads = torch_threads
@@ -272,6 +271,11 @@ class BatchedTrafficEnv:
         if not kept:
             raise ValueError(f"no scenario has an agent to control with controlled={controlled!r}")
         self.scenarios: list[Scenario] = kept
+        # A slot restarts alone into the batch's policy state, so the state's shapes must not
+        # depend on which scenarios the slots hold: a policy that can fix them for the bank
+        # (``for_scenarios``, e.g. a trimming TrafficBots policy) does so here.
+        bind = getattr(npc, "for_scenarios", None)
+        self.npc_policy = bind(kept) if callable(bind) else npc
         self.num_agents = max(len(x) for x in ext_lists)
         n_t = kept[0].num_steps
         self._end = n_t - 1 if self.config.end_step is None else min(self.config.end_step, n_t - 1)
