@@ -231,6 +231,8 @@ def _cmd_average(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from tbsim_env.data.generator.scenes import LAYOUTS
+
     p = argparse.ArgumentParser(prog="tbsim", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -239,20 +241,22 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--scenarios", type=int, default=1, help="how many default scenes to render")
     d.add_argument("--npc-policy", default="trafficbots", help="NPC policy name")
     d.add_argument("--steps", type=int, default=None, help="steps to simulate (default: all)")
-    d.add_argument("--fps", type=int, default=10)
+    d.add_argument("--fps", type=int, default=10, help="video frames per second")
     d.set_defaults(func=_cmd_demo)
 
     i = sub.add_parser("info", help="one line per scenario of TFRecord / GPUDrive JSON files")
-    i.add_argument("files", nargs="+")
+    i.add_argument("files", nargs="+", help="TFRecord / GPUDrive JSON files, globs or folders")
     i.add_argument("--skip-bad", action="store_true", help="warn and skip corrupt records")
     i.set_defaults(func=_cmd_info)
 
     r = sub.add_parser("render", help="simulate one scenario and write a video")
-    r.add_argument("file")
+    r.add_argument("file", help="a TFRecord or GPUDrive JSON file")
     r.add_argument("--scenario", default=None, help="scenario id (default: the first)")
-    r.add_argument("--out", required=True)
-    r.add_argument("--npc-policy", default="log_replay")
-    r.add_argument("--fps", type=int, default=10)
+    r.add_argument("--out", required=True, help="video path (.mp4 or .gif)")
+    r.add_argument(
+        "--npc-policy", default="log_replay", help="policy of every agent (default: log_replay)"
+    )
+    r.add_argument("--fps", type=int, default=10, help="video frames per second")
     r.set_defaults(func=_cmd_render)
     policies = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
 
@@ -261,10 +265,12 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--skip-bad", action="store_true", help="warn and skip corrupt records")
 
     def rollout_args(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--policy", required=True, choices=policies)
+        sp.add_argument("--policy", required=True, choices=policies, help="policy of every agent")
         sp.add_argument("--checkpoint", default=None, help="TrafficBots checkpoint path")
-        sp.add_argument("--rollouts", type=int, default=32)
-        sp.add_argument("--seed", type=int, default=0)
+        sp.add_argument(
+            "--rollouts", type=int, default=32, help="rollouts per scenario (WOSAC: 32)"
+        )
+        sp.add_argument("--seed", type=int, default=0, help="seed of the sampled rollouts")
         sp.add_argument(
             "--road-edge-weight",
             type=float,
@@ -290,18 +296,31 @@ def build_parser() -> argparse.ArgumentParser:
     wosac_common(v)
     rollout_args(v)
     v.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
-    v.add_argument("--json", default=None)
+    v.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
     v.add_argument("--plot", default=None, help="PNG of log vs simulated feature histograms")
     v.set_defaults(func=_cmd_evaluate)
 
     pp = sub.add_parser("preprocess", help="build a sharded token cache for training")
-    pp.add_argument("sources", nargs="+", help="files / globs / folders, or generated:LAYOUTS:A-B")
-    pp.add_argument("--out", required=True)
-    pp.add_argument("--workers", type=int, default=2)
-    pp.add_argument("--shard-size", type=int, default=64)
-    pp.add_argument("--max-map-pieces", type=int, default=C.DEFAULT_MAX_MAP_PIECES)
-    pp.add_argument("--max-traffic-lights", type=int, default=C.DEFAULT_MAX_TRAFFIC_LIGHTS)
-    pp.add_argument("--max-agents", type=int, default=C.DEFAULT_MAX_AGENTS)
+    pp.add_argument(
+        "sources",
+        nargs="+",
+        help="files / globs / folders, or generated:LAYOUTS:A-B, e.g. "
+        f"generated:intersection,merge:0-99 (layouts: {', '.join(LAYOUTS)})",
+    )
+    pp.add_argument("--out", required=True, help="cache folder (shards + manifest.json)")
+    pp.add_argument("--workers", type=int, default=2, help="preprocessing processes")
+    pp.add_argument("--shard-size", type=int, default=64, help="scenes per shard file")
+    limits = "per scene (default: %(default)s; those farthest from the relevant agents go first)"
+    pp.add_argument(
+        "--max-map-pieces", type=int, default=C.DEFAULT_MAX_MAP_PIECES, help=f"map pieces {limits}"
+    )
+    pp.add_argument(
+        "--max-traffic-lights",
+        type=int,
+        default=C.DEFAULT_MAX_TRAFFIC_LIGHTS,
+        help=f"traffic-light tokens {limits}",
+    )
+    pp.add_argument("--max-agents", type=int, default=C.DEFAULT_MAX_AGENTS, help=f"agents {limits}")
     pp.add_argument("--eval-split", action="store_true", help="validation/test agent filters")
     pp.add_argument("--exclude", nargs="*", help="scenario ids to hold out")
     pp.set_defaults(func=_cmd_preprocess)

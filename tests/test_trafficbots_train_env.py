@@ -10,7 +10,7 @@ import torch
 
 from policies import make_policy
 from policies.trafficbots import TrafficBots, TrafficBotsConfig, save_checkpoint
-from policies.trafficbots.train import TrainConfig, train
+from policies.trafficbots.train import TrainConfig, build_parser, train
 from tbsim_env.config import EnvConfig, TerminationConfig
 from tbsim_env.data.cache import build_cache
 from tbsim_env.env import TrafficEnv
@@ -26,6 +26,24 @@ def random_checkpoint(tmp_path_factory):
     path = tmp_path_factory.mktemp("ckpt") / "small"
     save_checkpoint(TrafficBots(TrafficBotsConfig.small()), path)
     return str(path)
+
+
+def test_train_help_documents_every_option(capsys):
+    """``tbsim train --help`` takes each option's text from ``TrainConfig``'s docstring."""
+    import dataclasses
+
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for f in dataclasses.fields(TrainConfig):
+        flag = "--" + f.name.replace("_", "-")
+        assert flag in text, flag
+    helps = {a.dest: a.help for a in build_parser()._actions if a.dest != "help"}
+    assert set(helps) == {f.name for f in dataclasses.fields(TrainConfig)}
+    assert all(len(h.replace(" (default: %(default)s)", "")) > 10 for h in helps.values())
+    assert "exponential moving average of the weights" in text and "(default: 2000)" in text
+    args = build_parser().parse_args(["--data", "c", "--out", "o", "--ema-decay", "0.99"])
+    assert TrainConfig(**vars(args)).ema_decay == 0.99
 
 
 def test_train_writes_checkpoints_and_resumes(tmp_path):

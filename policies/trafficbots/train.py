@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import inspect
 import json
 import math
 import os
@@ -387,23 +388,51 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
     return scalars
 
 
+def attribute_help(cls: type) -> dict[str, str]:
+    """``{field: text}`` from the ``Attributes:`` section of a dataclass's docstring (one
+    source for the documentation and the command line's ``--help``)."""
+    out: dict[str, str] = {}
+    doc = inspect.getdoc(cls) or ""
+    if "Attributes:" not in doc:
+        return out
+    name = None
+    for line in doc.split("Attributes:", 1)[1].splitlines():
+        head, sep, text = line.strip().partition(": ")
+        if line.startswith("    ") and not line.startswith("     ") and sep and head.isidentifier():
+            name, out[head] = head, text
+        elif name and line.startswith("     "):
+            out[name] += " " + line.strip()
+        elif line.strip():
+            name = None
+    return out
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description="Train TrafficBots V1.5 on a token cache.")
+    p = argparse.ArgumentParser(
+        prog="tbsim train",
+        description="Train TrafficBots V1.5 on a token cache (``tbsim preprocess``); resumes "
+        "when --out already holds a run.",
+    )
+    docs = attribute_help(TrainConfig)
     for f in dataclasses.fields(TrainConfig):
         name = "--" + f.name.replace("_", "-")
+        text = docs.get(f.name, "").replace("%", "%%")
+        if f.default is not dataclasses.MISSING:
+            text += " (default: %(default)s)"
+        kw = {"help": text}
         if f.type in ("str", str) and f.default is dataclasses.MISSING:
-            p.add_argument(name, required=True)
+            p.add_argument(name, required=True, **kw)
         elif f.type in ("bool", bool):
-            p.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default)
+            p.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default, **kw)
         elif f.type in ("int | None",):
-            p.add_argument(name, type=int, default=f.default)
+            p.add_argument(name, type=int, default=f.default, **kw)
         elif f.type in ("float | None",):
-            p.add_argument(name, type=float, default=f.default)
+            p.add_argument(name, type=float, default=f.default, **kw)
         elif f.type in ("str | None",):
-            p.add_argument(name, type=str, default=f.default)
+            p.add_argument(name, type=str, default=f.default, **kw)
         else:
             typ = {"int": int, "float": float, "str": str}[str(f.type)]
-            p.add_argument(name, type=typ, default=f.default)
+            p.add_argument(name, type=typ, default=f.default, **kw)
     return p
 
 
