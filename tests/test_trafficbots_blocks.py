@@ -23,7 +23,7 @@ from policies.trafficbots.encodings import (
     sinusoid_pe,
 )
 from policies.trafficbots.knn import knn_relative, knn_select
-from policies.trafficbots.pointnet import PointNet
+from policies.trafficbots.pointnet import PointNet, pointnet_reference
 
 
 def test_sinusoid_and_angle_encoding_layout() -> None:
@@ -239,6 +239,33 @@ def test_pointnet_masks_invalid_nodes() -> None:
     assert y1.shape == (2, 32)
     assert torch.allclose(y1, y2)
     assert torch.count_nonzero(y1[1]) == 0
+
+
+def test_factored_pointnet_is_the_spec_order_pointnet() -> None:
+    """``PointNet`` (factored: per-token pooled term, no zeroing, no concatenation) computes
+    the spec's steps (``pointnet_reference``): outputs, gradients, and dropout draws."""
+    torch.manual_seed(3)
+    net = PointNet(64, 3, dropout=0.1)
+    x = torch.randn(4, 7, 11, 64)
+    valid = torch.rand(4, 7, 11) > 0.4
+    valid[0, :2] = False  # tokens without a valid node
+    valid[1, 3] = False
+    valid[1, 3, 5] = True  # a single valid node
+    x[~valid] = 50.0 * torch.randn_like(x[~valid])  # invalid nodes must not matter
+    for train in (False, True):
+        net.train(train)
+        outs, grads = [], []
+        for fn in (net.forward, lambda a, b: pointnet_reference(net, a, b)):
+            torch.manual_seed(9)
+            net.zero_grad()
+            y = fn(x, valid)
+            (y * torch.linspace(-1, 1, 64)).sum().backward()
+            outs.append(y)
+            grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))
+        torch.testing.assert_close(outs[0], outs[1], rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-4)
+        assert torch.count_nonzero(outs[0][0, :2]) == 0 and grads[0].abs().sum() > 0
+        assert (outs[0][..., :32] == outs[0][..., 32:]).all()
 
 
 def test_rounded_box_collision_cases() -> None:
