@@ -64,6 +64,8 @@ def test_knn_ranks_valid_targets_includes_self_and_limits_range() -> None:
     idx, mask = knn_select(xy, xy, valid, k=4, dist_limit=50.0)
     assert idx[0, 0].tolist() == [0, 1, 2, 4]  # self first, invalid target 3 skipped
     assert mask[0, 0].tolist() == [True, True, True, False]  # 100 m > limit
+    _, at_limit = knn_select(xy, xy, valid, k=4, dist_limit=100.0)
+    assert at_limit[0, 0].tolist() == [True] * 4  # a target exactly at the limit counts
     idx2, _ = knn_select(xy, xy, valid, k=99, dist_limit=50.0)
     assert idx2.shape[-1] == 5  # capped at the number of targets
     pose = torch.cat([xy, torch.zeros(1, 5, 1)], -1)
@@ -80,8 +82,9 @@ def test_knn_breaks_distance_ties_by_the_lower_row_whatever_follows() -> None:
     xy = ring[torch.randperm(100, generator=gen).repeat(3)][None]  # [1, 300, 2]
     query = torch.zeros(1, 1, 2)
     idx, mask = knn_select(query, xy, torch.ones(1, 300, dtype=torch.bool), k=40, dist_limit=50.0)
-    dist = (xy[0, idx[0, 0]]).norm(dim=-1)
-    assert (dist[1:] >= dist[:-1]).all() and mask.all()
+    picked = xy[0, idx[0, 0]]
+    dist2 = picked[:, 0] * picked[:, 0] + picked[:, 1] * picked[:, 1]  # ranked as squared
+    assert (dist2[1:] >= dist2[:-1]).all() and mask.all()
     # Among equal distances the lower rows win: every pick precedes its unpicked twins.
     chosen = set(idx[0, 0].tolist())
     for row in chosen:
