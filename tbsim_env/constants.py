@@ -151,3 +151,8 @@ DEFAULT_OBS_TRAFFIC_LIGHTS = 25
 DEFAULT_OBS_AGENTS = 25
 
 MPH_TO_MPS = 0.44704
+
+# --------------------------------------------------------------------------- compute
+# Elements (float32) of the largest per-call intermediate of KNARPE attention on a CPU; larger
+# batches run in chunks of rows so that the working set stays in the caches (2 MiB).
+CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19

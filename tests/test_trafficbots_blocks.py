@@ -154,11 +154,19 @@ def _attention_case(seed: int, n_src: int, k: int):
     return cfg, x, src, idx, r, mask
 
 
+@pytest.mark.parametrize("chunked", [False, True])
 @pytest.mark.parametrize("dense", [True, False, None])
 @pytest.mark.parametrize("n_src", [5, 300])
-def test_factored_knarpe_matches_the_spec_formula_with_gradients(dense, n_src: int) -> None:
-    """The factored attention (both ways of reaching the neighbours) is the spec's
-    gather-then-project formula: outputs and the gradients of inputs and parameters."""
+def test_factored_knarpe_matches_the_spec_formula_with_gradients(
+    dense, n_src: int, chunked: bool, monkeypatch
+) -> None:
+    """The factored attention (both ways of reaching the neighbours, whole or in chunks of
+    the batch as on a CPU) is the spec's gather-then-project formula: outputs and the
+    gradients of inputs and parameters."""
+    from tbsim_env import constants
+
+    if chunked:  # one scene per chunk (the default budget does not chunk these sizes)
+        monkeypatch.setattr(constants, "CPU_ATTENTION_CHUNK_ELEMENTS", 1)
     cfg, x, src, idx, r, mask = _attention_case(3, n_src, k=6)
     torch.manual_seed(0)
     attn = KnarpeAttention(cfg.hidden_dim, cfg.n_heads, cfg.rpe_dim, dropout=0.1).eval()

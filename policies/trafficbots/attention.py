@@ -9,6 +9,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from tbsim_env import constants as C
 from tbsim_env.torch_utils import gather_rows
 
 
@@ -78,6 +79,36 @@ class KnarpeAttention(nn.Module):
         Returns:
             [B, Q, d].
         """
+        h, d = self.n_heads, x.shape[-1]
+        n_b, n_q, n_src, n_k = x.shape[0], x.shape[1], src.shape[1], idx.shape[-1]
+        if dense is None:
+            dense = h * n_src <= 2 * d * n_k
+        # On a CPU the large per-batch intermediates ([B, h, Q, S] scores or [B, Q, K, 2d]
+        # gathered rows) fall out of the caches and into fresh pages: a batch of 64 rollouts
+        # costs 2.2x 64 single ones. Chunks of the batch keep each call's working set small.
+        # Not with active dropout, whose draws would then depend on the chunking.
+        per_row = n_q * (h * n_src if dense else 2 * d * n_k)
+        rows = max(1, C.CPU_ATTENTION_CHUNK_ELEMENTS // per_row)
+        idle = isinstance(self.dropout, nn.Dropout) and self.dropout.p == 0
+        active_dropout = self.training and not idle
+        if x.device.type != "cpu" or rows >= n_b or active_dropout:
+            return self._attend(x, src, idx, rpe, mask, dense)
+        chunks = [
+            self._attend(*(t[i : i + rows] for t in (x, src, idx, rpe, mask)), dense)
+            for i in range(0, n_b, rows)
+        ]
+        return torch.cat(chunks)
+
+    def _attend(
+        self,
+        x: torch.Tensor,
+        src: torch.Tensor,
+        idx: torch.Tensor,
+        rpe: torch.Tensor,
+        mask: torch.Tensor,
+        dense: bool,
+    ) -> torch.Tensor:
+        """``forward`` on one chunk of the batch (``dense`` decided)."""
         h, c = self.n_heads, self.head_dim
         d = h * c
         w_q, w_kv = self.in_proj_weight.split((d, 2 * d))
@@ -89,9 +120,6 @@ class KnarpeAttention(nn.Module):
         q = F.linear(x, w_q, b_q).unflatten(-1, (h, c)) / math.sqrt(c)  # [B, Q, h, c]
         q_rpe = torch.einsum("bqhc,hcr->bqrh", q, w_rk)  # [B, Q, r, h]
         logits = rpe @ q_rpe  # [B, Q, K, h]
-        n_src, n_k = src.shape[1], idx.shape[-1]
-        if dense is None:
-            dense = h * n_src <= 2 * d * n_k
         if dense:
             k_src, v_src = F.linear(src, w_kv, b_kv).unflatten(-1, (2, h, c)).unbind(-3)
             scores = q.transpose(1, 2) @ k_src.permute(0, 2, 3, 1)  # [B, h, Q, S]
