@@ -90,8 +90,7 @@ class KnarpeAttention(nn.Module):
         # Not with active dropout, whose draws would then depend on the chunking.
         per_row = n_q * (h * n_src if dense else 2 * d * n_k)
         rows = max(1, C.CPU_ATTENTION_CHUNK_ELEMENTS // per_row)
-        idle = isinstance(self.dropout, nn.Dropout) and self.dropout.p == 0
-        active_dropout = self.training and not idle
+        active_dropout = self.training and getattr(self.dropout, "p", 1.0) > 0
         if x.device.type != "cpu" or rows >= n_b or active_dropout:
             return self._attend(x, src, idx, rpe, mask, dense)
         chunks = [
