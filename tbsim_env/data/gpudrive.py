@@ -202,6 +202,7 @@ def _tracks(objects: Any, ctx: _Ctx) -> Tracks:
             velocity=np.where(v3, vel, 0.0).astype(np.float32),
             size=np.where(v3, size[:, None, :], 0.0).astype(np.float32),
             valid=valid,
+            raw_heading=np.where(valid, heading, 0.0).astype(np.float32),
         )
 
 

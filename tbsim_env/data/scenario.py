@@ -34,6 +34,10 @@ class Tracks:
         velocity: [A, T, 2] float32, (vx, vy) in m/s.
         size: [A, T, 3] float32, (length, width, height) in metres.
         valid: [A, T] bool.
+        raw_heading: [A, T] float32 yaw as the source file stores it, before wrapping (WOMD
+            headings are often off by whole turns), or None when it equals ``heading``. Only
+            the WOSAC metrics read it: the official code uses headings as stored, and its
+            time-to-collision compares them unwrapped (docs/metrics.md).
     """
 
     id: np.ndarray
@@ -43,6 +47,7 @@ class Tracks:
     velocity: np.ndarray
     size: np.ndarray
     valid: np.ndarray
+    raw_heading: np.ndarray | None = None
 
     @property
     def num_tracks(self) -> int:
@@ -51,6 +56,10 @@ class Tracks:
     @property
     def num_steps(self) -> int:
         return int(self.valid.shape[1])
+
+    def stored_heading(self) -> np.ndarray:
+        """[A, T] float32 yaw as stored in the source (``raw_heading``, else ``heading``)."""
+        return self.heading if self.raw_heading is None else self.raw_heading
 
 
 @dataclass(frozen=True)
@@ -241,6 +250,9 @@ class Scenario:
             vel = np.where(ok[..., None], rotate(t.velocity), t.velocity)
             heading = np.where(ok, wrap_angle_np(t.heading.astype(np.float64) + yaw), t.heading)
             changes.update(velocity=vel.astype(np.float32), heading=heading.astype(np.float32))
+            if t.raw_heading is not None:
+                raw = np.where(ok, t.raw_heading.astype(np.float64) + yaw, t.raw_heading)
+                changes.update(raw_heading=raw.astype(np.float32))
         m = self.road_map
         road_map = dataclasses.replace(m, polylines=tuple(move(p) for p in m.polylines))
         sig = dataclasses.replace(self.signals, stop_point=move(self.signals.stop_point))
@@ -293,8 +305,12 @@ class Scenario:
         bad_type = ~np.isin(t.object_type, [int(x) for x in ObjectType])
         if bad_type.any():
             fail(f"track {int(t.id[np.argmax(bad_type)])}: unknown 'object_type'")
-        for name in ("xyz", "heading", "velocity", "size"):
+        if t.raw_heading is not None and t.raw_heading.shape != (a, n_t):
+            fail(f"track field 'raw_heading' has shape {t.raw_heading.shape}, expected {(a, n_t)}")
+        for name in ("xyz", "heading", "velocity", "size", "raw_heading"):
             arr = getattr(t, name)
+            if arr is None:
+                continue
             mask = t.valid if arr.ndim == 2 else t.valid[..., None]
             if not np.isfinite(np.where(mask, arr, 0.0)).all():
                 fail(f"track field {name!r} has a non-finite value at a valid step")

@@ -142,6 +142,7 @@ def _tracks(msg: scenario_pb2.Scenario, n_steps: int, where: _Where) -> Tracks:
             velocity=rows[..., 7:9].astype(np.float32),
             size=rows[..., 3:6].astype(np.float32),
             valid=valid,
+            raw_heading=rows[..., 6].astype(np.float32),
         )
 
 

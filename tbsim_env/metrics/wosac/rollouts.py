@@ -118,7 +118,7 @@ def log_replay_rollouts(
             f"log replay needs {stop}"
         )
     fut = scenario.tracks.xyz[idx, start:stop].astype(np.float32)
-    head = scenario.tracks.heading[idx, start:stop].astype(np.float32)
+    head = scenario.tracks.stored_heading()[idx, start:stop].astype(np.float32)
 
     def rep(a: np.ndarray) -> torch.Tensor:
         return torch.as_tensor(a, device=device).unsqueeze(0).repeat(num_rollouts, 1, 1)

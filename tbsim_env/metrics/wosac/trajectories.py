@@ -106,7 +106,7 @@ def log_trajectories(
         x=_f32(xyz[None, :, :, 0], device),
         y=_f32(xyz[None, :, :, 1], device),
         z=_f32(xyz[None, :, :, 2], device),
-        heading=_f32(tracks.heading[None, idx], device),
+        heading=_f32(tracks.stored_heading()[None, idx], device),
         valid=torch.as_tensor(tracks.valid[None, idx], device=device),
         length=_f32(size[:, 0], device),
         width=_f32(size[:, 1], device),
