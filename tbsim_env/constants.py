@@ -152,6 +152,12 @@ DEFAULT_OBS_AGENTS = 25
 
 MPH_TO_MPS = 0.44704
 
+GEOMETRY_TIE_TOLERANCE = 1e-6
+"""Metres. Preprocessing compares lengths with this slack where a choice is discrete (how many
+1 m points a crosswalk side gets, which side is the longer one): generated maps have exact
+integer and equal lengths, whose float rounding differs between world frames, and an exact
+comparison would then give a moved copy of the scene other map tokens."""
+
 # --------------------------------------------------------------------------- compute
 # Elements (float32) of the largest per-call intermediate of KNARPE attention on a CPU; larger
 # batches run in chunks of rows so that the working set stays in the caches (2 MiB).

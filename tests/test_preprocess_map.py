@@ -85,6 +85,24 @@ def test_polygon_short_first_side_uses_other_pair():
     np.testing.assert_allclose(side[:, 0], [*range(11), 10.5])  # 10.5 m: 0..10, then the end
 
 
+def test_polygon_points_do_not_depend_on_the_rounding_of_the_frame():
+    # A 14 m x 14 m square crosswalk: integer and equal side lengths, which a rotated and
+    # shifted frame measures a rounding error above or below. Same sides, same point counts.
+    corners = np.array([[0, 0], [14, 0], [14, 14], [0, 14]], float)
+    ref = polygon_to_polylines(np.c_[corners, np.zeros(4)])
+    for yaw, shift in [(1.1, (3000.0, -1500.0)), (-2.3, (-4000.0, 700.0)), (0.3, (1e4, 1e4))]:
+        c, s = np.cos(yaw), np.sin(yaw)
+        moved = corners @ np.array([[c, -s], [s, c]]).T + shift
+        parts = polygon_to_polylines(np.c_[moved, np.zeros(4)])
+        for a, b in zip(ref, parts, strict=True):
+            assert a.shape == b.shape == (15, 3)
+            back = (b[:, :2] - shift) @ np.array([[c, -s], [s, c]])
+            np.testing.assert_allclose(back, a[:, :2], atol=1e-9)
+    # A side a hair longer than an integer still ends on the end point, no extra point.
+    near = polygon_to_polylines(np.array([[0, 0, 0], [10 + 1e-9, 0, 0], [10, 3, 0], [0, 3, 0]]))
+    assert near[0].shape == (11, 3)
+
+
 @pytest.mark.parametrize(
     ("segments", "starts"),
     [(1, [0]), (19, [0]), (20, [0, 10]), (45, [0, 15, 30]), (60, [0, 15, 30, 45])],

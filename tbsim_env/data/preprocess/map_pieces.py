@@ -15,6 +15,7 @@ import numpy as np
 
 from tbsim_env.config import TokenConfig
 from tbsim_env.constants import (
+    GEOMETRY_TIE_TOLERANCE,
     LaneType,
     MapClass,
     MapFeatureType,
@@ -154,14 +155,17 @@ def densify_segment(start: np.ndarray, end: np.ndarray) -> np.ndarray:
 
     Returns:
         [n, 3] float64: start + k * unit for k = 0..floor(length), then ``end``. When the
-        length is an exact integer the last k-point equals ``end`` and is not repeated (the
-        reference would emit a zero-length segment there; deliberate deviation).
+        length is an integer the last k-point equals ``end`` and is not repeated (the
+        reference would emit a zero-length segment there; deliberate deviation). "An
+        integer" allows ``GEOMETRY_TIE_TOLERANCE``: a 14 m side measures 14 + 2e-12 m in one
+        world frame and 14 - 2e-12 m in another, and must get the same points in both.
     """
     vec = end - start
     length = float(np.linalg.norm(vec))
     if length == 0.0:
         return np.stack([start, end])
-    count = int(np.ceil(length))  # == floor(length) + 1 unless the length is an integer
+    # == floor(length) + 1 unless the length is (within the tolerance of) an integer
+    count = max(1, int(np.ceil(length - GEOMETRY_TIE_TOLERANCE)))
     k = np.arange(count, dtype=np.float64)
     return np.concatenate([start + k[:, None] * (vec / length), end[None]])
 
@@ -170,7 +174,9 @@ def polygon_to_polylines(polygon: np.ndarray) -> tuple[np.ndarray, ...]:
     """A crosswalk/speed-bump/driveway polygon -> its two long sides, each both ways.
 
     Takes vertices 0, n/4, n/2, 3n/4 (floored); the long sides are v0->v1 and v2->v3 when
-    |v1 - v0| > |v2 - v1|, else v0->v3 and v2->v1 (spec 1.2 step 3).
+    |v1 - v0| > |v2 - v1|, else v0->v3 and v2->v1 (spec 1.2 step 3). Sides equal within
+    ``GEOMETRY_TIE_TOLERANCE`` (a square) count as equal, so the choice does not depend on the
+    float rounding of the world frame.
 
     Args:
         polygon: [n, 3] float64 vertices (n >= 1), metres.
@@ -181,7 +187,7 @@ def polygon_to_polylines(polygon: np.ndarray) -> tuple[np.ndarray, ...]:
     n = polygon.shape[0]
     idx = np.floor(np.linspace(0, n, 4, endpoint=False)).astype(np.int64)
     v0, v1, v2, v3 = polygon[idx]
-    if np.linalg.norm(v1 - v0) > np.linalg.norm(v2 - v1):
+    if np.linalg.norm(v1 - v0) > np.linalg.norm(v2 - v1) + GEOMETRY_TIE_TOLERANCE:
         side_a, side_b = densify_segment(v0, v1), densify_segment(v2, v3)
     else:
         side_a, side_b = densify_segment(v0, v3), densify_segment(v2, v1)
