@@ -157,6 +157,14 @@ GEOMETRY_TIE_TOLERANCE = 1e-6
 1 m points a crosswalk side gets, which side is the longer one): generated maps have exact
 integer and equal lengths, whose float rounding differs between world frames, and an exact
 comparison would then give a moved copy of the scene other map tokens."""
+KNN_DISTANCE_RESOLUTION = 0.01
+"""Metres. TrafficBots' K-nearest-neighbour selection ranks distances in buckets of this width,
+ties broken by the lower row, so that distances equal but for the float rounding of the scene
+frame (symmetric maps) select the same neighbours in every frame."""
+KNN_BUCKET_OFFSET = 0.3819660112501051
+"""Fraction of ``KNN_DISTANCE_RESOLUTION`` added before rounding down (2 minus the golden
+ratio): bucket edges fall between round distances (a lane width of 3.5 m, a node 10 m away),
+which generated maps have exactly and rounding would put on either side of an edge."""
 
 # --------------------------------------------------------------------------- compute
 # Elements (float32) of the largest per-call intermediate of KNARPE attention on a CPU; larger

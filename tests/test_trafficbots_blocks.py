@@ -24,6 +24,7 @@ from policies.trafficbots.encodings import (
 )
 from policies.trafficbots.knn import knn_relative, knn_select
 from policies.trafficbots.pointnet import PointNet, pointnet_reference
+from tbsim_env.constants import KNN_DISTANCE_RESOLUTION
 
 
 def test_sinusoid_and_angle_encoding_layout() -> None:
@@ -83,8 +84,8 @@ def test_knn_breaks_distance_ties_by_the_lower_row_whatever_follows() -> None:
     query = torch.zeros(1, 1, 2)
     idx, mask = knn_select(query, xy, torch.ones(1, 300, dtype=torch.bool), k=40, dist_limit=50.0)
     picked = xy[0, idx[0, 0]]
-    dist2 = picked[:, 0] * picked[:, 0] + picked[:, 1] * picked[:, 1]  # ranked as squared
-    assert (dist2[1:] >= dist2[:-1]).all() and mask.all()
+    dist = picked.norm(dim=-1)  # ranked at KNN_DISTANCE_RESOLUTION
+    assert (dist[1:] >= dist[:-1] - KNN_DISTANCE_RESOLUTION).all() and mask.all()
     # Among equal distances the lower rows win: every pick precedes its unpicked twins.
     chosen = set(idx[0, 0].tolist())
     for row in chosen:
@@ -95,6 +96,33 @@ def test_knn_breaks_distance_ties_by_the_lower_row_whatever_follows() -> None:
     pad_valid = torch.arange(377)[None] < 300
     idx_pad, _ = knn_select(query, pad, pad_valid, k=40, dist_limit=50.0)
     assert torch.equal(idx_pad, idx)
+
+
+def test_knn_ranks_at_the_distance_resolution_so_the_frame_does_not_matter() -> None:
+    # A symmetric map: targets in mirrored pairs about the x-axis, the query on the axis, so
+    # every pair is equally far (exactly, and in this frame also in float32). K = 5 splits a
+    # pair. In a rotated and shifted frame the float32 distances of a pair differ by rounding.
+    x = torch.tensor([3.0, 7.5, 12.25, 20.0])
+    left = torch.stack([x, torch.full_like(x, 1.75)], -1)
+    right = torch.stack([x, torch.full_like(x, -1.75)], -1)
+    xy = torch.cat([right, left])[None]  # [1, 8, 2]: rows 0-3 right, 4-7 left
+    query = torch.tensor([[[0.5, 0.0]]])
+    valid = torch.ones(1, 8, dtype=torch.bool)
+    idx, _ = knn_select(query, xy, valid, k=5, dist_limit=50.0)
+    assert sorted(idx[0, 0].tolist()) == [0, 1, 2, 4, 5]  # the tie at 12.25 m: lower row
+    yaw, shift = 1.1, torch.tensor([3000.0, -1500.0])
+    rot = torch.tensor([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+    for k in (1, 3, 5, 7):
+        ref, _ = knn_select(query, xy, valid, k=k, dist_limit=50.0)
+        for origin in (torch.zeros(2), shift):
+            moved, _ = knn_select(
+                query @ rot.T + origin, xy @ rot.T + origin, valid, k=k, dist_limit=50.0
+            )
+            assert sorted(moved[0, 0].tolist()) == sorted(ref[0, 0].tolist()), (k, origin)
+    # Distances farther apart than the resolution still rank by distance.
+    near = torch.tensor([[[0.0, 0.0], [1.0, 0.0], [0.98, 0.0]]])
+    idx, _ = knn_select(torch.zeros(1, 1, 2), near, torch.ones(1, 3, dtype=torch.bool), 3, 9.0)
+    assert idx[0, 0].tolist() == [0, 2, 1]
 
 
 def _dense_reference(attn: KnarpeAttention, x, pose, valid, cfg) -> torch.Tensor:

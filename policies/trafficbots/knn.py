@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 
 from policies.trafficbots.encodings import relative_pose
+from tbsim_env.constants import KNN_BUCKET_OFFSET, KNN_DISTANCE_RESOLUTION
 from tbsim_env.torch_utils import cached_arange, gather_rows
 
 
@@ -19,10 +20,18 @@ def knn_select(
     """Rank valid targets by 2-D distance and keep the ``k`` nearest within ``dist_limit``.
 
     For same-type attention the query itself is among the targets (distance 0), so it is
-    selected first. ``k`` is capped at the number of targets. Equal distances are common (map
-    pieces that start at the same node are equally far from everything) and are broken by the
-    lower target row, so the selection does not depend on the device, on ``topk``'s
-    algorithm or on padding rows after the targets (``TokenBatch.trim``).
+    selected (first, unless a target of a lower row lies within the resolution of it).
+    ``k`` is capped at the number of targets.
+
+    Distances rank in buckets of ``KNN_DISTANCE_RESOLUTION`` (1 cm; the edges offset from
+    round distances by ``KNN_BUCKET_OFFSET``), ties broken by the lower target row. Equal
+    distances are common: map pieces that start at the same node are equally far from
+    everything, and in a symmetric generated map two lanes are equally far from an agent
+    between them. Compared in full float32 precision, such a tie is decided by the rounding
+    of the scene frame, so a rotated and shifted copy of the scene picked other neighbours
+    (deviation from spec 2.4, which ranks exact distances). The selection does not depend
+    on the device, on ``topk``'s algorithm or on padding rows after the targets either
+    (``TokenBatch.trim``).
 
     Args:
         query_xy: [B, Q, 2] query positions.
@@ -35,16 +44,18 @@ def knn_select(
         (idx [B, Q, K] int64 rows of the targets, mask [B, Q, K] bool valid neighbours).
     """
     k = min(k, target_xy.shape[1])
-    # Squared distances rank as distances; x and y apart, so no [B, Q, T, 2] difference.
+    # x and y apart, so no [B, Q, T, 2] difference.
     dx = query_xy[:, :, None, 0] - target_xy[:, None, :, 0]  # [B, Q, T]
     dy = query_xy[:, :, None, 1] - target_xy[:, None, :, 1]
     dist2 = (dx * dx + dy * dy).masked_fill_(~target_valid[:, None, :], float("inf"))
-    # Unique keys (distance, row): the bit pattern of a non-negative float32 orders as its
-    # value, so the distance goes in the high 32 bits and the row in the low ones.
-    key = (dist2.view(torch.int32).long() << 32) | cached_arange(dist2.shape[-1], dist2.device)
-    key, idx = torch.topk(key, k, dim=-1, largest=False, sorted=True)
-    dist2 = (key >> 32).to(torch.int32).view(torch.float32)
-    return idx, dist2 <= dist_limit * dist_limit
+    # Unique keys (distance bucket, row): the bucket in the high 32 bits, the row in the low
+    # ones. Invalid targets (inf) and anything beyond 1e7 m share the last bucket. The bucket
+    # edges sit at an irrational fraction of the resolution, off round distances.
+    scaled = dist2.sqrt().mul_(1.0 / KNN_DISTANCE_RESOLUTION).add_(KNN_BUCKET_OFFSET)
+    bucket = scaled.floor_().clamp_(max=2.0**30)
+    key = (bucket.long() << 32) | cached_arange(dist2.shape[-1], dist2.device)
+    idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
+    return idx, dist2.gather(-1, idx) <= dist_limit * dist_limit
 
 
 def knn_relative(
