@@ -24,9 +24,14 @@ from tbsim_env.errors import TbsimError
 def _cmd_info(args: argparse.Namespace) -> int:
     from tbsim_env.data import iter_scenarios
 
-    head = ("scenario_id", "tracks", "veh/ped/cyc", "map", "signals", "sdc_id")
-    print(f"{head[0]:<20} {head[1]:>6} {head[2]:>12} {head[3]:>5} {head[4]:>7} {head[5]:>7}")
+    head = ("scenario_id", "tracks", "veh/ped/cyc", "map", "signals", "sdc_id", "steps", "future")
+    print(
+        f"{head[0]:<20} {head[1]:>6} {head[2]:>12} {head[3]:>5} {head[4]:>7} {head[5]:>7} "
+        f"{head[6]:>5} {head[7]:>6}"
+    )
     for sc in iter_scenarios(args.files, skip_bad=args.skip_bad):
+        # Logged steps, and logged steps after the current one ("none": history only).
+        future = str(sc.num_future_steps) if sc.has_future else "none"
         t = sc.tracks.object_type
         kinds = "/".join(
             str(int((t == k).sum()))
@@ -34,17 +39,19 @@ def _cmd_info(args: argparse.Namespace) -> int:
         )
         print(
             f"{sc.scenario_id:<20} {sc.tracks.num_tracks:>6} {kinds:>12} "
-            f"{sc.road_map.num_features:>5} {sc.signals.num_signals:>7} {sc.sdc_id:>7}"
+            f"{sc.road_map.num_features:>5} {sc.signals.num_signals:>7} {sc.sdc_id:>7} "
+            f"{sc.num_logged_steps:>5} {future:>6}"
         )
     return 0
 
 
 def _episode_video(env, out: Path, fps: int, steps: int | None, desc: str) -> int:
+    from tbsim_env.env.parallel_env import episode_length
     from tbsim_env.rendering import write_video
 
     env.reset()
     frames = [env.render()]
-    n = steps or (env.scenario.num_steps - 1 - env.config.start_step)
+    n = steps or episode_length(env)
     for _ in tqdm(range(n), desc=desc, unit="step"):
         if not env.agents:
             break

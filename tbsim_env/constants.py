@@ -41,6 +41,11 @@ MAX_ACCEL = (5.0, 5.0, 7.0, 6.0, 5.0)
 MAX_YAW_RATE = (1.5, 1.5, 7.0, 3.0, 1.5)
 """Maximum |yaw rate| in rad/s per ``ObjectType``."""
 
+MAX_ABS_COORDINATE = 1.0e7
+"""Metres. Largest |x|, |y|, |z| a scene or a submission may hold: 10,000 km, beyond any local
+metric frame on Earth. Readers and the submission validator refuse larger values (a corrupt
+exponent would otherwise reach the geometry code, e.g. densifying a 1e30 m polyline)."""
+
 
 # --------------------------------------------------------------------------- raw map
 class MapFeatureType(enum.IntEnum):

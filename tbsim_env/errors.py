@@ -39,6 +39,46 @@ class ScenarioFormatError(TbsimError, ValueError):
         super().__init__(f"{prefix}: {reason}" if prefix else reason)
 
 
+class MissingFutureError(TbsimError, ValueError):
+    """A task needs logged states that the scenario does not hold.
+
+    WOSAC test-split scenes hold only the history (11 steps, current step 10): they can be
+    simulated for any horizon, but log replay, scoring against the log or a training target
+    need the logged future. Built by ``Scenario.require_log_until``.
+
+    Attributes:
+        scenario_id: the scenario.
+        source: where it came from (file, record).
+        task: what needed the log (e.g. "log replay").
+        needed_step: the last step the task needs.
+        logged_steps: how many steps the log holds (steps 0 .. logged_steps - 1).
+    """
+
+    def __init__(
+        self,
+        scenario_id: str,
+        source: str,
+        task: str,
+        needed_step: int,
+        logged_steps: int,
+        current_index: int,
+    ) -> None:
+        self.scenario_id = scenario_id
+        self.source = source
+        self.task = task
+        self.needed_step = needed_step
+        self.logged_steps = logged_steps
+        kind = (
+            f"history only, current step {current_index}, as in the WOSAC test split"
+            if logged_steps <= current_index + 1
+            else f"current step {current_index}"
+        )
+        super().__init__(
+            f"scenario {scenario_id} ({source}): {task} needs the logged states up to step "
+            f"{needed_step}, but the log holds only steps 0-{logged_steps - 1} ({kind})"
+        )
+
+
 class ActionError(TbsimError, ValueError):
     """An action given to the environment is not usable (NaN, wrong shape, unknown agent)."""
 

@@ -152,6 +152,14 @@ def _set(keys: list, value: object) -> object:
         (_set(["metadata", "sdc_track_index"], 99), "sdc_track_index"),
         (_set(["objects", 1, "id"], "x"), r"objects\[1\]\.id"),
         (_set(["objects", 0, "position", 0, "x"], float("nan")), "non-finite"),
+        # Physically impossible values of valid states name the object (track id, index),
+        # the step and the field.
+        (_set(["objects", 0, "length"], 0.0), r"track \d+ \(index 0\) at step \d+: field 'length'"),
+        (_set(["objects", 3, "width"], -1.8), r"\(index 3\) .* field 'width' .*not positive"),
+        (_set(["objects", 3, "height"], float("nan")), r"\(index 3\) .* 'height' .*non-finite"),
+        (_set(["objects", 0, "velocity", 0, "y"], float("inf")), r"'velocity_y' .*non-finite"),
+        (_set(["objects", 0, "heading", 0], float("nan")), r"at step 0: field 'heading'"),
+        (_set(["objects", 0, "position", 0, "y"], -1e30), r"'center_y' .* lies beyond"),
     ],
 )
 def test_malformed_json_names_key_and_index(

@@ -263,6 +263,16 @@ def _tiny_scenario(n_steps: int = 3) -> scenario_pb2.Scenario:
     return msg
 
 
+def _state(track: int, step: int, **values: float):
+    """A mutation of ``_tiny_scenario`` that sets fields of one (valid) state."""
+
+    def mutate(msg: scenario_pb2.Scenario) -> None:
+        for name, value in values.items():
+            setattr(msg.tracks[track].states[step], name, value)
+
+    return mutate
+
+
 def _varint(value: int) -> bytes:
     out = bytearray()
     while True:
@@ -345,6 +355,16 @@ def test_wrap_heading_f32_edges() -> None:
         (lambda m: setattr(m.tracks[1], "id", 7), "not unique"),
         (lambda m: setattr(m.tracks[0].states[1], "center_x", float("nan")), "non-finite"),
         (lambda m: m.dynamic_map_states.extend([scenario_pb2.DynamicMapState()] * 4), "dynamic"),
+        # Physically impossible values of valid states: the object, step and field are named.
+        (_state(0, 1, length=0.0), r"track 7 \(index 0\) at step 1: field 'length' .*positive"),
+        (_state(1, 2, width=-2.0), r"track 9 \(index 1\) at step 2: field 'width' .*positive"),
+        (_state(0, 0, height=float("nan")), r"track 7 .* field 'height' .*non-finite"),
+        (_state(0, 0, length=float("inf")), r"track 7 .* field 'length' .*non-finite"),
+        (_state(1, 1, velocity_y=float("inf")), r"track 9 .* field 'velocity_y' .*non-finite"),
+        (_state(1, 0, heading=float("-inf")), r"track 9 .* field 'heading' .*non-finite"),
+        (_state(0, 2, center_y=1e30), r"track 7 .* field 'center_y' .*beyond 1e\+07 m"),
+        (_state(0, 2, center_z=3e38), r"track 7 .* field 'center_z'"),
+        (lambda m: setattr(m.map_features[0].lane.polyline[1], "x", 1e30), "feature 100: .*beyond"),
     ],
 )
 def test_bad_content_names_the_field(mutate, message: str) -> None:
@@ -354,6 +374,43 @@ def test_bad_content_names_the_field(mutate, message: str) -> None:
         parse_scenario(msg.SerializeToString(), path="f.tfrecord", record=4, offset=99)
     assert (info.value.path, info.value.record, info.value.offset) == ("f.tfrecord", 4, 99)
     assert "record 4" in str(info.value)
+
+
+def test_impossible_values_of_invalid_states_are_fine() -> None:
+    msg = _tiny_scenario()
+    state = msg.tracks[1].states[0]
+    state.valid, state.length, state.width, state.center_x = False, 0.0, -1.0, float("inf")
+    s = parse_scenario(msg.SerializeToString())
+    assert not s.tracks.valid[1, 0] and (s.tracks.size[1, 0] == 0).all()
+
+
+@pytest.mark.parametrize(
+    "error",
+    [ValueError("Maximum allowed size exceeded"), MemoryError(), RuntimeError("upb"), KeyError(3)],
+)
+def test_protobuf_runtime_errors_name_file_and_record(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, error: Exception
+) -> None:
+    """Whatever the protobuf runtime raises while decoding comes back as a
+    ``ScenarioFormatError`` naming the file and record, from every reading path."""
+    import tbsim_env.data.womd as womd
+
+    class Failing:
+        @staticmethod
+        def FromString(payload: bytes):  # noqa: N802 (the protobuf name)
+            raise error
+
+    path = tmp_path / "x.tfrecord"
+    write_records(path, [_tiny_scenario().SerializeToString()] * 2)
+    monkeypatch.setattr(womd.scenario_pb2, "Scenario", Failing)
+    with pytest.raises(ScenarioFormatError, match=type(error).__name__) as info:
+        list(read_scenarios(path))
+    assert (info.value.path, info.value.record) == (str(path), 0)
+    with pytest.raises(ScenarioFormatError, match="record 1"):
+        ScenarioFile(path).record(1)
+    monkeypatch.setattr(womd.scenario_pb2, "ScenarioIdOnly", Failing)
+    with pytest.raises(ScenarioFormatError, match=f"'{path}', record 0"):
+        ScenarioFile(path).ids()
 
 
 def test_invalid_state_with_nan_is_fine() -> None:

@@ -38,6 +38,7 @@ from torch.utils.data import ConcatDataset, Dataset
 from tqdm import tqdm
 
 from tbsim_env.config import TokenConfig
+from tbsim_env.constants import NUM_STEPS
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
 
@@ -110,8 +111,10 @@ def _work(item: Scenario | tuple[str, int], cfg: TokenConfig) -> SceneTokens | s
             from tbsim_env.data.generator import generate_scenario
 
             item = generate_scenario(item[0], item[1])
+        # Training and validation losses compare with the whole logged episode.
+        item.require_log_until(NUM_STEPS - 1, "a token cache (training targets)")
         return preprocess_scenario(item, cfg)
-    except ValueError as err:  # e.g. too many relevant agents for the limit
+    except ValueError as err:  # e.g. too many relevant agents, a history-only scene
         sid = item.scenario_id if isinstance(item, Scenario) else str(item)
         return f"skipped {sid}: {err}"
 

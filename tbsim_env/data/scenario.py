@@ -2,6 +2,10 @@
 
 Coordinates are the scenario's own frame (metres, the origin is arbitrary per scenario), headings
 are wrapped to [-pi, pi). Invalid entries hold zeros and must be masked with ``valid``.
+A scenario may hold fewer steps than a WOMD episode: WOSAC test-split scenes log only the history
+(11 steps, current step 10). ``Scenario.has_future`` says whether a logged future exists, and
+``Scenario.on_time_grid`` puts a scenario on a simulation's time grid (steps past the log are
+invalid there), so a simulation's horizon never depends on the log's length.
 Every reader (raw TFRecord, GPUDrive JSON, the procedural generator) produces this type and
 nothing else, so simulation code never sees a file format.
 """
@@ -13,8 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tbsim_env.constants import MapFeatureType, ObjectType
-from tbsim_env.errors import ScenarioFormatError
+from tbsim_env.constants import DT, MAX_ABS_COORDINATE, MapFeatureType, ObjectType
+from tbsim_env.errors import MissingFutureError, ScenarioFormatError
 
 
 def wrap_angle_np(angle: np.ndarray) -> np.ndarray:
@@ -60,6 +64,19 @@ class Tracks:
     def stored_heading(self) -> np.ndarray:
         """[A, T] float32 yaw as stored in the source (``raw_heading``, else ``heading``)."""
         return self.heading if self.raw_heading is None else self.raw_heading
+
+    def on_time_grid(self, num_steps: int) -> Tracks:
+        """The tracks over ``num_steps`` steps: cut, or extended by invalid zero entries."""
+        n = self.num_steps
+
+        def fit(a: np.ndarray | None) -> np.ndarray | None:
+            if a is None or num_steps <= n:
+                return None if a is None else a[:, :num_steps]
+            pad = np.zeros((a.shape[0], num_steps - n, *a.shape[2:]), a.dtype)
+            return np.concatenate([a, pad], axis=1)
+
+        fields = ("xyz", "heading", "velocity", "size", "valid", "raw_heading")
+        return dataclasses.replace(self, **{f: fit(getattr(self, f)) for f in fields})
 
 
 @dataclass(frozen=True)
@@ -172,6 +189,20 @@ class TrafficSignals:
     def num_signals(self) -> int:
         return int(self.lane_id.shape[0])
 
+    def on_time_grid(self, num_steps: int) -> TrafficSignals:
+        """The signals over ``num_steps`` steps: cut, or extended by steps with no state."""
+        n = int(self.state.shape[1])
+        if num_steps <= n:
+            return dataclasses.replace(
+                self, state=self.state[:, :num_steps], valid=self.valid[:, :num_steps]
+            )
+        pad = num_steps - n
+        return dataclasses.replace(
+            self,
+            state=np.pad(self.state, ((0, 0), (0, pad))),
+            valid=np.pad(self.valid, ((0, 0), (0, pad))),
+        )
+
     @staticmethod
     def empty(num_steps: int) -> TrafficSignals:
         return TrafficSignals(
@@ -180,6 +211,45 @@ class TrafficSignals:
             valid=np.zeros((0, num_steps), bool),
             stop_point=np.zeros((0, 3), np.float64),
         )
+
+
+_STATE_PARTS: tuple[tuple[str, tuple[str, ...]], ...] = (
+    ("xyz", ("center_x", "center_y", "center_z")),
+    ("heading", ("heading",)),
+    ("raw_heading", ("heading",)),
+    ("velocity", ("velocity_x", "velocity_y")),
+    ("size", ("length", "width", "height")),
+)
+"""Track arrays checked at valid states, with the names of their components."""
+
+
+def _impossible_state(tracks: Tracks) -> str | None:
+    """The first physically impossible value of a valid track state, described, or None.
+
+    Poses and velocities must be finite, positions within ``MAX_ABS_COORDINATE`` of the
+    origin, box sizes (length, width, height) positive and finite.
+    """
+    for name, parts in _STATE_PARTS:
+        arr = getattr(tracks, name)
+        if arr is None:
+            continue
+        arr = arr if arr.ndim == 3 else arr[..., None]  # [A, T, C]
+        valid = tracks.valid[..., None]
+        finite = np.isfinite(arr)
+        checks = [(valid & ~finite, "is non-finite")]
+        if name == "xyz":
+            far = np.abs(np.where(finite, arr, 0.0)) > MAX_ABS_COORDINATE
+            checks.append((valid & far, f"lies beyond {MAX_ABS_COORDINATE:g} m of the origin"))
+        elif name == "size":
+            checks.append((valid & finite & (arr <= 0), "is not positive (a box needs a size)"))
+        for bad, what in checks:
+            if bad.any():
+                k, step, c = (int(i) for i in np.argwhere(bad)[0])
+                return (
+                    f"track {int(tracks.id[k])} (index {k}) at step {step}: field "
+                    f"{parts[c]!r} of a valid state {what}: {float(arr[k, step, c])!r}"
+                )
+    return None
 
 
 @dataclass(frozen=True)
@@ -198,6 +268,9 @@ class Scenario:
         predict_difficulty: [k] int8 difficulty level per tracks_to_predict entry.
         objects_of_interest: [m] int64 track **ids**.
         source: where it came from (file path, record), for messages.
+        logged_steps: steps 0 .. logged_steps - 1 of the time grid come from the log; None
+            when all do (every reader). Set by ``on_time_grid`` when it extends the grid past
+            the log: the added steps hold no valid track or signal state.
     """
 
     scenario_id: str
@@ -211,10 +284,73 @@ class Scenario:
     predict_difficulty: np.ndarray
     objects_of_interest: np.ndarray
     source: str = field(default="<memory>", compare=False)
+    logged_steps: int | None = None
 
     @property
     def num_steps(self) -> int:
+        """T, steps of the time grid (the logged steps for a scenario as read)."""
         return self.tracks.num_steps
+
+    @property
+    def num_logged_steps(self) -> int:
+        """Steps that come from the log (91 in WOMD training/validation, 11 in its test split)."""
+        return self.num_steps if self.logged_steps is None else self.logged_steps
+
+    @property
+    def num_future_steps(self) -> int:
+        """Logged steps after the current one (80 in a full WOMD scene, 0 if history only)."""
+        return max(self.num_logged_steps - 1 - self.current_index, 0)
+
+    @property
+    def has_future(self) -> bool:
+        """The log goes on after the current step (False for WOSAC test-split scenes)."""
+        return self.num_future_steps > 0
+
+    def require_log_until(self, step: int, task: str) -> None:
+        """Raise ``MissingFutureError`` unless the log holds steps up to ``step``.
+
+        The one check of everything that needs logged states (log replay, scoring against the
+        log, training targets); the message names the scenario, its source and ``task``.
+        """
+        if step >= self.num_logged_steps:
+            raise MissingFutureError(
+                self.scenario_id,
+                self.source,
+                task,
+                int(step),
+                self.num_logged_steps,
+                self.current_index,
+            )
+
+    def on_time_grid(self, num_steps: int) -> Scenario:
+        """This scenario over exactly ``num_steps`` steps (the time grid of a simulation).
+
+        Steps after the log are appended with no valid track or signal state (zero
+        placeholders; timestamps go on every ``DT``) and ``logged_steps`` remembers where the
+        log ends, so ``has_future`` stays what it was. A longer log is cut. Returns ``self``
+        when the grid is the scenario's own.
+
+        Args:
+            num_steps: T of the grid, more than the current index.
+        """
+        if num_steps == self.num_steps:
+            return self
+        if num_steps <= self.current_index:
+            raise ValueError(
+                f"scenario {self.scenario_id!r}: a time grid of {num_steps} steps leaves out "
+                f"the current step {self.current_index}"
+            )
+        n = min(self.num_steps, num_steps)
+        ts = self.timestamps[:n]
+        if num_steps > n:
+            ts = np.concatenate([ts, ts[-1] + DT * np.arange(1, num_steps - n + 1)])
+        logged = min(self.num_logged_steps, num_steps)
+        return self.replace(
+            timestamps=ts,
+            tracks=self.tracks.on_time_grid(num_steps),
+            signals=self.signals.on_time_grid(num_steps),
+            logged_steps=None if logged == num_steps else logged,
+        )
 
     @property
     def sdc_id(self) -> int:
@@ -307,15 +443,20 @@ class Scenario:
             fail(f"track {int(t.id[np.argmax(bad_type)])}: unknown 'object_type'")
         if t.raw_heading is not None and t.raw_heading.shape != (a, n_t):
             fail(f"track field 'raw_heading' has shape {t.raw_heading.shape}, expected {(a, n_t)}")
-        for name in ("xyz", "heading", "velocity", "size", "raw_heading"):
-            arr = getattr(t, name)
-            if arr is None:
-                continue
-            mask = t.valid if arr.ndim == 2 else t.valid[..., None]
-            if not np.isfinite(np.where(mask, arr, 0.0)).all():
-                fail(f"track field {name!r} has a non-finite value at a valid step")
+        impossible = _impossible_state(t)
+        if impossible:
+            fail(impossible)
         if not 0 <= self.current_index < n_t:
-            fail(f"'current_time_index' {self.current_index} outside [0, {n_t})")
+            fail(
+                f"'current_time_index' {self.current_index} is not among the {n_t} steps "
+                "(a scenario needs at least its current step)"
+            )
+        if self.logged_steps is not None:
+            if not self.current_index < self.logged_steps <= n_t:
+                fail(f"'logged_steps' {self.logged_steps} outside ({self.current_index}, {n_t}]")
+            after = slice(self.logged_steps, None)
+            if t.valid[:, after].any() or self.signals.valid[:, after].any():
+                fail(f"a track or signal is valid after the log's end (step {self.logged_steps})")
         if not 0 <= self.sdc_index < a:
             fail(f"'sdc_track_index' {self.sdc_index} outside [0, {a})")
         if len(self.tracks_to_predict) and (
@@ -342,6 +483,11 @@ class Scenario:
                 fail(f"map feature {int(m.id[k])}: polyline has shape {pl.shape}")
             if not np.isfinite(pl).all():
                 fail(f"map feature {int(m.id[k])}: polyline has a non-finite point")
+            if np.abs(pl).max() > MAX_ABS_COORDINATE:
+                fail(
+                    f"map feature {int(m.id[k])}: polyline has a point beyond "
+                    f"{MAX_ABS_COORDINATE:g} m of the origin ({np.abs(pl).max():.6g} m)"
+                )
         s = self.signals
         if s.state.shape != (s.num_signals, n_t) or s.valid.shape != (s.num_signals, n_t):
             fail("traffic-signal arrays do not match (num_signals, num_steps)")

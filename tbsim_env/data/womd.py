@@ -323,11 +323,19 @@ def parse_scenario(
         ScenarioFormatError: not a valid Scenario protobuf, or not a usable Scenario.
     """
     where = _Where(None if path is None else os.fspath(path), record, offset)
-    try:
-        msg = scenario_pb2.Scenario.FromString(payload)
-    except DecodeError as err:
-        raise where.error(f"not a valid Scenario protobuf: {err}") from err
+    msg = _decode(scenario_pb2.Scenario, payload, where)
     return _convert(msg, where)
+
+
+def _decode(message_type, payload: bytes, where: _Where):
+    """``message_type.FromString(payload)``; any error of the protobuf runtime (``DecodeError``,
+    and from the C runtime also e.g. ``ValueError``, ``RecursionError``, ``MemoryError``) is
+    re-raised as a ``ScenarioFormatError`` naming the file and record."""
+    try:
+        return message_type.FromString(payload)
+    except Exception as err:
+        kind = "" if isinstance(err, DecodeError) else f"{type(err).__name__}: "
+        raise where.error(f"not a valid Scenario protobuf: {kind}{err}") from err
 
 
 def read_scenarios(
@@ -392,10 +400,7 @@ class ScenarioFile:
             offset = int(self.index.offsets[k])
             where = _Where(self.path, k, offset)
             payload = read_record(self.path, offset, verify=self.verify, record=k)
-            try:
-                head = scenario_pb2.ScenarioIdOnly.FromString(payload)
-            except DecodeError as err:
-                raise where.error(f"not a valid Scenario protobuf: {err}") from err
+            head = _decode(scenario_pb2.ScenarioIdOnly, payload, where)
             sid = _scenario_id(head, where)
             if sid in mapping:
                 warnings.warn(

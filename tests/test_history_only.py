@@ -1,0 +1,116 @@
+"""History-only scenes (the WOSAC test split: 11 logged steps, current step 10) end to end.
+
+The two shared scenes of that kind are read like any other; whatever simulates runs its own
+horizon on them, and whatever needs the logged future refuses them in one line.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tbsim_env.cli import main
+from tbsim_env.constants import DT
+from tbsim_env.data import load_scenarios
+from tbsim_env.data.cache import build_cache
+from tbsim_env.data.protos import scenario_pb2
+from tbsim_env.data.tfrecord import iter_records
+from tbsim_env.data.womd import parse_scenario
+from tbsim_env.errors import MissingFutureError, ScenarioFormatError
+
+HISTORY_ONLY = ("tfrecord-00149-of-00150_111.json", "tfrecord-00000-of-00150_78.json")
+"""The shared WOSAC test-split scenes (``gpudrive_history/gpudrive/``)."""
+
+
+@pytest.fixture(scope="module")
+def history_dir(womd_dir: Path) -> Path:
+    """Folder of the two history-only scenes and one full scene."""
+    return womd_dir / "gpudrive_history" / "gpudrive"
+
+
+@pytest.fixture(scope="module")
+def history_scenes(history_dir: Path) -> list:
+    return load_scenarios([history_dir / name for name in HISTORY_ONLY])
+
+
+@pytest.fixture(scope="module")
+def full(one_scenario_path: Path):
+    return load_scenarios(one_scenario_path)[0]
+
+
+def _cut_record(path: Path, steps: int) -> bytes:
+    """The record of ``path`` with its log cut to the first ``steps`` steps."""
+    ((_, _, payload),) = list(iter_records(path))
+    msg = scenario_pb2.Scenario.FromString(payload)
+    del msg.timestamps_seconds[steps:]
+    del msg.dynamic_map_states[steps:]
+    for track in msg.tracks:
+        del track.states[steps:]
+    return msg.SerializeToString()
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+def test_readers_accept_history_only_scenes(history_scenes, full, one_scenario_path) -> None:
+    for sc in history_scenes:
+        assert sc.num_steps == sc.num_logged_steps == 11 and sc.current_index == 10
+        assert not sc.has_future and sc.num_future_steps == 0
+    assert full.has_future and full.num_logged_steps == 91 and full.num_future_steps == 80
+    # The raw WOMD reader: the real record cut to its history.
+    cut = parse_scenario(_cut_record(one_scenario_path, 11), path="cut.tfrecord", record=0)
+    assert cut.num_logged_steps == 11 and not cut.has_future
+    np.testing.assert_array_equal(cut.tracks.xyz, full.tracks.xyz[:, :11])
+    assert cut.signals.state.shape == (full.signals.num_signals, 11)
+    # Fewer steps than the current step: refused, naming the record and the field.
+    with pytest.raises(ScenarioFormatError, match="record 0.*'current_time_index' 10 is not"):
+        parse_scenario(_cut_record(one_scenario_path, 10), path="cut.tfrecord", record=0)
+
+
+def test_on_time_grid_extends_with_invalid_steps(history_scenes, full) -> None:
+    sc = history_scenes[0]
+    grid = sc.on_time_grid(91)
+    assert grid.num_steps == 91 and grid.num_logged_steps == 11 and not grid.has_future
+    assert grid.validate() is grid and grid.scenario_id == sc.scenario_id
+    np.testing.assert_array_equal(grid.tracks.xyz[:, :11], sc.tracks.xyz)
+    np.testing.assert_array_equal(grid.tracks.valid[:, :11], sc.tracks.valid)
+    assert not grid.tracks.valid[:, 11:].any() and not grid.signals.valid[:, 11:].any()
+    assert grid.tracks.raw_heading is None or grid.tracks.raw_heading.shape == (26, 91)
+    np.testing.assert_allclose(np.diff(grid.timestamps[10:]), DT)
+    assert full.on_time_grid(91) is full  # a full WOMD scene is simulated as it is
+    cut = full.on_time_grid(51)
+    assert cut.num_steps == cut.num_logged_steps == 51 and cut.num_future_steps == 40
+    with pytest.raises(ValueError, match="leaves out the current step"):
+        sc.on_time_grid(10)
+    with pytest.raises(ScenarioFormatError, match="valid after the log's end"):
+        full.replace(logged_steps=50).validate()
+    with pytest.raises(ScenarioFormatError, match="'logged_steps' 5 outside"):
+        grid.replace(logged_steps=5).validate()
+
+
+def test_missing_future_is_one_line_naming_the_scene(history_scenes, full) -> None:
+    sc = history_scenes[0]
+    with pytest.raises(MissingFutureError) as info:
+        sc.require_log_until(90, "log replay")
+    text = str(info.value)
+    assert sc.scenario_id in text and HISTORY_ONLY[0] in text and "log replay" in text
+    assert "steps 0-10" in text and "history only" in text and "\n" not in text
+    assert isinstance(info.value, ValueError) and info.value.needed_step == 90
+    full.require_log_until(90, "log replay")  # no error
+
+
+def test_tbsim_info_shows_logged_steps_and_future(history_dir, capsys) -> None:
+    assert main(["info", str(history_dir)]) == 0
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines()}
+    assert rows["scenario_id"][-2:] == ["steps", "future"]
+    assert rows["1c8f1f7b63fc6118"][-2:] == ["11", "none"]
+    assert rows["fcb5b4973f486e78"][-2:] == ["11", "none"]
+    assert rows["792d65eb579314db"][-2:] == ["91", "80"]
+
+
+def test_token_cache_skips_history_only_scenes(tmp_path, history_dir) -> None:
+    m = build_cache([str(history_dir / HISTORY_ONLY[1])], tmp_path, workers=1, progress=False)
+    assert m["scenario_ids"] == [] and len(m["skipped"]) == 1
+    assert "fcb5b4973f486e78" in m["skipped"][0] and "token cache" in m["skipped"][0]
