@@ -109,9 +109,11 @@ def _load(files: Sequence[str], skip_bad: bool = False):
 
 
 def _cmd_export_wosac(args: argparse.Namespace) -> int:
-    from tbsim_env.evaluation import export_submission
+    from tbsim_env.evaluation import check_logged_future, export_submission
 
     scenarios = _load(args.data, args.skip_bad)
+    if args.policy == "log_replay":  # before any file is written
+        check_logged_future(scenarios, "log replay")
     out = Path(args.out)
     if args.out.endswith("/") or out.is_dir():
         # One submission file per input file (WOSAC shards), named after it.

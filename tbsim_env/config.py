@@ -83,9 +83,15 @@ class TerminationConfig:
 class EnvConfig:
     """Configuration of ``TrafficEnv``.
 
+    The episode length comes from here, not from the log: a scene whose log ends earlier
+    (e.g. a WOSAC test-split scene, 11 logged steps) runs the whole episode with its NPCs
+    driven by the NPC policy (``tbsim_env.sim.horizon``).
+
     Attributes:
-        start_step: log step the episode starts at (history before it comes from the log).
-        end_step: last log step; None means the last step of the scenario (90 in WOMD).
+        start_step: step the episode starts at (the log must hold it; history before it comes
+            from the log).
+        end_step: last simulated step; None means step 90 (``C.NUM_STEPS - 1``, the end of a
+            WOMD episode), whatever the log's length. See ``last_step``.
         reward: reward weights.
         termination: termination events.
         remove_terminated: remove terminated agents from the simulation (otherwise they stay
@@ -101,5 +107,13 @@ class EnvConfig:
     def __post_init__(self) -> None:
         if self.start_step < 0:
             raise ValueError("EnvConfig.start_step must be >= 0")
-        if self.end_step is not None and self.end_step <= self.start_step:
-            raise ValueError("EnvConfig.end_step must be greater than start_step")
+        if self.last_step <= self.start_step:
+            raise ValueError(
+                f"EnvConfig.end_step ({self.last_step}) must be greater than start_step "
+                f"({self.start_step})"
+            )
+
+    @property
+    def last_step(self) -> int:
+        """The last simulated step: ``end_step``, or 90 when None."""
+        return C.NUM_STEPS - 1 if self.end_step is None else self.end_step

@@ -3,6 +3,10 @@
 The functions behind ``tbsim export-wosac``, ``tbsim wosac-score`` and ``tbsim evaluate``.
 Every policy is rolled out by the same closed-loop simulator (``tbsim_env.sim.rollout``),
 except the official linear-extrapolation baseline, which is a formula, and exact log replay.
+
+Every policy but log replay simulates the 80 WOSAC steps of any scene, history-only ones (the
+WOSAC test split) included, so a folder mixing both exports in one run. Log replay and scoring
+need the logged future: ``check_logged_future`` refuses such a scene before any rollout.
 """
 
 from __future__ import annotations
@@ -22,8 +26,10 @@ from tbsim_env.metrics.wosac import (
     build_submission,
     rollouts_to_proto,
     score_scenario,
+    validate_scenario_rollouts,
     write_submission,
 )
+from tbsim_env.sim.horizon import wosac_end_step
 from tbsim_env.sim.rollout import linear_extrapolation_rollouts, simulate_rollouts
 
 WOSAC_POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
@@ -33,6 +39,20 @@ WOSAC_POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "tr
 def scenario_seed(seed: int, scenario_id: str) -> int:
     """Per-scenario seed: the same whatever the order or subset of scenarios evaluated."""
     return (int(seed) * 1_000_003 + zlib.crc32(scenario_id.encode())) % (2**31)
+
+
+def check_logged_future(scenarios: Iterable[Scenario], task: str) -> None:
+    """Refuse, before any work, a scenario whose log does not hold the 80 WOSAC steps.
+
+    Args:
+        scenarios: the scenarios the task will run on.
+        task: what needs the logged future, for the message (e.g. "log replay").
+
+    Raises:
+        MissingFutureError: for the first such scenario, naming it and its source.
+    """
+    for sc in scenarios:
+        sc.require_log_until(wosac_end_step(sc), task)
 
 
 def make_rollout_fn(
@@ -99,7 +119,18 @@ def export_submission(
     device: str = "cpu",
     road_edge_weight: float = 0.0,
 ) -> int:
-    """Write a ``SimAgentsChallengeSubmission`` of the scenarios' rollouts; returns their count."""
+    """Write a ``SimAgentsChallengeSubmission`` of the scenarios' rollouts; returns their count.
+
+    Every scenario's rollouts pass ``validate_scenario_rollouts`` (with ``num_rollouts`` joint
+    scenes) before anything is written: a failing check raises and leaves no file.
+
+    Raises:
+        MissingFutureError: ``policy="log_replay"`` on a scene without its logged future.
+        SubmissionError: rollouts that break the challenge format (wrong step count, missing
+            agent, non-finite or impossible coordinate).
+    """
+    if policy == "log_replay":
+        check_logged_future(scenarios, "log replay")
     metadata = metadata or SubmissionMetadata(
         account_name="tbsim",
         unique_method_name=f"tbsim-{policy}",
@@ -107,19 +138,19 @@ def export_submission(
         num_model_parameters="0",
         acknowledge_complies_with_closed_loop_requirement=True,
     )
-    protos = [
-        rollouts_to_proto(r)
-        for _, r in iter_rollouts(
-            scenarios,
-            policy,
-            num_rollouts=num_rollouts,
-            seed=seed,
-            checkpoint=checkpoint,
-            device=device,
-            total=len(scenarios),
-            road_edge_weight=road_edge_weight,
-        )
-    ]
+    protos = []
+    for sc, r in iter_rollouts(
+        scenarios,
+        policy,
+        num_rollouts=num_rollouts,
+        seed=seed,
+        checkpoint=checkpoint,
+        device=device,
+        total=len(scenarios),
+        road_edge_weight=road_edge_weight,
+    ):
+        protos.append(rollouts_to_proto(r))
+        validate_scenario_rollouts(protos[-1], sc, num_rollouts=num_rollouts)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     write_submission(out, build_submission(protos, metadata))
     return len(protos)
@@ -137,7 +168,13 @@ def evaluate_policy(
     keep_rollouts: bool = False,
     road_edge_weight: float = 0.0,
 ) -> tuple[list[ScenarioScores], list[Rollouts]]:
-    """Roll out and score every scenario (no proto written)."""
+    """Roll out and score every scenario (no proto written).
+
+    Raises:
+        MissingFutureError: a scenario without its logged future (scoring compares with it),
+            before any rollout.
+    """
+    check_logged_future(scenarios, "WOSAC scoring")
     scores, kept = [], []
     for sc, r in iter_rollouts(
         scenarios,
@@ -235,6 +272,7 @@ def plot_histograms(
 __all__ = [
     "HISTOGRAM_FEATURES",
     "WOSAC_POLICIES",
+    "check_logged_future",
     "evaluate_policy",
     "export_submission",
     "feature_samples",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 
 import numpy as np
@@ -19,8 +21,9 @@ from tbsim_env.data.cache import (
     read_shard,
 )
 from tbsim_env.data.generator import generate_scenario
+from tbsim_env.evaluation import export_submission
 from tbsim_env.metrics.wosac import read_submission, score_scenario, validate_scenario_rollouts
-from tbsim_env.metrics.wosac.submission import rollouts_to_proto
+from tbsim_env.metrics.wosac.submission import SubmissionError, rollouts_to_proto
 from tbsim_env.sim.rollout import linear_extrapolation_rollouts, simulate_rollouts
 
 
@@ -106,6 +109,38 @@ def test_cli_export_is_byte_identical_and_scores(tmp_path, one_scenario_path, ca
     assert "637f20cafde22ff8" in capsys.readouterr().out
     fields = json.loads(out_json.read_text())
     assert json.dumps(fields).count("realism_meta_metric") >= 1
+
+
+# sha256 of ``export_submission([637f20cafde22ff8], policy, num_rollouts=32, seed=3)``, computed
+# on main before history-only scenes were supported (commit 87e04d9): full WOMD scenes are
+# simulated exactly as before. Change a digest only for a deliberate change of the rollouts.
+FULL_SCENE_EXPORT_SHA256 = {
+    "constant_velocity": "30d47aec32106d5f8112a6bd7781f31eae3b8e81ab6693838dc7716fa8b905a4",
+    "linear_extrapolation": "3a6a60ac444ae1e35ba31d1735efdde096be9031a36ef442049e62476cd8ac55",
+    "log_replay": "b0b92f13f2b1b8fea4c1e3e8bcd6f61d3a9b023f2386e1891d4dd43410a98ff2",
+}
+
+
+@pytest.mark.parametrize("policy", sorted(FULL_SCENE_EXPORT_SHA256))
+def test_seeded_full_scene_export_is_byte_identical_to_the_pinned_digest(tmp_path, real, policy):
+    out = tmp_path / "sub.binproto"
+    export_submission([real], policy, out, num_rollouts=32, seed=3)
+    assert hashlib.sha256(out.read_bytes()).hexdigest() == FULL_SCENE_EXPORT_SHA256[policy]
+
+
+def test_export_never_writes_a_trajectory_of_the_wrong_length(tmp_path, real, monkeypatch):
+    import tbsim_env.evaluation as evaluation
+
+    def short(scenario, num_rollouts, seed):
+        r = simulate_rollouts(scenario, make_policy("constant_velocity"), num_rollouts=2)
+        return dataclasses.replace(r, x=r.x[..., :79], y=r.y[..., :79], z=r.z[..., :79],
+                                   heading=r.heading[..., :79])  # fmt: skip
+
+    monkeypatch.setattr(evaluation, "make_rollout_fn", lambda *a, **k: short)
+    out = tmp_path / "sub.binproto"
+    with pytest.raises(SubmissionError, match="center_x has 79 steps, expected 80"):
+        export_submission([real], "constant_velocity", out, num_rollouts=2)
+    assert not out.exists()
 
 
 def test_cli_scores_official_test_submission(womd_dir, one_scenario_path, capsys):

@@ -10,7 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
+from policies import make_policy
+from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
 from tbsim_env.cli import main
 from tbsim_env.constants import DT
 from tbsim_env.data import load_scenarios
@@ -19,6 +22,10 @@ from tbsim_env.data.protos import scenario_pb2
 from tbsim_env.data.tfrecord import iter_records
 from tbsim_env.data.womd import parse_scenario
 from tbsim_env.errors import MissingFutureError, ScenarioFormatError
+from tbsim_env.evaluation import export_submission
+from tbsim_env.metrics.wosac import read_submission, validate_scenario_rollouts
+from tbsim_env.metrics.wosac.submission import rollouts_from_proto, rollouts_to_proto
+from tbsim_env.sim.rollout import simulate_rollouts
 
 HISTORY_ONLY = ("tfrecord-00149-of-00150_111.json", "tfrecord-00000-of-00150_78.json")
 """The shared WOSAC test-split scenes (``gpudrive_history/gpudrive/``)."""
@@ -114,3 +121,90 @@ def test_token_cache_skips_history_only_scenes(tmp_path, history_dir) -> None:
     m = build_cache([str(history_dir / HISTORY_ONLY[1])], tmp_path, workers=1, progress=False)
     assert m["scenario_ids"] == [] and len(m["skipped"]) == 1
     assert "fcb5b4973f486e78" in m["skipped"][0] and "token cache" in m["skipped"][0]
+
+
+# ----------------------------------------------------------------------------- WOSAC rollouts
+
+
+def _check_submission_entry(proto, scenario, num_rollouts: int) -> None:
+    """The server's checks, then the shapes: every object valid at step 10, 80 steps each."""
+    validate_scenario_rollouts(proto, scenario, num_rollouts=num_rollouts)
+    r = rollouts_from_proto(proto)
+    sim_ids = scenario.tracks.id[scenario.tracks.valid[:, 10]]
+    assert sorted(r.object_id.tolist()) == sorted(sim_ids.tolist())
+    assert r.x.shape == (num_rollouts, len(sim_ids), 80)
+    assert all(torch.isfinite(v).all() for v in (r.x, r.y, r.z, r.heading))
+
+
+@pytest.mark.parametrize("policy", ["constant_velocity", "linear_extrapolation"])
+def test_export_api_simulates_80_steps(tmp_path, history_scenes, policy) -> None:
+    out = tmp_path / "sub.binproto"
+    assert export_submission(history_scenes, policy, out, num_rollouts=32, seed=1) == 2
+    sub = read_submission(out)
+    for proto, sc in zip(sub.scenario_rollouts, history_scenes, strict=True):
+        _check_submission_entry(proto, sc, 32)
+
+
+def test_trafficbots_simulates_80_steps(history_scenes) -> None:
+    model = load_default_model()
+    for sc in history_scenes:
+        # The WOSAC sampler (fewer samples than the submission's 128, same code path).
+        r = trafficbots_rollouts(model, sc, num_rollouts=32, num_samples=32, seed=0)
+        _check_submission_entry(rollouts_to_proto(r), sc, 32)
+    # TrafficBots as a closed-loop policy of the simulator, and constant velocity.
+    sc = history_scenes[1]
+    for policy in ("trafficbots", "constant_velocity"):
+        r = simulate_rollouts(sc, make_policy(policy), num_rollouts=2, seed=0)
+        _check_submission_entry(rollouts_to_proto(r), sc, 2)
+        assert (torch.hypot(r.x[:, :, -1] - r.x[:, :, 0], r.y[:, :, -1] - r.y[:, :, 0]) > 1).any()
+
+
+def test_cli_exports_a_folder_of_full_and_history_only_scenes(tmp_path, history_dir) -> None:
+    scenes = {sc.scenario_id: sc for sc in load_scenarios(history_dir)}
+    assert sorted(sc.has_future for sc in scenes.values()) == [False, False, True]
+    args = ["export-wosac", "--data", str(history_dir), "--policy", "constant_velocity"]
+    assert main([*args, "--out", str(tmp_path / "one.binproto")]) == 0
+    sub = read_submission(tmp_path / "one.binproto")
+    assert len(sub.scenario_rollouts) == 3
+    for proto in sub.scenario_rollouts:
+        _check_submission_entry(proto, scenes[proto.scenario_id], 32)
+    assert main([*args, "--out", f"{tmp_path / 'shards'}/"]) == 0
+    assert len(list((tmp_path / "shards").iterdir())) == 3
+
+
+def _one_line_error(capsys, rc: int, *needles: str) -> str:
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert rc == 2 and "\n" not in err and "Traceback" not in captured.err, captured.err
+    for needle in needles:
+        assert needle in err, err
+    return err
+
+
+def test_what_needs_the_future_refuses_in_one_line(tmp_path, history_dir, capsys) -> None:
+    one = str(history_dir / HISTORY_ONLY[0])
+    rc = main(["evaluate", "--data", one, "--policy", "trafficbots"])
+    _one_line_error(capsys, rc, "1c8f1f7b63fc6118", HISTORY_ONLY[0], "WOSAC scoring")
+    for out in (tmp_path / "lr.binproto", f"{tmp_path / 'lr'}/"):
+        rc = main(
+            ["export-wosac", "--data", str(history_dir), "--policy", "log_replay"]
+            + ["--out", str(out)]
+        )
+        _one_line_error(capsys, rc, "log replay", "history only")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # no file, not even an empty one
+    sub = tmp_path / "cv.binproto"
+    assert (
+        main(["export-wosac", "--data", one, "--policy", "constant_velocity", "--out", str(sub)])
+        == 0
+    )
+    capsys.readouterr()
+    rc = main(
+        ["wosac-score", "--data", one, "--submission", str(sub), "--json", str(tmp_path / "s.json")]
+    )
+    _one_line_error(capsys, rc, "1c8f1f7b63fc6118", "WOSAC scoring")
+    assert not (tmp_path / "s.json").exists()
+    sc = load_scenarios(one)[0]
+    with pytest.raises(MissingFutureError, match="log replay"):
+        simulate_rollouts(sc, make_policy("log_replay"))
+    with pytest.raises(MissingFutureError, match="off-road"):
+        trafficbots_rollouts(load_default_model(), sc, num_rollouts=2, road_edge_weight=1.0)

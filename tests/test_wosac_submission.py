@@ -98,6 +98,33 @@ def test_79_steps_rejected(scenario, proto):
         validate_scenario_rollouts(proto, scenario)
 
 
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("center_x", float("nan"), r"center_x\[7\] is nan; every value must be finite"),
+        ("center_y", float("inf"), r"center_y\[7\] is inf"),
+        ("center_z", float("-inf"), r"center_z\[7\] is -inf"),
+        ("heading", float("nan"), r"heading\[7\] is nan; every value must be finite$"),
+        ("heading", float("inf"), r"heading\[7\] is inf"),
+        ("center_x", 1e30, r"center_x\[7\] is 1.0\d*e\+30; every value must be finite and within"),
+        ("center_y", -2e7, r"center_y\[7\] is -20000000.0"),
+    ],
+)
+def test_impossible_values_rejected(scenario, proto, field, value, message):
+    """A submission with a non-finite or far-off coordinate is refused, not scored."""
+    traj = proto.joint_scenes[4].simulated_trajectories[3]
+    getattr(traj, field)[7] = value
+    with pytest.raises(SubmissionError, match=f"joint scene 4, object {traj.object_id}: {message}"):
+        validate_scenario_rollouts(proto, scenario)
+
+
+def test_exported_rollout_count_is_checked(scenario):
+    proto = rollouts_to_proto(noisy_rollouts(scenario, seed=4, num_rollouts=2))
+    validate_scenario_rollouts(proto, scenario, num_rollouts=2)
+    with pytest.raises(SubmissionError, match="expected 32 joint scenes, got 2"):
+        validate_scenario_rollouts(proto, scenario)
+
+
 def test_duplicate_extra_and_unnamed_agents_rejected(scenario, proto):
     dup = pb.ScenarioRollouts()
     dup.CopyFrom(proto)

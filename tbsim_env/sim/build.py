@@ -68,7 +68,8 @@ def build_sim_state(
     """Batch scenarios into the initial state at ``start_step``, every agent replayed from the log.
 
     Agent slots follow the track order of each scenario; smaller scenarios are padded.
-    All scenarios must share the same number of steps.
+    All scenarios must share the same time grid (``Scenario.on_time_grid``), whose length is
+    the log's length T of the state; steps past a scenario's log have no valid state there.
 
     Args:
         scenarios: B scenarios.
@@ -77,6 +78,9 @@ def build_sim_state(
 
     Returns:
         A ``SimState`` with ``controlled`` all False.
+
+    Raises:
+        MissingFutureError: a scenario's log does not hold ``start_step``.
     """
     if not scenarios:
         raise ValueError("build_sim_state needs at least one scenario")
@@ -85,10 +89,12 @@ def build_sim_state(
         if sc.num_steps != n_t:
             raise ValueError(
                 f"scenario {sc.scenario_id!r} has {sc.num_steps} steps, "
-                f"but {scenarios[0].scenario_id!r} has {n_t}; a batch needs equal lengths"
+                f"but {scenarios[0].scenario_id!r} has {n_t}; a batch needs one time grid "
+                "(Scenario.on_time_grid)"
             )
-        if not 0 <= start_step < n_t:
-            raise ValueError(f"start_step {start_step} outside [0, {n_t})")
+        if start_step < 0:
+            raise ValueError(f"start_step {start_step} is negative")
+        sc.require_log_until(start_step, f"a simulation that starts at step {start_step}")
     b = len(scenarios)
     n = max(sc.tracks.num_tracks for sc in scenarios)
     s = max(max(sc.signals.num_signals for sc in scenarios), 1)

@@ -5,6 +5,9 @@ one policy through the batched core (R rollouts = a batch of R copies of the sce
 with an exact-replay policy, which copies the log. Tracks that appear only after the current
 step are removed from the simulation: WOSAC ignores them, and using them would leak the logged
 future into the rollouts. Box heights (z) are held at their current-step value.
+
+Every rollout covers the 80 steps after the current one (``horizon.wosac_end_step``), also on a
+scene that logs only its history (the WOSAC test split); only log replay needs the logged future.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.rollouts import Rollouts, log_replay_rollouts
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
+from tbsim_env.sim.horizon import wosac_end_step, wosac_scenario
 from tbsim_env.sim.state import SimState
 
 
@@ -48,24 +52,29 @@ def simulate_rollouts(
     seed: int = 0,
     device: str | torch.device = "cpu",
 ) -> Rollouts:
-    """Roll out every sim agent of ``scenario`` with ``policy`` for the remaining steps.
+    """Roll out every sim agent of ``scenario`` with ``policy`` for the 80 WOSAC steps.
 
     Args:
-        scenario: the logged scenario (history up to ``current_index`` is used as is).
+        scenario: the logged scenario (history up to ``current_index`` is used as is; the
+            logged future, if any, is not read).
         policy: drives every sim agent (``exact_replay`` policies copy the log instead).
         num_rollouts: R joint futures (32 for WOSAC).
         seed: seeds the rollout generator (same seed, same rollouts).
         device: torch device.
 
     Returns:
-        ``Rollouts`` with [R, A_sim, S] poses in the scenario frame, S = T - 1 - current_index.
+        ``Rollouts`` with [R, A_sim, S] poses in the scenario frame, S = 80.
+
+    Raises:
+        MissingFutureError: log replay of a scene without its logged future.
     """
     if getattr(policy, "exact_replay", False):
         # WOSAC's log replay: the logged future as stored, placeholders at invalid steps
         # included (what the official reference scores 0.8266 / 0.8070 on 637f20cafde22ff8).
         return log_replay_rollouts(scenario, num_rollouts=num_rollouts)
     start = scenario.current_index
-    base = build_sim_state([scenario], start_step=start, device=device)
+    grid = wosac_scenario(scenario)
+    base = build_sim_state([grid], start_step=start, device=device)
     sim = torch.from_numpy(sim_agent_mask(scenario)).to(base.device)[None]
     agents = base.agents.mask & torch.nn.functional.pad(sim, (0, base.num_agents - sim.shape[1]))
     base = base.replace(
@@ -75,8 +84,8 @@ def simulate_rollouts(
     base = base.replace(controlled=agents.clone())
     state = tile_state(base, num_rollouts)
     gen = torch.Generator(device="cpu").manual_seed(int(seed))
-    pstate = policy.initial_state(state, [scenario] * num_rollouts, gen)
-    n_steps = scenario.num_steps - 1 - start
+    pstate = policy.initial_state(state, [grid] * num_rollouts, gen)
+    n_steps = wosac_end_step(scenario) - start
     poses = []
     last = state.pose
     with torch.inference_mode():
@@ -123,7 +132,7 @@ def linear_extrapolation_rollouts(
     p10 = tr.xyz[idx, t].astype(np.float64)
     prev_ok = tr.valid[idx, t - 1]
     disp = np.where(prev_ok[:, None], p10 - tr.xyz[idx, t - 1], 0.0)  # [A, 3]
-    n_steps = scenario.num_steps - 1 - t
+    n_steps = wosac_end_step(scenario) - t
     rng = np.random.default_rng(seed)
     scale = noise_std * np.abs(disp).max(axis=0)  # [3]
     noise = rng.standard_normal((num_rollouts, len(idx), n_steps, 3)) * scale

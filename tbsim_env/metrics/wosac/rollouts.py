@@ -108,15 +108,15 @@ def log_replay_rollouts(
 
     Invalid future steps keep their stored placeholder values (like the official "logged
     oracle"), so log replay reproduces the logged features exactly.
+
+    Raises:
+        MissingFutureError: the log does not hold the 80 steps after the current one (e.g. a
+            WOSAC test-split scene, history only).
     """
     idx = sim_agent_indices(scenario)
     start = scenario.current_index + 1
     stop = start + NUM_FUTURE
-    if scenario.num_steps < stop:
-        raise RolloutsError(
-            f"scenario {scenario.scenario_id} has {scenario.num_steps} steps; "
-            f"log replay needs {stop}"
-        )
+    scenario.require_log_until(stop - 1, "log replay")
     fut = scenario.tracks.xyz[idx, start:stop].astype(np.float32)
     head = scenario.tracks.stored_heading()[idx, start:stop].astype(np.float32)
 

@@ -249,6 +249,7 @@ def _trajectories(
             f"rollouts are for scenario {rollouts.scenario_id!r}, not {scenario.scenario_id!r}"
         )
     first = scenario.current_index + 1
+    scenario.require_log_until(scenario.current_index + rollouts.num_steps, "WOSAC scoring")
     if first + rollouts.num_steps != scenario.num_steps:
         raise ScoringError(
             f"scenario {scenario.scenario_id}: rollouts have {rollouts.num_steps} steps, "
@@ -273,6 +274,7 @@ def scenario_features(
 
     Raises:
         ScoringError: wrong scenario id, missing sim agents, or a step count that does not fit.
+        MissingFutureError: the log does not cover the rollouts' steps (a history-only scene).
         MapFeatureError: the scenario has no road edge.
     """
     objects, log, sim = _trajectories(scenario, rollouts, device)
@@ -304,7 +306,7 @@ def offroad_indication(
         [R, E] bool, E = the evaluated objects (SDC and tracks to predict that are sim agents).
 
     Raises:
-        ScoringError, MapFeatureError: as ``score_scenario``.
+        ScoringError, MissingFutureError, MapFeatureError: as ``score_scenario``.
     """
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
@@ -331,6 +333,7 @@ def score_scenario(
 
     Raises:
         ScoringError: wrong scenario id, missing sim agents, or a step count that does not fit.
+        MissingFutureError: the log does not cover the rollouts' steps (a history-only scene).
         MapFeatureError: the scenario has no road edge.
     """
     config = get_config(version)

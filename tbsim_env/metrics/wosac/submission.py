@@ -3,7 +3,9 @@
 Files are raw serialized ``SimAgentsChallengeSubmission`` protos (no TFRecord framing), as the
 challenge server expects. ``validate_scenario_rollouts`` does the server's checks
 (docs/wosac.md section 1): scenario id present, 32 joint scenes, 80 steps in each of x, y, z and
-heading, and exactly the sim agents (tracks valid at the current step) in every joint scene.
+heading, and exactly the sim agents (tracks valid at the current step) in every joint scene;
+and it refuses what no real rollout holds: a non-finite coordinate or heading, a coordinate
+beyond ``MAX_ABS_COORDINATE``.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 import torch
 from google.protobuf.message import DecodeError
 
-from tbsim_env.constants import NUM_FUTURE
+from tbsim_env.constants import MAX_ABS_COORDINATE, NUM_FUTURE
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.protos import sim_agents_submission_pb2 as pb
@@ -40,9 +42,10 @@ def read_submission(path: str | os.PathLike[str]) -> pb.SimAgentsChallengeSubmis
     sub = pb.SimAgentsChallengeSubmission()
     try:
         sub.ParseFromString(data)
-    except DecodeError as err:
+    except Exception as err:  # the upb runtime raises DecodeError and others (e.g. MemoryError)
+        kind = "" if isinstance(err, DecodeError) else f"{type(err).__name__}: "
         raise SubmissionError(
-            f"{os.fspath(path)}: not a SimAgentsChallengeSubmission ({err})"
+            f"{os.fspath(path)}: not a SimAgentsChallengeSubmission ({kind}{err})"
         ) from err
     return sub
 
@@ -102,12 +105,19 @@ def build_submission(
     return sub
 
 
-def validate_scenario_rollouts(rollouts: pb.ScenarioRollouts, scenario: Scenario) -> None:
-    """Check one scenario's rollouts the way the challenge server does.
+def validate_scenario_rollouts(
+    rollouts: pb.ScenarioRollouts, scenario: Scenario, *, num_rollouts: int = NUM_ROLLOUTS
+) -> None:
+    """Check one scenario's rollouts the way the challenge server does, and their values.
+
+    Args:
+        rollouts: one scenario's rollouts.
+        scenario: the scenario (its log up to the current step; no future needed).
+        num_rollouts: joint scenes expected (the challenge's 32 unless a caller exports fewer).
 
     Raises:
-        SubmissionError: naming the first problem, e.g. "expected 32 joint scenes, got 31" or
-            "joint scene 3: object 1234 missing".
+        SubmissionError: naming the first problem, e.g. "expected 32 joint scenes, got 31",
+            "joint scene 3: object 1234 missing" or "center_x has a non-finite value".
     """
     where = f"scenario {scenario.scenario_id}"
     if not rollouts.HasField("scenario_id") or not rollouts.scenario_id:
@@ -115,8 +125,8 @@ def validate_scenario_rollouts(rollouts: pb.ScenarioRollouts, scenario: Scenario
     if rollouts.scenario_id != scenario.scenario_id:
         raise SubmissionError(f"{where}: rollouts are for scenario {rollouts.scenario_id!r}")
     n = len(rollouts.joint_scenes)
-    if n != NUM_ROLLOUTS:
-        raise SubmissionError(f"{where}: expected {NUM_ROLLOUTS} joint scenes, got {n}")
+    if n != num_rollouts:
+        raise SubmissionError(f"{where}: expected {num_rollouts} joint scenes, got {n}")
     expected = {int(i) for i in scenario.tracks.id[sim_agent_indices(scenario)]}
     for j, scene in enumerate(rollouts.joint_scenes):
         seen: set[int] = set()
@@ -133,16 +143,34 @@ def validate_scenario_rollouts(rollouts: pb.ScenarioRollouts, scenario: Scenario
                 )
             seen.add(oid)
             for name in _COORDS:
-                k = len(getattr(traj, name))
-                if k != NUM_FUTURE:
+                values = getattr(traj, name)
+                if len(values) != NUM_FUTURE:
                     raise SubmissionError(
-                        f"{where}, joint scene {j}, object {oid}: {name} has {k} steps, "
-                        f"expected {NUM_FUTURE}"
+                        f"{where}, joint scene {j}, object {oid}: {name} has {len(values)} "
+                        f"steps, expected {NUM_FUTURE}"
                     )
+                problem = _impossible_value(name, np.asarray(values, np.float64))
+                if problem:
+                    raise SubmissionError(f"{where}, joint scene {j}, object {oid}: {problem}")
         missing = sorted(expected - seen)
         if missing:
             more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
             raise SubmissionError(f"{where}, joint scene {j}: object {missing[0]} missing{more}")
+
+
+def _impossible_value(name: str, values: np.ndarray) -> str | None:
+    """What is wrong with a trajectory's ``values`` [S] of coordinate ``name``, or None.
+
+    Every value must be finite; positions (not the heading) within ``MAX_ABS_COORDINATE``.
+    """
+    ok = np.isfinite(values)
+    if name != "heading":
+        ok &= np.abs(np.where(ok, values, 0.0)) <= MAX_ABS_COORDINATE
+    if ok.all():
+        return None
+    k = int(np.argmin(ok))
+    rule = "finite" if name == "heading" else f"finite and within {MAX_ABS_COORDINATE:g} m"
+    return f"{name}[{k}] is {float(values[k])!r}; every value must be {rule}"
 
 
 def rollouts_from_proto(
