@@ -175,3 +175,17 @@ which generated maps have exactly and rounding would put on either side of an ed
 # Elements (float32) of the largest per-call intermediate of KNARPE attention on a CPU; larger
 # batches run in chunks of rows so that the working set stays in the caches (2 MiB).
 CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
+
+# Off-road check of the environment (tbsim_env.sim.edge_grid).
+EDGE_GRID_CELL = 4.0
+"""m, cell size of the per-scenario road-edge grid."""
+EDGE_GRID_CANDIDATES = 16
+"""Road-edge segments listed per grid cell (nearest to the cell centre first)."""
+EDGE_GRID_MARGIN = 20.0
+"""m the grid extends beyond the road edges' bounding box (points beyond use the border cell,
+and are recomputed over every segment when its list cannot vouch for them)."""
+EDGE_SIMPLIFY_TOLERANCE = 0.02
+"""m, road-edge polylines are simplified (Douglas-Peucker) to within this distance for the
+environment's off-road check (about 10x fewer segments; the WOSAC metric uses them as logged)."""
+NO_EDGE_DISTANCE = -1.0e10
+"""m, off-road distance reported when a scenario has no road edge (always on-road)."""

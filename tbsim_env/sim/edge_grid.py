@@ -1,0 +1,249 @@
+"""Road-edge lookup for the off-road check: a uniform grid of per-cell candidate segments.
+
+Each scenario's road-edge segments are bucketed once, when the scenario bank is built: for every
+cell of a uniform grid over the map, the ``EDGE_GRID_CANDIDATES`` segments nearest to the cell
+centre, sorted, and the distance ``bound`` of the next one. A query point p in (or clamped to) a
+cell with centre c whose nearest listed segment is at distance d has its true nearest segment in
+the list whenever ``d + |p - c| <= bound`` (triangle inequality). That holds for almost every
+point; the rest are flagged ``stale`` and recomputed over every segment of their scenario
+(``grid_offroad_distance`` does it eagerly; a compiled step reports them), so the result is
+always the exact signed distance to the scenario's edges.
+
+A step therefore costs a fixed 4 corners x C candidates per agent, with no per-agent cache to
+carry or refresh: the cost grows linearly with the agents and does not depend on their history.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from tbsim_env import constants as C
+from tbsim_env.sim.offroad import signed_distance_to_edges
+from tbsim_env.sim.state import RoadEdges
+from tbsim_env.torch_utils import gather_rows
+
+
+@dataclass(frozen=True)
+class EdgeGrid:
+    """Per-cell candidate road-edge segments of B scenarios (padded to the largest grid).
+
+    Attributes:
+        cell: [B, 1, 1] float32, cell size (m).
+        lower: [B, 2] float32, the grid's lower-left corner (m, state frame).
+        shape: [B, 2] int64, cells along x and y (at least 1 each).
+        cells: [B, G, Cc] int64, per cell (x-major: ``ix * shape_y + iy``) the indices of its
+            Cc nearest segments, nearest first; padding entries repeat the last real one.
+        bound: [B, G] float32, distance from the cell centre of the nearest segment not listed
+            (inf when every segment is listed); the exactness test reads it.
+        center: [B, G, 2] float32, cell centres.
+    """
+
+    cell: torch.Tensor
+    lower: torch.Tensor
+    shape: torch.Tensor
+    cells: torch.Tensor
+    bound: torch.Tensor
+    center: torch.Tensor
+
+
+def scene_edge_grid(
+    start: np.ndarray, end: np.ndarray, cell: float, count: int, margin: float
+) -> dict[str, np.ndarray]:
+    """The grid of one scenario, see ``EdgeGrid``.
+
+    Args:
+        start, end: [E, 2] segment ends (m, state frame); E may be 0.
+        cell: cell size (m).
+        count: candidates kept per cell.
+        margin: m the grid extends beyond the segments' bounding box.
+
+    Returns:
+        dict of numpy arrays: ``lower`` [2], ``shape`` [2], ``cells`` [G, count], ``bound``
+        [G] (lowered by ``_BOUND_SLACK`` against rounding), ``center`` [G, 2].
+    """
+    e = len(start)
+    if e == 0:
+        return {
+            "lower": np.zeros(2),
+            "shape": np.ones(2, np.int64),
+            "cells": np.zeros((1, count), np.int64),
+            "bound": np.full(1, np.inf),
+            "center": np.zeros((1, 2)),
+        }
+    lo = np.minimum(start.min(0), end.min(0)) - margin
+    hi = np.maximum(start.max(0), end.max(0)) + margin
+    shape = np.maximum(np.ceil((hi - lo) / cell), 1).astype(np.int64)
+    ix, iy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    center = lo + (np.stack([ix, iy], -1).reshape(-1, 2) + 0.5) * cell
+    # float32 is enough: the bound keeps a slack far above its rounding at map coordinates.
+    a = torch.from_numpy(start).float()
+    ab = torch.from_numpy(end).float() - a
+    ax, ay, abx, aby = a[:, 0], a[:, 1], ab[:, 0], ab[:, 1]
+    len2 = (ab * ab).sum(-1).clamp_min(1e-12)
+    k = min(count + 1, e)
+    cells, bound = [], []
+    for q in torch.from_numpy(center).float().split(max(1, (1 << 20) // e)):
+        dx, dy = q[:, :1] - ax, q[:, 1:] - ay  # [g, E]
+        t = ((dx * abx + dy * aby) / len2).clamp_(0.0, 1.0)
+        d = torch.hypot(dx - t * abx, dy - t * aby)
+        top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
+        cells.append(idx[:, :count])
+        bound.append(top[:, count] if k > count else torch.full_like(top[:, 0], float("inf")))
+    near = torch.cat(cells).numpy()
+    if near.shape[1] < count:  # fewer segments than candidates: repeat the farthest
+        near = np.concatenate([near, np.repeat(near[:, -1:], count - near.shape[1], 1)], 1)
+    return {
+        "lower": lo,
+        "shape": shape,
+        "cells": near,
+        "bound": torch.cat(bound).numpy() - _BOUND_SLACK,
+        "center": center,
+    }
+
+
+_BOUND_SLACK = 1e-3
+"""m taken off every cell's bound, so that float32 rounding of the per-step distances never
+vouches for a point whose nearest segment is not listed."""
+
+
+def build_edge_grid(
+    segments: list[tuple[np.ndarray, np.ndarray]],
+    device: torch.device | str = "cpu",
+    cell: float = C.EDGE_GRID_CELL,
+    count: int = C.EDGE_GRID_CANDIDATES,
+    margin: float = C.EDGE_GRID_MARGIN,
+) -> EdgeGrid:
+    """Batch the grids of B scenarios.
+
+    Args:
+        segments: per scenario (start [E_i, 2], end [E_i, 2]) in the state frame (m), in the
+            order of the rows of its ``RoadEdges``.
+        device: torch device.
+        cell, count, margin: grid cell size (m), candidates per cell, extent beyond the edges
+            (m); constants in ``tbsim_env.constants``.
+    """
+    grids = [scene_edge_grid(s, e, cell, count, margin) for s, e in segments]
+    b, g = len(grids), max(len(x["bound"]) for x in grids)
+    cells = np.zeros((b, g, count), np.int64)
+    bound = np.full((b, g), np.inf, np.float32)
+    center = np.zeros((b, g, 2), np.float32)
+    for i, x in enumerate(grids):
+        n = len(x["bound"])
+        cells[i, :n], bound[i, :n], center[i, :n] = x["cells"], x["bound"], x["center"]
+    dev = torch.device(device)
+    return EdgeGrid(
+        cell=torch.full((b, 1, 1), float(cell), dtype=torch.float32, device=dev),
+        lower=torch.from_numpy(np.stack([x["lower"] for x in grids]).astype(np.float32)).to(dev),
+        shape=torch.from_numpy(np.stack([x["shape"] for x in grids])).to(dev),
+        cells=torch.from_numpy(cells).to(dev),
+        bound=torch.from_numpy(bound).to(dev),
+        center=torch.from_numpy(center).to(dev),
+    )
+
+
+def _cell_of(grid: EdgeGrid, xy: torch.Tensor) -> torch.Tensor:
+    """[B, K] flat cell index of points [B, K, 2] (clamped into the grid)."""
+    ij = torch.floor((xy - grid.lower[:, None]) / grid.cell).long()
+    hi = grid.shape[:, None] - 1
+    ij = torch.minimum(ij.clamp_min(0), hi)
+    return ij[..., 0] * grid.shape[:, None, 1] + ij[..., 1]
+
+
+def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
+def grid_signed_distance(
+    points: torch.Tensor, edges: RoadEdges, grid: EdgeGrid
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed road-edge distance of points over their cell's candidates (WOSAC sign rule).
+
+    Args:
+        points: [B, K, 2] m.
+        edges: road-edge segments of the B scenarios.
+        grid: their ``EdgeGrid``.
+
+    Returns:
+        (signed distance [B, K] m, positive off-road, ``NO_EDGE_DISTANCE`` without edges;
+        stale [B, K] bool: the nearest segment may be outside the cell's list, so the value
+        may be wrong there).
+    """
+    cell = _cell_of(grid, points)  # [B, K]
+    cand = gather_rows(grid.cells, cell)  # [B, K, Cc]
+    a = gather_rows(edges.start, cand)  # [B, K, Cc, 2]
+    ab = gather_rows(edges.end, cand) - a
+    q = points.unsqueeze(-2)
+    len2 = (ab * ab).sum(-1)
+    t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
+    t = torch.where(len2 > 0, t, torch.zeros_like(t))
+    off = q - (a + t.clamp(0.0, 1.0).unsqueeze(-1) * ab)
+    dist = torch.hypot(off[..., 0], off[..., 1])
+    local = dist.argmin(-1, keepdim=True)
+    d = dist.gather(-1, local)[..., 0]
+    t_best = t.gather(-1, local)[..., 0]
+    best = cand.gather(-1, local)[..., 0]  # [B, K]
+    sign = _joint_sign(points, edges, best, t_best)
+    out = torch.where(edges.valid.any(-1, keepdim=True), sign * d, C.NO_EDGE_DISTANCE)
+    centre = gather_rows(grid.center, cell)
+    slack = gather_rows(grid.bound, cell) - torch.linalg.vector_norm(points - centre, dim=-1)
+    return out, d > slack
+
+
+def _joint_sign(
+    points: torch.Tensor, edges: RoadEdges, best: torch.Tensor, t_best: torch.Tensor
+) -> torch.Tensor:
+    """+1 / -1 side of ``points`` [B, K, 2] relative to their nearest segment ``best`` [B, K]
+    (projection parameter ``t_best``), with the convexity rule at polyline joints."""
+    prev = gather_rows(edges.prev_index, best)
+    nxt = gather_rows(edges.next_index, best)
+    seg = torch.stack([best, prev, nxt], -1)  # [B, K, 3]
+    sa = gather_rows(edges.start, seg)  # [B, K, 3, 2]
+    sab = gather_rows(edges.end, seg) - sa
+    n = torch.sign(_cross(points.unsqueeze(-2) - sa, sab))  # [B, K, 3]
+    n_this, n_prev, n_next = n.unbind(-1)
+    convex_prev = _cross(sab[..., 1, :], sab[..., 0, :]) > 0
+    convex_next = _cross(sab[..., 0, :], sab[..., 2, :]) > 0
+    with_prev = torch.where(
+        convex_prev, torch.maximum(n_this, n_prev), torch.minimum(n_this, n_prev)
+    )
+    with_next = torch.where(
+        convex_next, torch.maximum(n_this, n_next), torch.minimum(n_this, n_next)
+    )
+    sign = torch.where((t_best < 0) & (prev != best), with_prev, n_this)
+    return torch.where((t_best > 1) & (nxt != best), with_next, sign)
+
+
+def exact_signed_distance(
+    points: torch.Tensor, edges: RoadEdges, grid: EdgeGrid
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``grid_signed_distance``, with the stale points recomputed over every segment of their
+    scenario: the exact signed distance [B, K] (m), and the stale flags [B, K] as computed.
+
+    The recomputation reads which points are stale, so it runs eagerly; a compiled step calls
+    ``grid_signed_distance`` and reports the flags instead.
+    """
+    out, stale = grid_signed_distance(points, edges, grid)
+    if torch.compiler.is_compiling() or not bool(stale.any()):
+        return out, stale
+    bi, ki = stale.nonzero(as_tuple=True)
+    sub = RoadEdges(
+        start=edges.start[bi],
+        end=edges.end[bi],
+        valid=edges.valid[bi],
+        prev_index=edges.prev_index[bi],
+        next_index=edges.next_index[bi],
+    )
+    exact = signed_distance_to_edges(points[bi, ki][:, None], sub)[:, 0]
+    return out.index_put((bi, ki), exact), stale
+
+
+__all__ = [
+    "EdgeGrid",
+    "build_edge_grid",
+    "exact_signed_distance",
+    "grid_signed_distance",
+    "scene_edge_grid",
+]

@@ -1,0 +1,94 @@
+"""The road-edge grid of the off-road check equals the all-segment computation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tbsim_env.sim.edge_grid import build_edge_grid, exact_signed_distance, grid_signed_distance
+from tbsim_env.sim.offroad import signed_distance_to_edges
+from tbsim_env.sim.state import RoadEdges
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+
+def _edges(polylines: list[np.ndarray]) -> tuple[RoadEdges, list[tuple[np.ndarray, np.ndarray]]]:
+    """One scenario's RoadEdges (open polylines) and its (start, end) arrays."""
+    starts, ends, prevs, nexts, off = [], [], [], [], 0
+    for pl in polylines:
+        n = len(pl) - 1
+        local = np.arange(n)
+        starts.append(pl[:-1])
+        ends.append(pl[1:])
+        prevs.append(np.where(local > 0, local - 1, 0) + off)
+        nexts.append(np.where(local < n - 1, local + 1, n - 1) + off)
+        off += n
+    st, en = np.concatenate(starts), np.concatenate(ends)
+    edges = RoadEdges(
+        start=torch.tensor(st, dtype=torch.float32)[None],
+        end=torch.tensor(en, dtype=torch.float32)[None],
+        valid=torch.ones(1, len(st), dtype=torch.bool),
+        prev_index=torch.tensor(np.concatenate(prevs))[None],
+        next_index=torch.tensor(np.concatenate(nexts))[None],
+    )
+    return edges, [(st, en)]
+
+
+def _wiggly_roads(seed: int) -> list[np.ndarray]:
+    """A few long, curved, finely sampled edges (like WOMD's 0.5 m sampling)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(6):
+        s = np.linspace(0.0, 200.0, 400)
+        phase, amp = rng.uniform(0, 6), rng.uniform(2, 20)
+        base = rng.uniform(-80, 80, 2)
+        ang = rng.uniform(0, np.pi)
+        x, y = s, amp * np.sin(s / 30.0 + phase)
+        c, si = np.cos(ang), np.sin(ang)
+        out.append(np.stack([c * x - si * y, si * x + c * y], -1) + base)
+    return out
+
+
+@pytest.mark.parametrize("cell, count", [(4.0, 16), (2.0, 8), (8.0, 4)])
+def test_exact_equals_every_segment_and_flags_what_it_cannot_vouch_for(cell, count):
+    edges, segs = _edges(_wiggly_roads(0))
+    grid = build_edge_grid(segs, cell=cell, count=count, margin=10.0)
+    g = torch.Generator().manual_seed(1)
+    # Points on the map, near the edges, and far outside the grid.
+    pts = torch.cat(
+        [
+            torch.rand(1, 3000, 2, generator=g) * 400 - 200,
+            edges.start[:, :2000] + torch.randn(1, 2000, 2, generator=g),
+            torch.randn(1, 200, 2, generator=g) * 2000,
+        ],
+        1,
+    )
+    full = signed_distance_to_edges(pts, edges)
+    fast, stale = grid_signed_distance(pts, edges, grid)
+    ok = ~stale  # few listed segments of 0.5 m pieces vouch for little: only exactness counts
+    torch.testing.assert_close(fast[ok], full[ok], rtol=0, atol=0)
+    exact, _ = exact_signed_distance(pts, edges, grid)
+    torch.testing.assert_close(exact, full, rtol=0, atol=0)
+    # Points far outside the grid are mostly beyond what a border cell's list can vouch for.
+    assert stale[0, -200:].float().mean() > 0.5
+
+
+def test_no_edges_and_fewer_segments_than_candidates():
+    one, segs = _edges([np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 5.0]])])
+    grid = build_edge_grid(segs, cell=4.0, count=16, margin=5.0)
+    pts = torch.tensor([[[5.0, 1.0], [5.0, -1.0], [25.0, 5.0], [500.0, 0.0]]])
+    exact, stale = exact_signed_distance(pts, one, grid)
+    torch.testing.assert_close(exact, signed_distance_to_edges(pts, one))
+    assert not stale.any()  # every segment is listed: nothing to vouch for
+    assert exact[0, 0] < 0 < exact[0, 1]  # the road is on the left of the edge
+    empty = RoadEdges(
+        start=torch.zeros(1, 1, 2),
+        end=torch.zeros(1, 1, 2),
+        valid=torch.zeros(1, 1, dtype=torch.bool),
+        prev_index=torch.zeros(1, 1, dtype=torch.int64),
+        next_index=torch.zeros(1, 1, dtype=torch.int64),
+    )
+    grid = build_edge_grid([(np.zeros((0, 2)), np.zeros((0, 2)))])
+    out, stale = exact_signed_distance(pts, empty, grid)
+    assert (out == -1.0e10).all() and not stale.any()
