@@ -15,17 +15,21 @@ import torch
 from policies import make_policy
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
 from tbsim_env.cli import main
+from tbsim_env.config import EnvConfig, TerminationConfig
 from tbsim_env.constants import DT
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.cache import build_cache
 from tbsim_env.data.protos import scenario_pb2
 from tbsim_env.data.tfrecord import iter_records
 from tbsim_env.data.womd import parse_scenario
+from tbsim_env.env import TrafficEnv
+from tbsim_env.env.vector_env import BatchedTrafficEnv
 from tbsim_env.errors import MissingFutureError, ScenarioFormatError
 from tbsim_env.evaluation import export_submission
 from tbsim_env.metrics.wosac import read_submission, validate_scenario_rollouts
 from tbsim_env.metrics.wosac.submission import rollouts_from_proto, rollouts_to_proto
 from tbsim_env.sim.rollout import simulate_rollouts
+from tests.conftest import check_parallel_api
 
 HISTORY_ONLY = ("tfrecord-00149-of-00150_111.json", "tfrecord-00000-of-00150_78.json")
 """The shared WOSAC test-split scenes (``gpudrive_history/gpudrive/``)."""
@@ -203,8 +207,93 @@ def test_what_needs_the_future_refuses_in_one_line(tmp_path, history_dir, capsys
     )
     _one_line_error(capsys, rc, "1c8f1f7b63fc6118", "WOSAC scoring")
     assert not (tmp_path / "s.json").exists()
+    rc = main(["render", one, "--out", str(tmp_path / "x.mp4")])  # NPCs replay the log
+    _one_line_error(capsys, rc, "1c8f1f7b63fc6118", "npc_policy='log_replay'")
+    assert not (tmp_path / "x.mp4").exists()
     sc = load_scenarios(one)[0]
     with pytest.raises(MissingFutureError, match="log replay"):
         simulate_rollouts(sc, make_policy("log_replay"))
     with pytest.raises(MissingFutureError, match="off-road"):
         trafficbots_rollouts(load_default_model(), sc, num_rollouts=2, road_edge_weight=1.0)
+
+
+# ----------------------------------------------------------------------------- environments
+
+
+@pytest.mark.parametrize("policy", ["constant_velocity", "trafficbots"])
+def test_trafficenv_runs_the_whole_episode(history_scenes, policy) -> None:
+    """The SDC is controlled, every other agent is an NPC of the policy from step 10 on (the
+    log has nothing after it): all 80 steps run, nobody is frozen or dropped, and rewards and
+    infos that compare with the log come out masked and finite."""
+    never = EnvConfig(termination=TerminationConfig(collision=False, offroad=False, goal=False))
+    env = TrafficEnv(history_scenes, controlled="sdc", npc_policy=policy, config=never)
+    for k, sc in enumerate(history_scenes):
+        env.reset(seed=0, options={"scenario_index": k})
+        first = env.sim_state
+        steps, rewards = 0, []
+        while env.agents:
+            # Expert actions are zero where the log has no next state: the SDC keeps its speed.
+            _, rew, term, trunc, infos = env.step(env.expert_actions())
+            rewards += list(rew.values())
+            steps += 1
+        assert steps == 80 and int(env.sim_state.step) == 90 and env.scenario is env.scenarios[k]
+        assert list(trunc.values()) == [True] and not any(term.values())
+        (info,) = infos.values()
+        assert info["log_divergence"] == 0.0 and not info["goal_reached"]
+        assert (
+            np.isfinite(rewards).all()
+            and np.isfinite([v for v in info.values() if isinstance(v, float)]).all()
+        )
+        last = env.sim_state
+        present = torch.from_numpy(sc.tracks.valid[:, 10])
+        assert torch.equal(last.valid[0, : sc.tracks.num_tracks], present)  # none dropped
+        moved = torch.linalg.vector_norm(last.pose[0, :, :2] - first.pose[0, :, :2], dim=-1)
+        fast = present & (first.speed[0, : sc.tracks.num_tracks].abs() > 1.0)
+        assert fast.any() and (moved[: sc.tracks.num_tracks][fast] > 4.0).all()  # none frozen
+        if policy == "constant_velocity":
+            expect = first.speed[0, : sc.tracks.num_tracks].abs() * 8.0
+            torch.testing.assert_close(
+                moved[: sc.tracks.num_tracks][fast], expect[fast], rtol=1e-4, atol=1e-3
+            )
+
+
+def test_parallel_api_on_history_only_scenes(history_scenes) -> None:
+    env = TrafficEnv(history_scenes[:1], controlled="sdc", npc_policy="constant_velocity")
+    check_parallel_api(env, num_cycles=100)
+    env = TrafficEnv(history_scenes, controlled="tracks_to_predict", npc_policy="trafficbots")
+    check_parallel_api(env, num_cycles=100)
+
+
+def test_envs_refuse_log_replay_past_the_log(history_scenes, history_dir) -> None:
+    with pytest.raises(MissingFutureError, match=r"1c8f1f7b63fc6118 .*npc_policy='log_replay'"):
+        TrafficEnv(history_scenes, npc_policy="log_replay")
+    with pytest.raises(MissingFutureError, match="npc_policy='log_replay'"):
+        BatchedTrafficEnv(history_dir, 2)  # log replay by default
+    late = EnvConfig(start_step=20)
+    with pytest.raises(MissingFutureError, match="an episode that starts at step 20"):
+        TrafficEnv(history_scenes, npc_policy="constant_velocity", config=late)
+    # A full scene replays its log to its end; an episode longer than the log needs a policy.
+    full_env = TrafficEnv(history_dir / "tfrecord-00005-of-00150_792d65eb579314db.json",
+                          npc_policy="log_replay")  # fmt: skip
+    assert full_env.scenarios[0].has_future
+    with pytest.raises(MissingFutureError, match="up to step 100"):
+        TrafficEnv(full_env.scenarios, npc_policy="log_replay", config=EnvConfig(end_step=100))
+
+
+def test_full_scene_npcs_go_on_under_the_policy_after_their_log(one_scenario_path) -> None:
+    """``end_step`` past the log: every NPC is driven by the NPC policy after step 90 too."""
+    never = TerminationConfig(collision=False, offroad=False, goal=False)
+    config = EnvConfig(end_step=100, termination=never)
+    env = TrafficEnv(one_scenario_path, npc_policy="constant_velocity", config=config)
+    env.reset(seed=0)
+    steps, at_90 = 0, None
+    while env.agents:
+        env.step({a: np.zeros(2, np.float32) for a in env.agents})
+        steps += 1
+        at_90 = env.sim_state if steps == 80 else at_90
+    end = env.sim_state
+    assert steps == 90 and int(at_90.step) == 90 and int(end.step) == 100
+    assert env.scenarios[0].num_logged_steps == 91 and env.scenarios[0].num_steps == 101
+    assert torch.equal(end.valid, at_90.valid)  # nobody left when the log ended
+    moved = torch.linalg.vector_norm(end.pose[..., :2] - at_90.pose[..., :2], dim=-1)
+    torch.testing.assert_close(moved, at_90.speed.abs() * at_90.valid, rtol=1e-4, atol=1e-3)

@@ -39,7 +39,7 @@ def _compare_with_trafficenv(scenarios, controlled, npc, seed, episodes, expert=
     rng = np.random.default_rng(seed)
     done_episodes, steps, checked, terminated = 0, 0, 0, 0
     while done_episodes < episodes:
-        assert env.scenario is venv.scenarios[int(venv.scenario_index[0])]
+        assert env.scenario.scenario_id == venv.scenarios[int(venv.scenario_index[0])].scenario_id
         names = venv.agent_names[int(venv.scenario_index[0])]
         assert [n for n in names if n in env.agents] == env.agents
         for q, name in enumerate(names):
@@ -105,6 +105,25 @@ def test_batch_of_one_equals_trafficenv_on_real_womd(one_scenario_path):
 
     real = load_scenarios(one_scenario_path)
     _compare_with_trafficenv(real, "tracks_to_predict", "log_replay", seed=0, episodes=1)
+
+
+def test_batch_of_one_equals_trafficenv_on_history_only_scenes(womd_dir):
+    """WOSAC test-split scenes (11 logged steps) and a full one in one bank: every episode
+    runs to step 90 with the NPCs on the policy, as in ``TrafficEnv``."""
+    from tbsim_env.data import load_scenarios
+
+    scenes = load_scenarios(womd_dir / "gpudrive_history" / "gpudrive")
+    assert sorted(sc.num_logged_steps for sc in scenes) == [11, 11, 91]
+    steps, _ = _compare_with_trafficenv(scenes, "sdc", "constant_velocity", seed=1, episodes=4)
+    assert steps >= 4
+    never = EnvConfig(termination=TerminationConfig(collision=False, offroad=False, goal=False))
+    venv = BatchedTrafficEnv(scenes, 3, npc_policy="constant_velocity", seed=0, config=never)
+    venv.reset(scenario_indices=[0, 1, 2])
+    for _ in range(80):
+        obs, rew, term, trunc, info = venv.step(torch.zeros(3, venv.num_agents, 2))
+        assert torch.isfinite(rew).all() and all(torch.isfinite(v).all() for v in obs.values())
+        assert torch.isfinite(info["log_divergence"]).all()
+    assert bool(info["done"].all()) and bool(trunc.all())  # every slot ran to step 90
 
 
 def test_slots_of_a_batch_match_single_runs(scenes):

@@ -1,7 +1,10 @@
 """Per-agent step metrics of the controlled agents: collision, off-road, progress, goal, log gap.
 
 Pure functions over a ``SimState`` and a set of query agents ``[B, Q]``; they feed both the
-rewards and the ``infos`` of ``TrafficEnv``.
+rewards and the ``infos`` of ``TrafficEnv``. Collision and off-road need no log. Progress, goal
+and log divergence compare with the log: where it has no state (past an agent's last logged
+step, or every step after the current one in a history-only scene) they are masked to finite
+values (no progress, no goal, zero divergence) instead of failing.
 """
 
 from __future__ import annotations
@@ -91,9 +94,14 @@ class StepMetrics:
         collision: bool, overlaps another present agent.
         offroad: bool, a box corner is beyond a road edge.
         offroad_distance: m, signed (positive off-road).
-        progress: m, arc length of the projection on the logged route.
-        goal_distance: m, to the last valid logged position.
-        log_divergence: m, distance to the logged position at this step (0 if no log).
+        progress: m, arc length of the projection on the logged route (history included:
+            where the log ends at the start, e.g. a history-only scene, it stays at the
+            route's end and gains nothing).
+        goal_distance: m, to the last valid logged position (see ``goal_mask`` for when that
+            counts as a goal).
+        log_divergence: m, distance to the logged position at this step, 0 where the log has
+            no state (``log_valid`` False: after the agent's log ends, or after a history-only
+            scene's current step).
         log_valid: bool, the log has the agent at this step.
         agent_distance: [B, Q, N] m, centre distance to every agent slot (``observe`` of the
             same poses can reuse it); None when not computed.
@@ -139,6 +147,25 @@ def build_route(state: SimState, query: torch.Tensor) -> Route:
         valid=valid.any(-1),
         **_query_fields(state, query),
     )
+
+
+def goal_mask(route: Route, start_step: int, goal_radius: float) -> torch.Tensor:
+    """[B, Q] bool: the query agents that have a goal to reach.
+
+    The goal is the last logged position. An agent has one when its log goes on after
+    ``start_step`` and its logged route is longer than ``goal_radius``; one whose log ends at
+    the start (every agent of a history-only scene, e.g. the WOSAC test split) has none, since
+    its goal would be where it starts. Without a goal, ``goal_reached`` stays False and the
+    goal reward and termination never happen.
+
+    Args:
+        route: ``build_route`` of the query agents.
+        start_step: the episode's first step.
+        goal_radius: m, distance that counts as reaching the goal.
+    """
+    steps = cached_arange(route.log_valid.shape[-1], route.log_valid.device)
+    logged_after = (route.log_valid & (steps > start_step)).any(-1)
+    return (route.arc[..., -1] > goal_radius) & logged_after
 
 
 def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tensor]:

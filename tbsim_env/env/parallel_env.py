@@ -8,9 +8,16 @@ Actions are physical: ``np.float32[2]`` = (acceleration m/s^2, yaw rate rad/s). 
 the agent type's limits (vehicle 5 m/s^2 / 1.5 rad/s, cyclist 6 / 3, pedestrian 7 / 7) are
 clipped; NaN or infinite actions, unknown agent names and missing agents raise ``ActionError``.
 
-An episode starts at the WOMD current step (10) with the logged history and ends at the last
-logged step (90): every remaining agent is truncated then. An agent terminates (and leaves the
-scene for good) on the events ``EnvConfig.termination`` selects.
+An episode starts at the WOMD current step (10) with the logged history and ends at
+``EnvConfig.last_step`` (90 by default, whatever the log's length): every remaining agent is
+truncated then. An agent terminates (and leaves the scene for good) on the events
+``EnvConfig.termination`` selects.
+
+Scenes whose log ends before the episode does (WOSAC test-split scenes log only the 11 history
+steps) run the whole episode: the NPC policy drives every NPC, whether its log goes on or not.
+Rewards that compare with the log are masked where it has no state (``agent_metrics``).
+Log-replayed NPCs (``npc_policy="log_replay"``) need the log up to the last step: the env
+refuses such a scene with a ``MissingFutureError`` naming it.
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ from policies.base import Policy
 from tbsim_env import constants as C
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, step_metrics
+from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, goal_mask, step_metrics
 from tbsim_env.env.fused import StepFunction
 from tbsim_env.env.rewards import RewardOutcome
 from tbsim_env.env.transition import Controllers, npc_actions
@@ -48,6 +55,7 @@ from tbsim_env.observation import (
 )
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
+from tbsim_env.sim.horizon import episode_scenario
 from tbsim_env.sim.offroad import EdgeCandidates
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import torch_threads
@@ -129,7 +137,9 @@ class TrafficEnv(ParallelEnv, EzPickle):
 
     Args:
         scenarios: None for the embedded generated scenes, a TFRecord / GPUDrive JSON path,
-            glob or folder, or a list of ``Scenario`` objects.
+            glob or folder, or a list of ``Scenario`` objects. ``self.scenarios`` holds them
+            on the episode's time grid (``Scenario.on_time_grid``; the same objects for full
+            WOMD scenes).
         controlled: which agents the caller controls: ``"sdc"`` (default),
             ``"tracks_to_predict"`` (those plus the SDC), ``"all"`` valid at the start, or a
             list of WOMD track ids.
@@ -199,22 +209,21 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.scenario_order = scenario_order
         self.torch_threads = torch_threads
         self._step_fn = StepFunction(compile)
-        self.scenarios = resolve_scenarios(scenarios)
         self.controlled_spec = controlled
         kwargs = {"checkpoint": npc_checkpoint} if npc_checkpoint else {}
         if npc_policy == "trafficbots":
             # Every reset starts the whole batch, so the policy may run on the used tokens.
             kwargs.update(device=str(self.device), trim=True)
         self.npc_policy = make_policy(npc_policy, **kwargs)
+        replays = bool(getattr(self.npc_policy, "exact_replay", False))
+        self.scenarios = [
+            episode_scenario(sc, self.config, replays_log=replays)
+            for sc in resolve_scenarios(scenarios)
+        ]
         start = self.config.start_step
         self._controlled: list[list[int]] = []
         names: dict[str, None] = {}
         for sc in self.scenarios:
-            if start >= sc.num_steps - 1:
-                raise ValueError(
-                    f"scenario {sc.scenario_id!r} has {sc.num_steps} steps; "
-                    f"start_step {start} leaves nothing to simulate"
-                )
             idx = controlled_indices(sc, controlled, start)
             self._controlled.append(idx)
             for i in idx:
@@ -328,15 +337,17 @@ class TrafficEnv(ParallelEnv, EzPickle):
         if k not in self._route_cache:
             self._route_cache[k] = (build_route(self.state_, self._ext_slots), None)
         self._route, self._edge_cache = self._route_cache[k]
-        self._end = sc.num_steps - 1 if self.config.end_step is None else self.config.end_step
-        self._end = min(self._end, sc.num_steps - 1)
+        self._end = self.config.last_step
         self.agents = list(self._ext_names)
         self._action_rows = {n: int(ext[j]) for n, j in self._slot_of.items()}
         self._track_ids = [int(sc.tracks.id[i]) for i in ext]
         # [1, Q] like the metrics (the batch of one is kept until the per-agent dicts).
         self._goal_reached = torch.zeros_like(self._ext_slots, dtype=torch.bool)
-        # Agents whose logged route is shorter than the goal radius have no goal to reach.
-        self._has_goal = self._route.arc[..., -1] > self.config.reward.goal_radius
+        # Agents whose log ends at the start or whose logged route is shorter than the goal
+        # radius have no goal to reach.
+        self._has_goal = goal_mask(
+            self._route, self.config.start_step, self.config.reward.goal_radius
+        )
         # Every episode of scenario k starts from the same state, so what follows from it
         # alone is computed once (the returned arrays and dicts are copies).
         if k not in self._start_cache:

@@ -19,6 +19,11 @@ Design (why it is fast and still exact):
   valid, padding map pieces, lights and road edges are never valid (``TrafficEnv`` equality
   is tested on a full episode).
 
+Scenes of any log length share one bank: every scenario is put on the episode's time grid
+(``EnvConfig.last_step``, see ``tbsim_env.sim.horizon``), so full WOMD scenes and history-only
+ones (the WOSAC test split) mix; as in ``TrafficEnv`` the NPC policy drives NPCs past the end of
+their log, and log-replayed NPCs refuse a scene whose log ends before the episode.
+
 Step semantics per slot follow ``TrafficEnv.step`` exactly: the reward of a controlled agent
 is the ``RewardConfig`` combination of the ``step_metrics`` of the new state, agents terminate
 on the ``TerminationConfig`` events (and leave the scene when
@@ -41,7 +46,7 @@ from policies import make_policy
 from policies.base import Policy, PolicyState
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, step_metrics
+from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, goal_mask, step_metrics
 from tbsim_env.env.parallel_env import (
     ControlledSpec,
     agent_name,
@@ -63,6 +68,7 @@ from tbsim_env.observation import (
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.geometry import to_local
+from tbsim_env.sim.horizon import episode_scenario
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import torch_threads
 
@@ -255,15 +261,14 @@ class BatchedTrafficEnv:
         self.route_points = int(route_points)
         self.route_spacing = float(route_spacing)
         self.torch_threads = torch_threads
-        all_scenarios = resolve_scenarios(scenarios)
+        replays = bool(getattr(npc, "exact_replay", False))
+        all_scenarios = [
+            episode_scenario(sc, self.config, replays_log=replays)
+            for sc in resolve_scenarios(scenarios)
+        ]
         start = self.config.start_step
         kept, ext_lists = [], []
         for sc in all_scenarios:
-            if start >= sc.num_steps - 1:
-                raise ValueError(
-                    f"scenario {sc.scenario_id!r} has {sc.num_steps} steps; "
-                    f"start_step {start} leaves nothing to simulate"
-                )
             idx = controlled_indices(sc, controlled, start)
             if idx:
                 kept.append(sc)
@@ -277,8 +282,7 @@ class BatchedTrafficEnv:
         bind = getattr(npc, "for_scenarios", None)
         self.npc_policy = bind(kept) if callable(bind) else npc
         self.num_agents = max(len(x) for x in ext_lists)
-        n_t = kept[0].num_steps
-        self._end = n_t - 1 if self.config.end_step is None else min(self.config.end_step, n_t - 1)
+        self._end = self.config.last_step
         with torch.no_grad():
             self._bank = self._build_bank(ext_lists)
         self.agent_names: list[list[str]] = [
@@ -321,7 +325,7 @@ class BatchedTrafficEnv:
         npc = torch.zeros_like(external) if exact else state.agents.mask & ~external
         state = state.replace(controlled=external | npc)
         route = build_route(state, ext)
-        has_goal = route.arc[..., -1] > self.config.reward.goal_radius
+        has_goal = goal_mask(route, start, self.config.reward.goal_radius)
         return _Bank(
             state=state,
             ctx=ctx,
