@@ -293,20 +293,19 @@ def agent_static_features(state: SimState) -> torch.Tensor:
     return torch.cat([state.agents.size[..., :2], onehot], dim=-1)
 
 
-_SORT_MAX_ELEMENTS = 4096
-"""Up to this many distances, ``_nearest`` sorts; above, it runs topk on packed int64 keys
-(same result; 1 thread: 15 vs 19 us at 648 distances, 4.2 vs 0.6 ms at 64 x 1000)."""
-
-
 def _nearest(
     dist: torch.Tensor, invalid: torch.Tensor | None, k: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k]; ties
-    go to the lower index. Distances must be >= 0 or +inf (the packed key orders float bits).
+    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k].
+
+    Distances rank in buckets of ``KNN_DISTANCE_RESOLUTION`` (1 cm, edges off round
+    distances by ``KNN_BUCKET_OFFSET``), ties by the lower index, as TrafficBots' KNN does:
+    targets equally far in exact arithmetic (pieces starting at one node, mirrored lanes) are
+    then chosen the same way in any world frame, on any device and whatever the padding.
 
     Args:
-        dist: [B, Q, M] distances; invalid: [B, Q, M] bool (broadcastable), targets to skip
-            (None: none, e.g. distances already +inf where invalid).
+        dist: [B, Q, M] distances (>= 0 or +inf); invalid: [B, Q, M] bool (broadcastable),
+            targets to skip (None: none, e.g. distances already +inf where invalid).
 
     Returns:
         (indices, distances: +inf where there is no valid target).
@@ -318,23 +317,53 @@ def _nearest(
     pad = k if torch.compiler.is_compiling() else max(k - m, 0)
     if pad:
         d = torch.nn.functional.pad(d, (0, pad), value=float("inf"))
-    # Equal distances (lane pieces branching from one point) go to the lower index, so the
-    # choice does not depend on padding (batched envs) or the device; plain topk does not say.
-    if d.numel() <= _SORT_MAX_ELEMENTS:  # small rows: one stable sort is the cheapest
-        top, idx = torch.sort(d, dim=-1, stable=True)
-        top, idx = top[..., :k], idx[..., :k]
-    else:  # large batches: topk over (distance bits, index) packed in one int64 key
-        key = ((d + 0.0).view(torch.int32).to(torch.int64) << 32) | cached_arange(
-            d.shape[-1], d.device
-        )
-        idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
-        top = torch.gather(d, -1, idx)
+    scaled = d * const(1.0 / C.KNN_DISTANCE_RESOLUTION, d) + const(C.KNN_BUCKET_OFFSET, d)
+    bucket = torch.floor(scaled).clamp(max=2.0**30).to(torch.int64)
+    key = (bucket << 32) | cached_arange(d.shape[-1], d.device)
+    idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
+    top = torch.gather(d, -1, idx)
     if pad:
         idx = idx.clamp(max=m - 1)
     return idx, top
 
 
-def observe(
+@dataclass(frozen=True)
+class IndexedObservation:
+    """Pairwise-relative observations of Q observers per row, by reference to shared tokens.
+
+    The same facts as ``observe``'s dense dict, without copying a token for every observer
+    that sees it: every token is described once, in its own frame, and each observer holds
+    the indices of the tokens it sees with their relative poses (docs: README, observations).
+    ``densify`` gathers the dense layout from it, so the two never disagree.
+
+    Attributes:
+        agent_tokens: [B, N, H * 5 + H + 7] float32, every agent slot this step: its history
+            in its own current frame, the history mask, its attributes (length, width, type
+            one-hot, speed).
+        map_tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, map pieces (nodes in the
+            piece frame, node mask, class one-hot); fixed for an episode.
+        light_tokens: [B, L, NUM_TL_STATES] float32, traffic-light state one-hot this step.
+        ego: [B, Q] int64, each observer's agent slot (its own row of ``agent_tokens``).
+        index: [B, Q, Ka + Km + Kt] int64, the tokens each observer sees: Ka agent slots, Km
+            map pieces, Kt lights, nearest first.
+        pose: [B, Q, Ka + Km + Kt, 3] float32, their poses (dx m, dy m, dyaw rad) in the
+            observer's frame, zero where masked.
+        mask: [B, Q, Ka + Km + Kt] float32, 1 where a token is seen (0 for padding and tokens
+            beyond the radius).
+        sizes: (Ka, Km, Kt).
+    """
+
+    agent_tokens: torch.Tensor
+    map_tokens: torch.Tensor
+    light_tokens: torch.Tensor
+    ego: torch.Tensor
+    index: torch.Tensor
+    pose: torch.Tensor
+    mask: torch.Tensor
+    sizes: tuple[int, int, int]
+
+
+def observe_indexed(
     state: SimState,
     history: History,
     ctx: MapContext,
@@ -342,8 +371,8 @@ def observe(
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
     agent_distance: torch.Tensor | None = None,
-) -> dict[str, torch.Tensor]:
-    """Observations of the ``observers`` agents.
+) -> IndexedObservation:
+    """Observations of the ``observers`` agents, by token index (see ``IndexedObservation``).
 
     Args:
         state: current state.
@@ -356,24 +385,14 @@ def observe(
         agent_distance: optional [B, Q, N] centre distances of the observers to every agent
             slot at the current poses (``StepMetrics.agent_distance`` with the observers as
             query); computed when None.
-
-    Returns:
-        dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
     """
-    # One step is a few hundred tiny tensor operations, so this is written to use few: every
-    # agent's history is put in its own frame once, everything an observation shows of an
-    # agent (or a map piece, a light) is one row gathered at once, and the relative poses of
-    # all selected tokens are one computation.
-    h = history.data.shape[2]
     static = agent_static_features(state) if agent_static is None else agent_static
     # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
     x, y, yaw, speed, valid = history.data.unbind(-1)  # [B, N, H], valid as 0 / 1
     hist = _history_features(x, y, yaw, speed, state.pose)
     hist = hist * valid.unsqueeze(-1)
-    # Per agent: history, history mask, attributes (static, speed), current pose: [B, N, F].
-    widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES, 3]
-    agents = torch.cat([hist.flatten(-2), valid, static, state.speed[..., None], state.pose], -1)
-    ego_hist, ego_valid, ego_attrs, me = gather_rows(agents, observers).split_with_sizes(widths, -1)
+    tokens = torch.cat([hist.flatten(-2), valid, static, state.speed[..., None]], -1)
+    me = gather_rows(state.pose, observers)  # [B, Q, 3]
     me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
 
     # Nearest agents (other than the observer), map pieces and traffic lights.
@@ -392,27 +411,55 @@ def observe(
     tl_invalid, tl_tokens = _lights_at(ctx, state.step)  # [B, 1, L], [B, L, F]
     t_idx, t_top = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights)
 
-    # The selected rows: [B, Q, K, features + pose].
-    nb_feat, nb_pose = gather_rows(agents, a_idx).split_with_sizes([sum(widths[:3]), 3], -1)
-    m_feat, m_pose = gather_rows(ctx.tokens, m_idx).split_with_sizes(
-        [ctx.tokens.shape[-1] - 3, 3], -1
-    )
-    t_feat, t_pose = gather_rows(tl_tokens, t_idx).split_with_sizes([C.NUM_TL_STATES, 3], -1)
     # Poses of all selected tokens relative to the observer, zero where masked.
-    sizes = [cfg.num_agents, cfg.num_map, cfg.num_traffic_lights]
+    sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
     radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]
     radii += (cfg.traffic_light_radius,) * sizes[2]
     top = torch.cat([a_top, m_top, t_top], -1)  # [B, Q, Ka + Km + Kt]
     mask = (top <= const(radii, top)).float()
-    rel = relative_pose(me[:, :, None], torch.cat([nb_pose, m_pose, t_pose], 2))
-    a_pose, m_pose, t_pose = (rel * mask[..., None]).split_with_sizes(sizes, 2)
-    a_f, m_f, t_f = mask.split_with_sizes(sizes, -1)
-
-    nb_hist, nb_valid, nb_attrs = (nb_feat * a_f[..., None]).split_with_sizes(widths[:3], -1)
-    p = cfg.tokens.piece_segments
-    m_nodes, m_nodes_mask, m_class = (m_feat * m_f[..., None]).split_with_sizes(
-        [p * NODE_FEATURES, p, C.NUM_MAP_CLASSES], -1
+    poses = [
+        gather_rows(state.pose, a_idx),
+        gather_rows(ctx.pose, m_idx),
+        gather_rows(tl_tokens[..., C.NUM_TL_STATES :], t_idx),
+    ]
+    rel = relative_pose(me[:, :, None], torch.cat(poses, 2))
+    return IndexedObservation(
+        agent_tokens=tokens,
+        map_tokens=ctx.tokens[..., :-3],
+        light_tokens=tl_tokens[..., : C.NUM_TL_STATES],
+        ego=observers,
+        index=torch.cat([a_idx, m_idx, t_idx], -1),
+        pose=rel * mask[..., None],
+        mask=mask,
+        sizes=sizes,
     )
+
+
+def densify(obs: IndexedObservation, piece_segments: int) -> dict[str, torch.Tensor]:
+    """The dense per-observer layout of ``observe``: every seen token copied per observer.
+
+    Args:
+        obs: indexed observations.
+        piece_segments: P, nodes per map piece (``ObsConfig.tokens.piece_segments``).
+
+    Returns:
+        dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module
+        docstring.
+    """
+    h = (obs.agent_tokens.shape[-1] - ATTRIBUTE_FEATURES) // (HISTORY_FEATURES + 1)
+    widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES]
+    a_idx, m_idx, t_idx = obs.index.split_with_sizes(obs.sizes, -1)
+    a_f, m_f, t_f = obs.mask.split_with_sizes(obs.sizes, -1)
+    a_pose, m_pose, t_pose = obs.pose.split_with_sizes(obs.sizes, 2)
+    ego_hist, ego_valid, ego_attrs = gather_rows(obs.agent_tokens, obs.ego).split_with_sizes(
+        widths, -1
+    )
+    nb = gather_rows(obs.agent_tokens, a_idx) * a_f[..., None]
+    nb_hist, nb_valid, nb_attrs = nb.split_with_sizes(widths, -1)
+    p = piece_segments
+    m_nodes, m_nodes_mask, m_class = (
+        gather_rows(obs.map_tokens, m_idx) * m_f[..., None]
+    ).split_with_sizes([p * NODE_FEATURES, p, C.NUM_MAP_CLASSES], -1)
     return {
         "ego_history": ego_hist.unflatten(-1, (h, HISTORY_FEATURES)),
         "ego_history_mask": ego_valid,
@@ -427,10 +474,29 @@ def observe(
         "map_class": m_class,
         "map_pose": m_pose,
         "map_mask": m_f,
-        "traffic_lights": t_feat * t_f[..., None],
+        "traffic_lights": gather_rows(obs.light_tokens, t_idx) * t_f[..., None],
         "traffic_lights_pose": t_pose,
         "traffic_lights_mask": t_f,
     }
+
+
+def observe(
+    state: SimState,
+    history: History,
+    ctx: MapContext,
+    observers: torch.Tensor,
+    cfg: ObsConfig,
+    agent_static: torch.Tensor | None = None,
+    agent_distance: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """Dense observations of the ``observers`` agents: ``densify`` of ``observe_indexed``
+    (same arguments).
+
+    Returns:
+        dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
+    """
+    ind = observe_indexed(state, history, ctx, observers, cfg, agent_static, agent_distance)
+    return densify(ind, cfg.tokens.piece_segments)
 
 
 def _lights_at(ctx: MapContext, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -488,11 +554,14 @@ def observation_space(cfg: ObsConfig) -> gym.spaces.Dict:
 
 __all__ = [
     "History",
+    "IndexedObservation",
     "MapContext",
     "ObsConfig",
     "build_map_context",
+    "densify",
     "init_history",
     "observation_space",
     "observe",
+    "observe_indexed",
     "push_history",
 ]
