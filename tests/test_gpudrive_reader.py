@@ -132,9 +132,9 @@ def _set(keys: list, value: object) -> object:
 @pytest.mark.parametrize(
     ("mutate", "message"),
     [
-        (_del(["scenario_id"]), "missing key 'scenario_id'"),
+        (_set(["scenario_id"], 5), "'scenario_id' must be a non-empty string"),
         (_del(["objects"]), "missing key 'objects'"),
-        (_del(["metadata"]), "missing key 'metadata'"),
+        (_set(["metadata"], [1]), "metadata: expected a JSON object"),
         (_del(["metadata", "sdc_track_index"]), "metadata: missing key 'sdc_track_index'"),
         (_del(["objects", 3, "position"]), r"objects\[3\]: missing key 'position'"),
         (_del(["objects", 5, "valid"]), r"objects\[5\]: missing key 'valid'"),

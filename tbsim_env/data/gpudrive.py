@@ -1,14 +1,40 @@
-"""GPUDrive JSON (a conversion of one WOMD scenario) -> typed ``Scenario``.
+"""GPUDrive and Nocturne JSON (conversions of one WOMD scenario) -> typed ``Scenario``.
 
 Format (see data/womd/README.md, section 2): ``objects`` in ``Scenario.tracks`` order with
 per-step ``position`` / ``velocity`` / ``heading`` / ``valid`` lists (invalid steps hold the
 sentinel -10000), box sizes as scalars (the last valid state's), ``roads`` with GPUDrive map
-types, an always-empty ``tl_states`` and a ``metadata`` block with the WOMD indices and ids.
+types, ``tl_states`` and a ``metadata`` block with the WOMD indices and ids.
+
+Every dialect of data/womd/gpudrive_history/README.md and data/womd/nocturne/ is read:
+
+* ``gpudrive``: as above. ``gpudrive_early``: no ``metadata``, objects mostly without ``id``.
+  ``nocturne_format`` / Nocturne: no ``scenario_id``, no ``metadata``, no object or road ids,
+  2-D positions, no ``height``, and positions possibly as struct of arrays
+  (``{"x": [T], "y": [T]}``).
+* Objects without ``id`` (all objects of a file carry one, or none does) get ids 1, 2, ... in
+  file order, and their ``heading`` is in **degrees** (not wrapped): only objects with an id
+  store radians. Roads without ``id`` get ids 1, 2, ... likewise. (Both as in the WOSAC
+  reference conversion of a Nocturne scene, data/womd/wosac_reference/README.md.)
+* A missing ``height`` is ``conversion.DEFAULT_BOX_HEIGHT_M`` (1.5 m), a missing ``z`` 0.
+  Length and width both 0 mean the converter recorded no size (58 objects of the three
+  ``nocturne/`` files, many valid for most steps): such objects get the typical size of their
+  type (``conversion.fill_unknown_sizes``), with a warning.
+* A missing ``scenario_id`` is the stem of the file name (``tfrecord-00082-of-01000_465``).
+* Without ``metadata`` the SDC is ``conversion.choose_sdc`` (the vehicle valid at every step
+  nearest the centre of the map), the tracks to predict ``conversion.choose_tracks_to_predict``
+  (up to 8 other objects valid from step 10 on whose path from there is longest, over 2 m;
+  difficulty 0), and there are no objects of interest: the rule of the WOSAC reference
+  conversion.
+* ``tl_states`` maps a lane id to ``{state: [names], x, y[, z], time_index}`` lists, one entry
+  per step with a known state (``time_index`` may be left out when the lists cover every step).
+  When the roads carry no ids, a signal's lane is the lane whose first point lies at its stop
+  point (within ``SIGNAL_LANE_MATCH_M``); a signal with no such lane is dropped with a warning.
 
 What the JSON does not carry is filled as follows: timestamps are the 0.1 s grid
 (``constants.DT``) and the current step is ``constants.CURRENT_INDEX``; sizes are broadcast over
-steps; lane speed limits, entry/exit lanes, neighbours and stop-sign lanes are empty; there are
-no traffic signals. Invalid entries are zeroed, headings wrapped to [-pi, pi).
+steps; lane speed limits, entry/exit lanes, neighbours and stop-sign lanes are empty. Invalid
+entries are zeroed, headings wrapped to [-pi, pi) (``Tracks.raw_heading`` keeps them unwrapped,
+in radians).
 """
 
 from __future__ import annotations
@@ -26,6 +52,14 @@ from tbsim_env.constants import (
     MapFeatureType,
     ObjectType,
 )
+from tbsim_env.data.conversion import (
+    DEFAULT_BOX_HEIGHT_M,
+    choose_sdc,
+    choose_tracks_to_predict,
+    fill_unknown_sizes,
+    signal_state_from_name,
+    signals_from_entries,
+)
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
 from tbsim_env.data.womd import wrap_heading_f32
 from tbsim_env.errors import ScenarioFormatError
@@ -34,6 +68,10 @@ PathLike = str | os.PathLike
 
 INVALID_SENTINEL = -10000.0
 """Value GPUDrive writes into position/velocity/heading at invalid steps."""
+SIGNAL_LANE_MATCH_M = 0.5
+"""Metres. Largest distance from a signal's stop point to the first point of the lane it is
+matched to when the roads carry no ids (the controlled lane starts at the stop point: 0.00 m
+in every gpudrive_early scene, whose roads carry ids)."""
 
 OBJECT_TYPES: dict[str, ObjectType] = {
     "unset": ObjectType.UNSET,
@@ -112,13 +150,33 @@ def _array(rows: Any, dtype: type, where: str, ctx: _Ctx) -> np.ndarray:
         raise ctx.error(f"{where}: values are not numbers ({err})") from err
 
 
+def _xyz_columns(points: dict, keys: tuple[str, ...], where: str, ctx: _Ctx) -> np.ndarray:
+    """[n, len(keys)] float64 from a struct of arrays {"x": [n], "y": [n], ...} (z: 0)."""
+    cols = []
+    for key in keys:
+        if key == "z" and "z" not in points:
+            cols.append(None)
+            continue
+        col = _array(_get(points, key, where, ctx), np.float64, f"{where}.{key}", ctx)
+        if col.ndim != 1:
+            raise ctx.error(f"{where}.{key}: expected a list of numbers")
+        cols.append(col)
+    n = {c.shape[0] for c in cols if c is not None}
+    if len(n) != 1:
+        raise ctx.error(f"{where}: the lists {keys} have different lengths")
+    return np.stack([np.zeros(n.pop()) if c is None else c for c in cols], axis=1)
+
+
 def _xyz_rows(points: Any, keys: tuple[str, ...], where: str, ctx: _Ctx) -> np.ndarray:
-    """[n, len(keys)] float64 from a list of {"x", "y", ...} dicts (z defaults to 0)."""
+    """[n, len(keys)] float64 from a list of {"x", "y", ...} dicts, or from a struct of
+    arrays {"x": [n], "y": [n], ...} (z defaults to 0)."""
+    if isinstance(points, dict):
+        return _xyz_columns(points, keys, where, ctx)
     if not isinstance(points, list):
         raise ctx.error(f"{where}: expected a list, got {type(points).__name__}")
     try:
         rows = [tuple(p[k] if k != "z" else p.get("z", 0.0) for k in keys) for p in points]
-    except (KeyError, TypeError, AttributeError) as err:
+    except (KeyError, TypeError, AttributeError, IndexError, ValueError) as err:
         bad = next(
             (
                 i
@@ -131,8 +189,12 @@ def _xyz_rows(points: Any, keys: tuple[str, ...], where: str, ctx: _Ctx) -> np.n
     return _array(rows, np.float64, where, ctx).reshape(-1, len(keys))
 
 
-def _object_arrays(obj: Any, k: int, ctx: _Ctx) -> dict[str, Any]:
-    """Per-step arrays of one object (index ``k`` in ``objects``)."""
+def _object_arrays(obj: Any, k: int, ctx: _Ctx, has_ids: bool) -> dict[str, Any]:
+    """Per-step arrays of one object (index ``k`` in ``objects``).
+
+    ``has_ids``: the file's objects carry ``id`` (heading in radians); else the id is k + 1
+    and the heading is in degrees.
+    """
     w = f"objects[{k}]"
     pos = _xyz_rows(_get(obj, "position", w, ctx), ("x", "y", "z"), f"{w}.position", ctx)
     vel = _xyz_rows(_get(obj, "velocity", w, ctx), ("x", "y"), f"{w}.velocity", ctx)
@@ -147,16 +209,18 @@ def _object_arrays(obj: Any, k: int, ctx: _Ctx) -> dict[str, Any]:
             f"{w}: position/velocity/heading/valid have different lengths "
             f"({len(pos)}, {len(vel)}, {heading.size}, {len(valid)})"
         )
+    if not has_ids:
+        heading = np.deg2rad(heading)
     size = [
-        _array(_get(obj, key, w, ctx), np.float64, f"{w}.{key}", ctx)
-        for key in ("length", "width", "height")
+        _array(_get(obj, key, w, ctx), np.float64, f"{w}.{key}", ctx) for key in ("length", "width")
     ]
+    size.append(_array(obj.get("height", DEFAULT_BOX_HEIGHT_M), np.float64, f"{w}.height", ctx))
     if any(s.ndim != 0 for s in size):
         raise ctx.error(f"{w}: 'length', 'width' and 'height' must be numbers")
     type_name = _get(obj, "type", w, ctx)
-    if type_name not in OBJECT_TYPES:
+    if not isinstance(type_name, str) or type_name not in OBJECT_TYPES:
         raise ctx.error(f"{w}.type: unknown object type {type_name!r}")
-    obj_id = _get(obj, "id", w, ctx)
+    obj_id = _get(obj, "id", w, ctx) if has_ids else k + 1
     if isinstance(obj_id, bool) or not isinstance(obj_id, int):
         raise ctx.error(f"{w}.id: expected an integer, got {obj_id!r}")
     return {
@@ -173,7 +237,8 @@ def _object_arrays(obj: Any, k: int, ctx: _Ctx) -> dict[str, Any]:
 def _tracks(objects: Any, ctx: _Ctx) -> Tracks:
     if not isinstance(objects, list) or not objects:
         raise ctx.error("key 'objects' must be a non-empty list (a scenario needs a track)")
-    per = [_object_arrays(obj, k, ctx) for k, obj in enumerate(objects)]
+    has_ids = any(isinstance(obj, dict) and "id" in obj for obj in objects)
+    per = [_object_arrays(obj, k, ctx, has_ids) for k, obj in enumerate(objects)]
     steps = np.array([p["valid"].shape[0] for p in per])
     if (steps != steps[0]).any():
         k = int(np.argmax(steps != steps[0]))
@@ -185,6 +250,18 @@ def _tracks(objects: Any, ctx: _Ctx) -> Tracks:
     vel = np.stack([p["vel"] for p in per])  # [A, T, 2]
     heading = np.stack([p["heading"] for p in per])  # [A, T]
     size = np.stack([p["size"] for p in per])  # [A, 3] length, width, height
+    size, unknown = fill_unknown_sizes(size, np.array([p["type"] for p in per]))
+    if (unknown & valid.any(axis=1)).any():
+        k = np.flatnonzero(unknown & valid.any(axis=1))
+        warnings.warn(
+            str(
+                ctx.error(
+                    f"{len(k)} object(s) with length and width 0 (size not recorded, "
+                    f"objects {k[:5].tolist()}...) get the typical size of their type"
+                )
+            ),
+            stacklevel=3,
+        )
     sentinel = valid & (pos[..., 0] == INVALID_SENTINEL) & (pos[..., 1] == INVALID_SENTINEL)
     if sentinel.any():
         k, t = (int(i) for i in np.argwhere(sentinel)[0])
@@ -207,8 +284,10 @@ def _tracks(objects: Any, ctx: _Ctx) -> Tracks:
 
 
 def _road_map(roads: Any, ctx: _Ctx) -> RoadMap:
+    """Roads in file order; ids k + 1 when no road carries ``id`` (see the module docstring)."""
     if not isinstance(roads, list):
         raise ctx.error("key 'roads' must be a list")
+    has_ids = _roads_have_ids(roads)
     ids: list[int] = []
     kinds: list[int] = []
     subtypes: list[int] = []
@@ -220,17 +299,17 @@ def _road_map(roads: Any, ctx: _Ctx) -> RoadMap:
         element = road.get("map_element_id")
         mapped = map_element_to_feature(element) if isinstance(element, int) else None
         if mapped is None:
-            if type_name not in ROAD_TYPES:
+            if not isinstance(type_name, str) or type_name not in ROAD_TYPES:
                 skipped.append(f"{w} (type {type_name!r}, map_element_id {element!r})")
                 continue
             # No usable element id: take the kind from the type string, subtype unknown.
             mapped = (ROAD_TYPES[type_name], 0)
-        elif ROAD_TYPES.get(type_name) != mapped[0]:
+        elif not isinstance(type_name, str) or ROAD_TYPES.get(type_name) != mapped[0]:
             raise ctx.error(
                 f"{w}: type {type_name!r} disagrees with map_element_id {element} "
                 f"({mapped[0].name.lower()})"
             )
-        feature_id = _get(road, "id", w, ctx)
+        feature_id = _get(road, "id", w, ctx) if has_ids else k + 1
         if isinstance(feature_id, bool) or not isinstance(feature_id, int):
             raise ctx.error(f"{w}.id: expected an integer, got {feature_id!r}")
         pts = _xyz_rows(_get(road, "geometry", w, ctx), ("x", "y", "z"), f"{w}.geometry", ctx)
@@ -247,6 +326,96 @@ def _road_map(roads: Any, ctx: _Ctx) -> RoadMap:
             stacklevel=3,
         )
     return RoadMap.from_polylines(ids, kinds, subtypes, polylines)
+
+
+def _roads_have_ids(roads: Any) -> bool:
+    return isinstance(roads, list) and any(isinstance(r, dict) and "id" in r for r in roads)
+
+
+def _int_list(value: Any, where: str, ctx: _Ctx) -> np.ndarray:
+    """[n] int64 from a JSON list of integers."""
+    if not isinstance(value, list) or not all(
+        isinstance(v, int) and not isinstance(v, bool) for v in value
+    ):
+        raise ctx.error(f"{where}: expected a list of integers")
+    return _array(value, np.int64, where, ctx).reshape(-1)
+
+
+def _tl_entry(
+    key: str, entry: Any, n_steps: int, ctx: _Ctx
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """([n] steps, [n] raw states, [n, 3] stop points) of one ``tl_states`` lane."""
+    w = f"tl_states[{key!r}]"
+    names = _get(entry, "state", w, ctx)
+    if not isinstance(names, list):
+        raise ctx.error(f"{w}.state: expected a list of state names")
+    states = [signal_state_from_name(name) for name in names]
+    if None in states:
+        i = states.index(None)
+        raise ctx.error(f"{w}.state[{i}]: unknown traffic-signal state {names[i]!r:.40}")
+    if "time_index" in entry:
+        steps = _int_list(entry["time_index"], f"{w}.time_index", ctx)
+    elif len(names) == n_steps:
+        steps = np.arange(n_steps, dtype=np.int64)
+    else:
+        raise ctx.error(f"{w}: missing key 'time_index' ({len(names)} states, {n_steps} steps)")
+    stops = _xyz_columns(entry, ("x", "y", "z"), w, ctx)
+    if not len(steps) == len(names) == stops.shape[0]:
+        raise ctx.error(f"{w}: 'state', 'time_index', 'x' and 'y' have different lengths")
+    if len(steps) and (steps.min() < 0 or steps.max() >= n_steps):
+        raise ctx.error(f"{w}.time_index: a step outside [0, {n_steps})")
+    return steps, np.array([int(x) for x in states], np.int64), stops
+
+
+def _lane_starting_at(point: np.ndarray, road_map: RoadMap) -> int | None:
+    """Id of the lane whose first point is nearest ``point`` (x, y), within
+    ``SIGNAL_LANE_MATCH_M``; None if there is none."""
+    lanes = road_map.indices_of(MapFeatureType.LANE)
+    if lanes.shape[0] == 0:
+        return None
+    starts = np.array([road_map.polylines[i][0, :2] for i in lanes])
+    dist = np.linalg.norm(starts - point[:2], axis=1)
+    best = int(np.argmin(dist))
+    return int(road_map.id[lanes[best]]) if dist[best] <= SIGNAL_LANE_MATCH_M else None
+
+
+def _signals(
+    tl_states: Any, road_map: RoadMap, by_id: bool, n_steps: int, ctx: _Ctx
+) -> TrafficSignals:
+    """Signals of ``tl_states``; ``by_id``: its keys are road ids (else matched by geometry)."""
+    if not tl_states:
+        return TrafficSignals.empty(n_steps)
+    if not isinstance(tl_states, dict):
+        raise ctx.error(f"key 'tl_states' must be an object, got {type(tl_states).__name__}")
+    parts, dropped = [], []
+    for key, entry in tl_states.items():
+        steps, states, stops = _tl_entry(key, entry, n_steps, ctx)
+        if len(steps) == 0:
+            continue
+        if by_id:
+            if not key.strip().isdigit() or len(key) > 18:
+                raise ctx.error(f"tl_states: key {key!r} is not a lane id")
+            lane = int(key)
+        else:
+            lane = _lane_starting_at(stops[0], road_map)
+            if lane is None:
+                dropped.append(key)
+                continue
+        parts.append((steps, np.full(len(steps), lane, np.int64), states, stops))
+    if dropped:
+        warnings.warn(
+            str(
+                ctx.error(
+                    f"dropped {len(dropped)} signal(s) whose lane starts at no stop "
+                    f"point (tl_states keys {dropped[:5]})"
+                )
+            ),
+            stacklevel=3,
+        )
+    if not parts:
+        return TrafficSignals.empty(n_steps)
+    step, lane, state, stop = (np.concatenate(p) for p in zip(*parts))
+    return signals_from_entries(step, lane, state, stop, n_steps)
 
 
 def _metadata(meta: Any, ctx: _Ctx) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
@@ -283,27 +452,31 @@ def scenario_from_gpudrive(data: Any, *, source: str = "<memory>") -> Scenario:
     ctx = _Ctx(source)
     if not isinstance(data, dict):
         raise ctx.error(f"top level: expected a JSON object, got {type(data).__name__}")
-    sid = _get(data, "scenario_id", "top level", ctx)
+    default_id = os.path.splitext(os.path.basename(source))[0]
+    sid = data.get("scenario_id", default_id)
     if not isinstance(sid, str) or not sid:
         raise ctx.error(f"top level: 'scenario_id' must be a non-empty string, got {sid!r}")
     tracks = _tracks(_get(data, "objects", "top level", ctx), ctx)
-    road_map = _road_map(_get(data, "roads", "top level", ctx), ctx)
+    roads = _get(data, "roads", "top level", ctx)
+    road_map = _road_map(roads, ctx)
     if road_map.num_features == 0:
         warnings.warn(str(ctx.error(f"scenario {sid!r} has no map features")), stacklevel=2)
-    if data.get("tl_states"):
-        warnings.warn(
-            str(ctx.error("'tl_states' is not empty; GPUDrive traffic signals are not read")),
-            stacklevel=2,
-        )
-    sdc, ttp, diff, ooi = _metadata(_get(data, "metadata", "top level", ctx), ctx)
     n_steps = tracks.num_steps
+    signals = _signals(data.get("tl_states"), road_map, _roads_have_ids(roads), n_steps, ctx)
+    if "metadata" in data:
+        sdc, ttp, diff, ooi = _metadata(data["metadata"], ctx)
+    else:  # the rule of the WOSAC reference conversion (module docstring)
+        now = min(CURRENT_INDEX, n_steps - 1)
+        sdc = choose_sdc(tracks, road_map, now)
+        ttp = choose_tracks_to_predict(tracks, sdc, now)
+        diff, ooi = np.zeros(ttp.shape[0], np.int8), np.zeros(0, np.int64)
     scenario = Scenario(
         scenario_id=sid,
         timestamps=np.arange(n_steps, dtype=np.float64) * DT,
         current_index=CURRENT_INDEX,
         tracks=tracks,
         road_map=road_map,
-        signals=TrafficSignals.empty(n_steps),
+        signals=signals,
         sdc_index=sdc,
         tracks_to_predict=ttp,
         predict_difficulty=diff,
