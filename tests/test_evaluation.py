@@ -184,8 +184,10 @@ def test_cli_evaluate_writes_plot(tmp_path, one_scenario_path):
 
 
 def test_cli_reports_bad_input_cleanly(tmp_path, tf_example_path, capsys):
-    rc = main(["info", str(tf_example_path)])
-    assert rc == 2 and "not a valid Scenario protobuf" in capsys.readouterr().err
+    cut = tmp_path / "example_cut.tfrecord"  # tf.Example files are read; a cut one is not
+    cut.write_bytes(tf_example_path.read_bytes()[:-1000])
+    rc = main(["info", str(cut)])
+    assert rc == 2 and "example_cut.tfrecord" in capsys.readouterr().err
     rc = main(["info", str(tmp_path / "missing.tfrecord")])
     assert rc == 2
 

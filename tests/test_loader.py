@@ -81,7 +81,7 @@ def test_missing_paths(tmp_path: Path) -> None:
         load_scenarios(tmp_path / "nope.tfrecord")
     with pytest.raises(FileNotFoundError, match="matched no files"):
         load_scenarios(str(tmp_path / "*.tfrecord"))
-    with pytest.raises(FileNotFoundError, match="no \\*.tfrecord\\* or \\*.json files"):
+    with pytest.raises(FileNotFoundError, match="no \\*.tfrecord\\*, \\*.json or \\*.pkl files"):
         load_scenarios(tmp_path)
     with pytest.raises(FileNotFoundError):  # raised at call time, not on first next()
         iter_scenarios([tmp_path / "missing.json"])
@@ -111,17 +111,21 @@ def test_iter_is_lazy(tmp_path: Path, one_scenario_path: Path) -> None:
 def test_skip_bad_across_files(
     tmp_path: Path, one_scenario_path: Path, tf_example_path: Path, womd_dir: Path
 ) -> None:
+    cut = tmp_path / "example_cut.tfrecord"  # a tf.Example file cut inside its record
+    cut.write_bytes(tf_example_path.read_bytes()[:-1000])
+    no_objects = tmp_path / "no_objects.json"
+    no_objects.write_text('{"scenario_id": "x", "roads": []}')
     sources = [
-        tf_example_path,
+        cut,
         one_scenario_path,
-        womd_dir / "nocturne" / "tfrecord-00358-of-01000_65.json",  # not GPUDrive: no ids
+        no_objects,
         womd_dir / "gpudrive" / "tfrecord-00000-of-01000_4.json",
     ]
-    with pytest.raises(ScenarioFormatError, match="motion_data_one_example"):
+    with pytest.raises(ScenarioFormatError, match="example_cut"):
         load_scenarios(sources)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         got = load_scenarios(sources, skip_bad=True)
     assert [s.scenario_id for s in got] == [RAW_IDS[0], GPUDRIVE_IDS[2]]
     text = "\n".join(str(w.message) for w in caught)
-    assert "motion_data_one_example" in text and "tfrecord-00358-of-01000_65.json" in text
+    assert "example_cut.tfrecord" in text and "no_objects.json" in text

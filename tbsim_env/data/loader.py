@@ -1,8 +1,11 @@
 """One entry point for scenarios: files, folders, globs or ``Scenario`` objects -> ``Scenario``s.
 
-Formats are detected by content (a valid TFRecord length header, or a JSON object), then by
-extension: raw WOMD ``Scenario`` TFRecords (``tbsim_env.data.womd``) and GPUDrive JSON
-(``tbsim_env.data.gpudrive``).
+Formats are detected by content, then by extension: TFRecords (a valid length header) of raw
+WOMD ``Scenario`` records (``tbsim_env.data.womd``) or of WOMD ``tf.train.Example`` records
+(``tbsim_env.data.tf_example``; told apart by decoding the first record), ScenarioNet /
+MetaDrive pickles (protocol header byte 0x80; ``tbsim_env.data.scenarionet``, restricted
+unpickler) and GPUDrive / Nocturne JSON (a JSON object; ``tbsim_env.data.gpudrive``). A folder
+or list may mix them.
 """
 
 from __future__ import annotations
@@ -17,7 +20,9 @@ from typing import TypeAlias
 
 from tbsim_env.data.gpudrive import read_gpudrive_json
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.data.tfrecord import looks_like_tfrecord
+from tbsim_env.data.scenarionet import PICKLE_MAGIC, read_scenarionet_pickle
+from tbsim_env.data.tf_example import is_tf_example, read_tf_examples
+from tbsim_env.data.tfrecord import iter_records, looks_like_tfrecord
 from tbsim_env.data.womd import read_scenarios
 from tbsim_env.errors import ScenarioFormatError
 
@@ -32,15 +37,33 @@ class ScenarioFileFormat(enum.Enum):
     """File formats ``load_scenarios`` reads."""
 
     TFRECORD = "tfrecord"
+    TF_EXAMPLE = "tf_example"
+    SCENARIONET_PICKLE = "scenarionet_pickle"
     GPUDRIVE_JSON = "gpudrive_json"
 
 
+_PICKLE_SUFFIXES = (".pkl", ".pickle")
+
+
 def _is_scenario_file_name(path: Path) -> bool:
-    return ".tfrecord" in path.name or path.suffix == ".json"
+    return ".tfrecord" in path.name or path.suffix in (".json", *_PICKLE_SUFFIXES)
+
+
+def _tfrecord_kind(path: Path) -> ScenarioFileFormat:
+    """Scenario or tf.Example TFRecord, by decoding the first record (Scenario if unsure)."""
+    try:
+        for _, _, payload in iter_records(path, verify=False):
+            if is_tf_example(payload):
+                return ScenarioFileFormat.TF_EXAMPLE
+            break
+    except ScenarioFormatError:
+        pass  # reading it as a Scenario file reports the framing problem
+    return ScenarioFileFormat.TFRECORD
 
 
 def detect_format(path: str | os.PathLike) -> ScenarioFileFormat:
-    """Format of one file: TFRecord framing or a JSON object, else by extension.
+    """Format of one file: TFRecord framing (then Scenario or tf.Example records), a pickle
+    header or a JSON object, else by extension.
 
     Raises:
         FileNotFoundError: no such file.
@@ -50,17 +73,22 @@ def detect_format(path: str | os.PathLike) -> ScenarioFileFormat:
     if not p.is_file():
         raise FileNotFoundError(f"no such scenario file: {str(p)!r}")
     if looks_like_tfrecord(p):
-        return ScenarioFileFormat.TFRECORD
+        return _tfrecord_kind(p)
     with open(p, "rb") as fh:
-        head = fh.read(_SNIFF_BYTES).lstrip()
+        raw = fh.read(_SNIFF_BYTES)
+    head = raw.lstrip()
+    if raw.startswith(PICKLE_MAGIC):
+        return ScenarioFileFormat.SCENARIONET_PICKLE
     if head.startswith(b"{"):
         return ScenarioFileFormat.GPUDRIVE_JSON
     if p.suffix == ".json":
         return ScenarioFileFormat.GPUDRIVE_JSON
+    if p.suffix in _PICKLE_SUFFIXES:
+        return ScenarioFileFormat.SCENARIONET_PICKLE
     if ".tfrecord" in p.name:
         return ScenarioFileFormat.TFRECORD
     raise ScenarioFormatError(
-        "unrecognised scenario file: neither TFRecord framing nor a JSON object "
+        "unrecognised scenario file: neither TFRecord framing, a pickle nor a JSON object "
         f"(first bytes {head[:16]!r})",
         str(p),
     )
@@ -74,7 +102,7 @@ def _expand_path(item: str | os.PathLike) -> list[Path]:
     if p.is_dir():
         found = sorted(c for c in p.iterdir() if c.is_file() and _is_scenario_file_name(c))
         if not found:
-            raise FileNotFoundError(f"no *.tfrecord* or *.json files in folder {str(p)!r}")
+            raise FileNotFoundError(f"no *.tfrecord*, *.json or *.pkl files in folder {str(p)!r}")
         return found
     text = os.fspath(item)
     if isinstance(text, str) and _GLOB_CHARS & set(text):
@@ -107,6 +135,10 @@ def _read_file(path: Path, skip_bad: bool) -> Iterator[Scenario]:
     fmt = detect_format(path)
     if fmt is ScenarioFileFormat.TFRECORD:
         yield from read_scenarios(path, skip_bad=skip_bad)
+    elif fmt is ScenarioFileFormat.TF_EXAMPLE:
+        yield from read_tf_examples(path, skip_bad=skip_bad)
+    elif fmt is ScenarioFileFormat.SCENARIONET_PICKLE:
+        yield read_scenarionet_pickle(path)
     else:
         yield read_gpudrive_json(path)
 
@@ -140,8 +172,9 @@ def iter_scenarios(source: ScenarioSource, *, skip_bad: bool = False) -> Iterato
     one record at a time while iterating.
 
     Args:
-        source: a file path, a glob string, a folder (every ``*.tfrecord*`` and ``*.json`` in
-            it, sorted), a ``Scenario`` (passed through), or a list of any of those.
+        source: a file path, a glob string, a folder (every ``*.tfrecord*``, ``*.json``,
+            ``*.pkl`` and ``*.pickle`` in it, sorted; not its subfolders), a ``Scenario``
+            (passed through), or a list of any of those.
         skip_bad: warn about bad records and bad files and go on instead of raising.
 
     Raises:
