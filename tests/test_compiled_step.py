@@ -6,6 +6,7 @@ under CI, where they fail. Each compile takes ~15 s, so the tests share scenario
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 
@@ -17,7 +18,7 @@ from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.fused import StepFunction, advance_and_observe
-from tbsim_env.sim.offroad import EdgeCandidates
+from tbsim_env.sim.edge_grid import build_edge_grid
 
 if not (shutil.which("c++") or shutil.which("g++")):
     reason = "torch.compile on the CPU needs a C++ compiler (c++ / g++ not found)"
@@ -89,19 +90,24 @@ def test_compiled_env_matches_eager_on_three_scenario_shapes(scenes):
     assert collided > 0
 
 
-def test_stale_road_edge_candidates_redo_the_step_eagerly(scenes):
+def test_points_the_edge_grid_cannot_vouch_for_redo_the_step_eagerly(scenes):
     env = TrafficEnv(scenes[:1], controlled="tracks_to_predict", npc_policy="log_replay")
     env.reset(seed=0)
     state = env.sim_state
-    # Candidates gathered 500 m away cannot vouch for the distance where the agents are.
-    pose = state.pose[:, env._ext_index]
-    far = EdgeCandidates.build(pose + torch.tensor([500.0, 500.0, 0.0]), state.road_edges)
+    edges = state.road_edges
+    # A grid that lists one segment per cell cannot vouch for most box corners.
+    segments = [
+        (
+            edges.start[0][edges.valid[0]].double().numpy(),
+            edges.end[0][edges.valid[0]].double().numpy(),
+        )
+    ]
+    coarse = dataclasses.replace(edges, grid=build_edge_grid(segments, count=1))
     args = (
         state,
         torch.zeros(1, state.num_agents, 2),
         env._ext_slots,
         env._route,
-        far,
         env._progress,
         env._goal_reached,
         env._has_goal,
@@ -113,21 +119,20 @@ def test_stale_road_edge_candidates_redo_the_step_eagerly(scenes):
     )
     step = StepFunction(compile=True)
     with torch.inference_mode():
-        got = step(*args)
+        got = step(state.replace(road_edges=coarse), *args[1:])
         want = advance_and_observe(*args)
-        near = step(*args[:4], want.transition.candidates, *args[5:])
+        fine = step(*args)
     assert step.eager_redos == 1
     assert got.transition.metrics.offroad_stale is None, "the eager redo's result"
     torch.testing.assert_close(
         got.transition.metrics.offroad_distance, want.transition.metrics.offroad_distance
     )
-    assert not torch.equal(got.transition.candidates.center, far.center)
-    # With fresh candidates the compiled graph's own result stands.
+    # With the scene's own grid the compiled graph's own result stands.
     assert step.eager_redos == 1
-    assert near.transition.metrics.offroad_stale is not None
-    assert not near.transition.metrics.offroad_stale.any()
+    assert fine.transition.metrics.offroad_stale is not None
+    assert not fine.transition.metrics.offroad_stale.any()
     torch.testing.assert_close(
-        near.transition.metrics.offroad_distance,
+        fine.transition.metrics.offroad_distance,
         want.transition.metrics.offroad_distance,
         atol=1e-5,
         rtol=0,

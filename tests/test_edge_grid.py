@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
 
-from tbsim_env.sim.edge_grid import build_edge_grid, exact_signed_distance, grid_signed_distance
-from tbsim_env.sim.offroad import signed_distance_to_edges
+from tbsim_env.sim.edge_grid import build_edge_grid, grid_signed_distance
+from tbsim_env.sim.offroad import grid_exact_signed_distance, signed_distance_to_edges
 from tbsim_env.sim.state import RoadEdges
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -68,7 +70,7 @@ def test_exact_equals_every_segment_and_flags_what_it_cannot_vouch_for(cell, cou
     fast, stale = grid_signed_distance(pts, edges, grid)
     ok = ~stale  # few listed segments of 0.5 m pieces vouch for little: only exactness counts
     torch.testing.assert_close(fast[ok], full[ok], rtol=0, atol=0)
-    exact, _ = exact_signed_distance(pts, edges, grid)
+    exact, _ = grid_exact_signed_distance(pts, dataclasses.replace(edges, grid=grid))
     torch.testing.assert_close(exact, full, rtol=0, atol=0)
     # Points far outside the grid are mostly beyond what a border cell's list can vouch for.
     assert stale[0, -200:].float().mean() > 0.5
@@ -78,7 +80,7 @@ def test_no_edges_and_fewer_segments_than_candidates():
     one, segs = _edges([np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 5.0]])])
     grid = build_edge_grid(segs, cell=4.0, count=16, margin=5.0)
     pts = torch.tensor([[[5.0, 1.0], [5.0, -1.0], [25.0, 5.0], [500.0, 0.0]]])
-    exact, stale = exact_signed_distance(pts, one, grid)
+    exact, stale = grid_exact_signed_distance(pts, dataclasses.replace(one, grid=grid))
     torch.testing.assert_close(exact, signed_distance_to_edges(pts, one))
     assert not stale.any()  # every segment is listed: nothing to vouch for
     assert exact[0, 0] < 0 < exact[0, 1]  # the road is on the left of the edge
@@ -90,5 +92,5 @@ def test_no_edges_and_fewer_segments_than_candidates():
         next_index=torch.zeros(1, 1, dtype=torch.int64),
     )
     grid = build_edge_grid([(np.zeros((0, 2)), np.zeros((0, 2)))])
-    out, stale = exact_signed_distance(pts, empty, grid)
+    out, stale = grid_exact_signed_distance(pts, dataclasses.replace(empty, grid=grid))
     assert (out == -1.0e10).all() and not stale.any()

@@ -7,6 +7,7 @@ with a plain implementation of its definition on real and generated scenes.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -31,12 +32,9 @@ from tbsim_env.sim.collision import (
     near_limits,
     pairwise_overlap,
 )
+from tbsim_env.sim.edge_grid import build_edge_grid
 from tbsim_env.sim.geometry import cos_sin
-from tbsim_env.sim.offroad import (
-    EdgeCandidates,
-    _candidate_signed_and_unsigned,
-    _signed_and_unsigned,
-)
+from tbsim_env.sim.offroad import _signed_and_unsigned, grid_exact_signed_distance
 from tbsim_env.sim.state import RoadEdges
 
 
@@ -261,13 +259,12 @@ def _with_degenerate_edges(state):
         prev_index=torch.tensor([[k, k, k + 1]]),
         next_index=torch.tensor([[k + 1, k + 2, k + 2]]),
     )
-    return RoadEdges(
-        **{f: torch.cat([getattr(e, f), getattr(extra, f)], 1) for f in e.__dataclass_fields__}
-    )
+    fields = [f for f in e.__dataclass_fields__ if f != "grid"]
+    return RoadEdges(**{f: torch.cat([getattr(e, f), getattr(extra, f)], 1) for f in fields})
 
 
 @pytest.mark.parametrize("name", ["real", "generated"])
-def test_cached_edge_distance_matches_reference(scenes, name):
+def test_grid_edge_distance_matches_reference(scenes, name):
     state = build_sim_state([scenes[name]])
     edges = _with_degenerate_edges(state)
     gen = torch.Generator().manual_seed(2)
@@ -275,18 +272,21 @@ def test_cached_edge_distance_matches_reference(scenes, name):
     pose = state.pose[:, q[0]].clone()
     pose[0, 0] = torch.tensor([20.0, -29.0, 0.3])  # near the zero-length segment
     size = state.agents.size[:, q[0], :2]
-    for count in (256, 16):
-        cand = EdgeCandidates.build(pose, edges, count)
+    segments = [(edges.start[0].double().numpy(), edges.end[0].double().numpy())]
+    # A grid listing 16 segments per cell, and one listing 2 (many points then recomputed).
+    recomputed = {}
+    for count in (16, 2):
+        grid = build_edge_grid(segments, count=count)
+        with_grid = dataclasses.replace(edges, grid=grid)
         for _ in range(10):
             moved = pose + torch.randn(pose.shape, generator=gen) * torch.tensor([1.0, 1.0, 0.3])
             corners = box_corners(moved, size[..., 0], size[..., 1])  # [1, K, 4, 2]
-            x, y = corners[..., None].unbind(-2)
-            got, got_d = _candidate_signed_and_unsigned(x, y, cand)
-            k = corners.shape[1]
-            idx = cand.index.repeat_interleave(4, dim=1)
-            ref, ref_d = _signed_and_unsigned(corners.reshape(1, k * 4, 2), edges, idx)
-            assert torch.equal(got.view(1, k * 4), ref)
-            assert torch.equal(got_d.view(1, k * 4), ref_d)
+            points = corners.reshape(1, -1, 2)
+            got, stale = grid_exact_signed_distance(points, with_grid)
+            ref, _ = _signed_and_unsigned(points, edges, None)
+            assert torch.equal(got, ref)
+            recomputed[count] = recomputed.get(count, 0) + int(stale.sum())
+    assert recomputed[2] > 2 * recomputed[16]
 
 
 def test_reward_matches_the_full_sum():
@@ -356,7 +356,7 @@ def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
     for step in range(12):
         pose = state.pose + torch.randn(state.pose.shape, generator=gen) * 0.3
         st = state.replace(pose=pose, step=state.step + step)
-        got, _ = step_metrics(st, query, route)
+        got = step_metrics(st, query, route)
         # core.step's indexed log reads (B > 1) against the reference.
         controlled = torch.rand(st.valid.shape, generator=gen) > 0.5
         cs = st.replace(controlled=controlled, valid=st.valid & (torch.rand(2, 1) > 0.3))
@@ -368,10 +368,10 @@ def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
         for b, row in enumerate(rows):
             n = row.num_agents
             sub = row.replace(pose=pose[b : b + 1, :n], step=st.step[b : b + 1])
-            one, _ = step_metrics(sub, query[b : b + 1], build_route(row, query[b : b + 1]))
+            one = step_metrics(sub, query[b : b + 1], build_route(row, query[b : b + 1]))
             bare = build_route(row, query[b : b + 1])
             bare = replace(bare, **{f.name: None for f in fields(bare)[9:]})
-            two, _ = step_metrics(sub, query[b : b + 1], bare)
+            two = step_metrics(sub, query[b : b + 1], bare)
             for f in fields(got):
                 if f.name == "offroad_stale":  # set under torch.compile only
                     assert got.offroad_stale is one.offroad_stale is two.offroad_stale is None

@@ -14,13 +14,14 @@ from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.scenario import RoadMap
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
-from tbsim_env.sim.collision import collided, pairwise_overlap
+from tbsim_env.sim.collision import box_corner_xy, collided, pairwise_overlap
 from tbsim_env.sim.offroad import (
     NO_EDGE_DISTANCE,
-    EdgeCandidates,
     box_offroad_distance,
+    point_segment_distance,
     signed_distance_to_edges,
 )
+from tbsim_env.sim.state import RoadEdges
 
 
 @pytest.fixture(scope="module")
@@ -159,22 +160,48 @@ def test_signed_edge_distance_at_convex_and_concave_corners():
     assert d[2].item() < 0
 
 
-def test_box_offroad_and_candidates_are_exact(real):
+def test_box_offroad_through_the_grid_is_exact(real):
     state = build_sim_state([real])
+    edges = state.road_edges
     gen = torch.Generator().manual_seed(0)
     q = torch.nonzero(state.valid[0])[:, 0][None]
     pose = state.pose[:, q[0]].clone()
     size = state.agents.size[:, q[0], :2]
-    cand = EdgeCandidates.build(pose, state.road_edges)
     for _ in range(60):
-        pose = pose + torch.randn(pose.shape, generator=gen) * torch.tensor([0.5, 0.5, 0.05])
-        full, _ = box_offroad_distance(pose, size, state.road_edges)
-        fast, cand = box_offroad_distance(pose, size, state.road_edges, cand)
-        assert torch.equal(full, fast)
+        pose = pose + torch.randn(pose.shape, generator=gen) * torch.tensor([2.0, 2.0, 0.05])
+        corners = box_corner_xy(pose, size[..., 0], size[..., 1])
+        fast, _ = box_offroad_distance(corners, edges)
+        full = signed_distance_to_edges(torch.stack(corners, -1).reshape(1, -1, 2), edges)
+        assert torch.equal(fast, full.view(1, -1, 4).amax(-1))
     # Most logged vehicles are on the road at the current step.
     veh = state.agents.object_type[0, q[0]] == C.ObjectType.VEHICLE
-    d, _ = box_offroad_distance(state.pose[:, q[0]], size, state.road_edges)
+    corners = box_corner_xy(state.pose[:, q[0]], size[..., 0], size[..., 1])
+    d, _ = box_offroad_distance(corners, edges)
     assert (d[0, veh] <= 0).float().mean() > 0.8
+
+
+def test_simplified_road_edges_stay_within_tolerance(real):
+    """The env's edges are the logged polylines simplified to within 2 cm: about ten times
+    fewer segments, distances within the tolerance of the logged ones."""
+    state = build_sim_state([real])
+    logged = [
+        real.road_map.polylines[k][:, :2] - state.origin[0].numpy()
+        for k in real.road_map.indices_of(C.MapFeatureType.ROAD_EDGE)
+    ]
+    raw = RoadEdges(
+        start=torch.tensor(np.concatenate([p[:-1] for p in logged]), dtype=torch.float32)[None],
+        end=torch.tensor(np.concatenate([p[1:] for p in logged]), dtype=torch.float32)[None],
+        valid=torch.ones(1, sum(len(p) - 1 for p in logged), dtype=torch.bool),
+        prev_index=torch.zeros(1, sum(len(p) - 1 for p in logged), dtype=torch.int64),
+        next_index=torch.zeros(1, sum(len(p) - 1 for p in logged), dtype=torch.int64),
+    )
+    assert raw.start.shape[1] > 4 * int(state.road_edges.valid.sum())
+    pts = state.log.pose[0, :, ::10, :2][state.log.valid[0, :, ::10]][None]
+    pts = pts + torch.randn(pts.shape, generator=torch.Generator().manual_seed(0))
+    d_raw, _ = point_segment_distance(pts, raw)
+    d_env, _ = point_segment_distance(pts, state.road_edges)
+    gap = d_env.min(-1).values - d_raw.min(-1).values
+    assert gap.abs().max() <= C.EDGE_SIMPLIFY_TOLERANCE + 1e-4
 
 
 def test_no_road_edges_means_on_road():

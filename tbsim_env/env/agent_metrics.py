@@ -22,11 +22,7 @@ from tbsim_env.sim.collision import (
     near_limits,
 )
 from tbsim_env.sim.geometry import cos_sin
-from tbsim_env.sim.offroad import (
-    EdgeCandidates,
-    box_offroad_distance,
-    candidate_offroad_distance,
-)
+from tbsim_env.sim.offroad import box_offroad_distance
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange, const, gather_rows
 
@@ -105,9 +101,10 @@ class StepMetrics:
         log_valid: bool, the log has the agent at this step.
         agent_distance: [B, Q, N] m, centre distance to every agent slot (``observe`` of the
             same poses can reuse it); None when not computed.
-        offroad_stale: [B, Q] bool, set only under ``torch.compile``, where the road-edge
-            candidates are not refreshed inside the graph: the off-road distance may be wrong
-            where it is True, and the caller must redo the step eagerly (``env.fused``).
+        offroad_stale: [B, Q] bool, set only under ``torch.compile``, where the points the
+            road-edge grid cannot vouch for are not recomputed inside the graph: the off-road
+            distance may be wrong where it is True, and the caller must redo the step eagerly
+            (``env.fused``). Eagerly None: the distance is exact.
     """
 
     collision: torch.Tensor
@@ -196,23 +193,13 @@ def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     return (route.segment_arc.gather(-1, best) + along).squeeze(-1)
 
 
-def step_metrics(
-    state: SimState,
-    query: torch.Tensor,
-    route: Route,
-    candidates: EdgeCandidates | None = None,
-) -> tuple[StepMetrics, EdgeCandidates]:
+def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetrics:
     """Metrics of the query agents in ``state``.
 
     Args:
         state: current state.
         query: [B, Q] int64 agent slots.
         route: their logged routes (``build_route``).
-        candidates: road-edge candidates of the query agents from the previous call (built
-            here when None); the off-road distance is exact either way.
-
-    Returns:
-        (metrics, candidates for the next call).
     """
     if route.near_limit is None:
         route = dataclasses.replace(route, **_query_fields(state, query))
@@ -226,16 +213,8 @@ def step_metrics(
     coll = collided_with_others(
         query, pose, size, state.pose, all_size, state.valid, route.near_limit, trig, gap
     )
-    if candidates is None:
-        candidates = EdgeCandidates.build(pose, state.road_edges)
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
-    stale = None
-    if torch.compiler.is_compiling():  # one graph: the refresh is the caller's (see above)
-        off_d, stale = candidate_offroad_distance(candidates, pose, corners, route.radius)
-    else:
-        off_d, candidates = box_offroad_distance(
-            pose, size, state.road_edges, candidates, corners, route.radius
-        )
+    off_d, stale = box_offroad_distance(corners, state.road_edges)
     log_valid, log_xy = _log_at(route, state.step)
     xy = pose[..., :2]
     log_gap = torch.linalg.vector_norm(xy - log_xy, dim=-1) * log_valid
@@ -248,9 +227,9 @@ def step_metrics(
         log_divergence=log_gap,
         log_valid=log_valid,
         agent_distance=gap,
-        offroad_stale=stale,
+        offroad_stale=stale if torch.compiler.is_compiling() else None,
     )
-    return metrics, candidates
+    return metrics
 
 
 def _log_at(route: Route, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -10,9 +10,9 @@ twice the env steps/s on one CPU thread (``bench/env_step.py`` prints both).
 A compiled graph cannot branch on data, so three eager shortcuts are not taken inside it (each
 checks ``torch.compiler.is_compiling()``): the batch-of-one paths that read the step as a
 Python number index instead, the collision test does not stop early when nobody is near, and
-the road-edge candidates are not refreshed. The step reports ``StepMetrics.offroad_stale``
-instead, and ``StepFunction`` redoes such a step eagerly, which refreshes them (a few steps
-per episode).
+the box corners the road-edge grid cannot vouch for are not recomputed over every segment.
+The step reports them in ``StepMetrics.offroad_stale`` instead, and ``StepFunction`` redoes
+such a step eagerly (rare: a corner far from the map, or in a cell crowded with edges).
 
 Compiled results equal the eager ones up to float rounding (inductor fuses and reorders
 arithmetic: observations differ by ~1e-7), so ``compile=True`` gives up ``TrafficEnv``'s
@@ -31,7 +31,6 @@ from tbsim_env.config import EnvConfig
 from tbsim_env.env.agent_metrics import Route
 from tbsim_env.env.transition import Transition, advance
 from tbsim_env.observation import History, MapContext, ObsConfig, observe, push_history
-from tbsim_env.sim.offroad import EdgeCandidates
 from tbsim_env.sim.state import SimState
 
 
@@ -54,7 +53,6 @@ def advance_and_observe(
     action: torch.Tensor,
     query: torch.Tensor,
     route: Route,
-    candidates: EdgeCandidates | None,
     progress: torch.Tensor,
     goal_reached: torch.Tensor,
     has_goal: torch.Tensor,
@@ -74,7 +72,7 @@ def advance_and_observe(
         obs_config: observation sizes.
         agent_static: ``agent_static_features`` of the batch.
     """
-    tr = advance(state, action, query, route, candidates, progress, goal_reached, has_goal, config)
+    tr = advance(state, action, query, route, progress, goal_reached, has_goal, config)
     # Removing terminated agents leaves every pose as step_metrics saw it, so the agent
     # distances of the metrics serve the observations.
     history = push_history(history, tr.state)
@@ -94,8 +92,8 @@ class StepFunction:
     """``advance_and_observe``, eager or compiled with ``torch.compile``.
 
     Attributes:
-        eager_redos: compiled steps redone eagerly because the road-edge candidates went
-            stale (see the module docstring).
+        eager_redos: compiled steps redone eagerly because the road-edge grid could not
+            vouch for a box corner (see the module docstring).
     """
 
     def __init__(self, compile: bool = False) -> None:

@@ -56,7 +56,6 @@ from tbsim_env.observation import (
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.horizon import episode_scenario
-from tbsim_env.sim.offroad import EdgeCandidates
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import torch_threads
 
@@ -240,7 +239,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
                     self._act_spaces[name] = gym.spaces.Box(-hi, hi, dtype=np.float32)
         self.agents: list[str] = []
         self._cache: dict[int, tuple[SimState, MapContext]] = {}
-        self._route_cache: dict[int, tuple[Route, EdgeCandidates | None]] = {}
+        self._route_cache: dict[int, Route] = {}
         self._start_cache: dict[int, tuple] = {}
         self._episode = -1
         self.np_random, _ = gym.utils.seeding.np_random(None)
@@ -335,8 +334,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
             else None
         )
         if k not in self._route_cache:
-            self._route_cache[k] = (build_route(self.state_, self._ext_slots), None)
-        self._route, self._edge_cache = self._route_cache[k]
+            self._route_cache[k] = build_route(self.state_, self._ext_slots)
+        self._route = self._route_cache[k]
         self._end = self.config.last_step
         self.agents = list(self._ext_names)
         self._action_rows = {n: int(ext[j]) for n, j in self._slot_of.items()}
@@ -352,7 +351,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         # alone is computed once (the returned arrays and dicts are copies).
         if k not in self._start_cache:
             self._start_cache[k] = self._start(k)
-        history, static, self._edge_cache, progress, obs, infos = self._start_cache[k]
+        history, static, progress, obs, infos = self._start_cache[k]
         self._history: History = history
         self._agent_static = static
         self._progress = progress.clone()
@@ -360,16 +359,15 @@ class TrafficEnv(ParallelEnv, EzPickle):
         return obs, {a: dict(info) for a, info in infos.items()}
 
     def _start(self, k: int) -> tuple:
-        """History, static features, road-edge cache, progress, observations and infos of the
+        """History, static features, progress, observations and infos of the
         first state of scenario ``k`` (set up by ``_reset``)."""
         self._history = init_history(self.state_, self.obs_config.history)
         self._agent_static = agent_static_features(self.state_)
-        metrics, edges = step_metrics(self.state_, self._ext_slots, self._route, self._edge_cache)
-        self._route_cache[k] = (self._route, self._route_cache[k][1] or edges)
+        metrics = step_metrics(self.state_, self._ext_slots, self._route)
         obs = self._observations(self.agents, metrics.agent_distance)
         columns, _, _ = self._info_columns(metrics)
         infos = {a: {c: v[self._slot_of[a]] for c, v in columns.items()} for a in self.agents}
-        return self._history, self._agent_static, edges, metrics.progress, obs, infos
+        return self._history, self._agent_static, metrics.progress, obs, infos
 
     # ------------------------------------------------------------------ step
     def _action_tensor(self, actions: dict[str, Any]) -> torch.Tensor:
@@ -414,7 +412,6 @@ class TrafficEnv(ParallelEnv, EzPickle):
             action,
             self._ext_slots,
             self._route,
-            self._edge_cache,
             self._progress,
             self._goal_reached,
             self._has_goal,
@@ -426,7 +423,6 @@ class TrafficEnv(ParallelEnv, EzPickle):
         )
         tr = fused.transition
         metrics, outcome = tr.metrics, tr.outcome
-        self._edge_cache = tr.candidates
         self._progress = outcome.progress_best
         self._goal_reached = tr.goal_reached
         self.state_ = tr.state

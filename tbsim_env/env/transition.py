@@ -21,7 +21,6 @@ from tbsim_env.config import EnvConfig
 from tbsim_env.env.agent_metrics import Route, StepMetrics, step_metrics
 from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
 from tbsim_env.sim import core
-from tbsim_env.sim.offroad import EdgeCandidates
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange
 
@@ -53,7 +52,6 @@ class Transition:
         outcome: rewards and terminations of the query agents.
         goal_reached: [B, Q] bool, reached before or at this step.
         policy_state: the NPC policy's state after acting (``policy_state`` without NPCs).
-        candidates: road-edge candidates to pass to the next step.
     """
 
     state: SimState
@@ -61,7 +59,6 @@ class Transition:
     outcome: RewardOutcome
     goal_reached: torch.Tensor
     policy_state: Any
-    candidates: EdgeCandidates
 
 
 def transition(
@@ -72,7 +69,6 @@ def transition(
     policy_state: Any,
     generator: torch.Generator,
     route: Route,
-    candidates: EdgeCandidates | None,
     progress: torch.Tensor,
     goal_reached: torch.Tensor,
     has_goal: torch.Tensor,
@@ -88,12 +84,10 @@ def transition(
         query: [B, Q] int64, slots of the externally controlled agents (metrics, rewards).
         policy_state: the NPC policy's state (not read without NPCs).
         generator: random stream of stochastic policies.
-        route, candidates, progress, goal_reached, has_goal, config, active: as ``advance``.
+        route, progress, goal_reached, has_goal, config, active: as ``advance``.
     """
     action, policy_state = npc_actions(state, ext_action, ctrl, policy_state, generator)
-    out = advance(
-        state, action, query, route, candidates, progress, goal_reached, has_goal, config, active
-    )
+    out = advance(state, action, query, route, progress, goal_reached, has_goal, config, active)
     return dataclasses.replace(out, policy_state=policy_state)
 
 
@@ -118,7 +112,6 @@ def advance(
     action: torch.Tensor,
     query: torch.Tensor,
     route: Route,
-    candidates: EdgeCandidates | None,
     progress: torch.Tensor,
     goal_reached: torch.Tensor,
     has_goal: torch.Tensor,
@@ -133,7 +126,6 @@ def advance(
         action: [B, N, 2] actions of every slot (only controlled slots are read).
         query: [B, Q] int64, slots of the externally controlled agents (metrics, rewards).
         route: logged routes of the query agents.
-        candidates: road-edge candidates of the previous step (None: built here).
         progress: [B, Q] m, best progress along the route so far.
         goal_reached: [B, Q] bool, the goal was reached before this step.
         has_goal: [B, Q] bool, the route is longer than the goal radius.
@@ -145,7 +137,7 @@ def advance(
         The transition, with ``policy_state`` None.
     """
     state = core.step(state, action)
-    metrics, candidates = step_metrics(state, query, route, candidates)
+    metrics = step_metrics(state, query, route)
     outcome = reward_and_termination(
         metrics, progress, goal_reached, has_goal, config.reward, config.termination
     )
@@ -159,7 +151,6 @@ def advance(
         outcome=outcome,
         goal_reached=goal_reached | outcome.goal_now,
         policy_state=None,
-        candidates=candidates,
     )
 
 

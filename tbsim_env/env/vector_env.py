@@ -420,7 +420,7 @@ class BatchedTrafficEnv:
             else None
         )
         self._history: History = init_history(self._state, self.obs_config.history)
-        metrics, self._cand = step_metrics(self._state, self._ext, self._route)
+        metrics = step_metrics(self._state, self._ext, self._route)
         self._progress = metrics.progress.clone()
         self._goal_reached = torch.zeros_like(self._qmask)
         self.agent_mask = self._qmask.clone()
@@ -462,8 +462,7 @@ class BatchedTrafficEnv:
                 put_rows(self._policy_state, rows, fresh, strict=False)
         put_rows(self._history, rows, init_history(sub, self.obs_config.history))
         sub_route = take_rows(self._route, rows)
-        metrics, cand = step_metrics(sub, self._ext[rows], sub_route)
-        put_rows(self._cand, rows, cand)
+        metrics = step_metrics(sub, self._ext[rows], sub_route)
         self._progress[rows] = metrics.progress
         self._goal_reached[rows] = False
         self.agent_mask[rows] = self._qmask[rows]
@@ -533,7 +532,6 @@ class BatchedTrafficEnv:
             self._policy_state,
             self._generator,
             self._route,
-            self._cand,
             self._progress,
             self._goal_reached,
             self._has_goal,
@@ -541,7 +539,7 @@ class BatchedTrafficEnv:
             active=active,
         )
         state, out = tr.state, tr.outcome
-        self._policy_state, self._cand = tr.policy_state, tr.candidates
+        self._policy_state = tr.policy_state
         self._progress = out.progress_best
         self._goal_reached = tr.goal_reached
         reward = out.reward * active

@@ -5,12 +5,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import shapely
 import torch
 
 from tbsim_env import constants as C
 from tbsim_env.data.preprocess.scene import scene_origin
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.dynamics import signed_speed
+from tbsim_env.sim.edge_grid import build_edge_grid
 from tbsim_env.sim.state import AgentInfo, LogTrajectory, RoadEdges, SignalLog, SimState
 
 CYCLIC_TOLERANCE_SQ = 1.0
@@ -29,17 +31,31 @@ def _agent_sizes(scenario: Scenario, step: int) -> np.ndarray:
     return t.size[np.arange(t.num_tracks), pick].astype(np.float32)
 
 
+def _simplified(polyline: np.ndarray) -> np.ndarray:
+    """[n', 2] the polyline [n, 2] simplified to within ``EDGE_SIMPLIFY_TOLERANCE`` m
+    (Douglas-Peucker; ends kept): WOMD samples edges every 0.5 m, mostly along straight or
+    gently curved lines, so this keeps about one point in ten."""
+    if len(polyline) < 3:
+        return polyline
+    line = shapely.LineString(polyline)
+    out = shapely.simplify(line, C.EDGE_SIMPLIFY_TOLERANCE, preserve_topology=False)
+    coords = np.asarray(out.coords, np.float64)[:, :2]
+    return coords if len(coords) >= 2 else polyline[[0, -1]]
+
+
 def _road_edge_segments(scenario: Scenario, origin: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Flattened road-edge segments with previous/next links (numpy, unpadded)."""
+    """Flattened road-edge segments with previous/next links (numpy, unpadded), from the
+    simplified polylines (``_simplified``)."""
     m = scenario.road_map
     starts, ends, prevs, nexts = [], [], [], []
     offset = 0
     for k in m.indices_of(C.MapFeatureType.ROAD_EDGE):
-        pl = m.polylines[k][:, :2] - origin
-        n = len(pl) - 1
-        if n < 1:
+        raw = m.polylines[k][:, :2] - origin
+        if len(raw) < 2:
             continue
-        cyclic = float(((pl[0] - pl[-1]) ** 2).sum()) < CYCLIC_TOLERANCE_SQ
+        cyclic = float(((raw[0] - raw[-1]) ** 2).sum()) < CYCLIC_TOLERANCE_SQ
+        pl = _simplified(raw)
+        n = len(pl) - 1
         local = np.arange(n)
         prev = np.where(local > 0, local - 1, n - 1 if cyclic else 0)
         nxt = np.where(local < n - 1, local + 1, 0 if cyclic else n - 1)
@@ -194,6 +210,7 @@ def build_sim_state(
             valid=tt(e_valid),
             prev_index=tt(e_prev),
             next_index=tt(e_next),
+            grid=build_edge_grid([(x[0], x[1]) for x in edges], dev),
         ),
         origin=tt(origins),
     )

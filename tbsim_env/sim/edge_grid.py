@@ -15,38 +15,12 @@ carry or refresh: the cost grows linearly with the agents and does not depend on
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.sim.offroad import signed_distance_to_edges
-from tbsim_env.sim.state import RoadEdges
+from tbsim_env.sim.state import EdgeGrid, RoadEdges
 from tbsim_env.torch_utils import gather_rows
-
-
-@dataclass(frozen=True)
-class EdgeGrid:
-    """Per-cell candidate road-edge segments of B scenarios (padded to the largest grid).
-
-    Attributes:
-        cell: [B, 1, 1] float32, cell size (m).
-        lower: [B, 2] float32, the grid's lower-left corner (m, state frame).
-        shape: [B, 2] int64, cells along x and y (at least 1 each).
-        cells: [B, G, Cc] int64, per cell (x-major: ``ix * shape_y + iy``) the indices of its
-            Cc nearest segments, nearest first; padding entries repeat the last real one.
-        bound: [B, G] float32, distance from the cell centre of the nearest segment not listed
-            (inf when every segment is listed); the exactness test reads it.
-        center: [B, G, 2] float32, cell centres.
-    """
-
-    cell: torch.Tensor
-    lower: torch.Tensor
-    shape: torch.Tensor
-    cells: torch.Tensor
-    bound: torch.Tensor
-    center: torch.Tensor
 
 
 def scene_edge_grid(
@@ -185,14 +159,14 @@ def grid_signed_distance(
     d = dist.gather(-1, local)[..., 0]
     t_best = t.gather(-1, local)[..., 0]
     best = cand.gather(-1, local)[..., 0]  # [B, K]
-    sign = _joint_sign(points, edges, best, t_best)
+    sign = joint_sign(points, edges, best, t_best)
     out = torch.where(edges.valid.any(-1, keepdim=True), sign * d, C.NO_EDGE_DISTANCE)
     centre = gather_rows(grid.center, cell)
     slack = gather_rows(grid.bound, cell) - torch.linalg.vector_norm(points - centre, dim=-1)
     return out, d > slack
 
 
-def _joint_sign(
+def joint_sign(
     points: torch.Tensor, edges: RoadEdges, best: torch.Tensor, t_best: torch.Tensor
 ) -> torch.Tensor:
     """+1 / -1 side of ``points`` [B, K, 2] relative to their nearest segment ``best`` [B, K]
@@ -216,34 +190,10 @@ def _joint_sign(
     return torch.where((t_best > 1) & (nxt != best), with_next, sign)
 
 
-def exact_signed_distance(
-    points: torch.Tensor, edges: RoadEdges, grid: EdgeGrid
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``grid_signed_distance``, with the stale points recomputed over every segment of their
-    scenario: the exact signed distance [B, K] (m), and the stale flags [B, K] as computed.
-
-    The recomputation reads which points are stale, so it runs eagerly; a compiled step calls
-    ``grid_signed_distance`` and reports the flags instead.
-    """
-    out, stale = grid_signed_distance(points, edges, grid)
-    if torch.compiler.is_compiling() or not bool(stale.any()):
-        return out, stale
-    bi, ki = stale.nonzero(as_tuple=True)
-    sub = RoadEdges(
-        start=edges.start[bi],
-        end=edges.end[bi],
-        valid=edges.valid[bi],
-        prev_index=edges.prev_index[bi],
-        next_index=edges.next_index[bi],
-    )
-    exact = signed_distance_to_edges(points[bi, ki][:, None], sub)[:, 0]
-    return out.index_put((bi, ki), exact), stale
-
-
 __all__ = [
     "EdgeGrid",
     "build_edge_grid",
-    "exact_signed_distance",
     "grid_signed_distance",
+    "joint_sign",
     "scene_edge_grid",
 ]

@@ -83,6 +83,30 @@ class SignalLog:
 
 
 @dataclass(frozen=True)
+class EdgeGrid:
+    """Per-cell candidate road-edge segments of B scenarios (``tbsim_env.sim.edge_grid``),
+    padded to the largest grid.
+
+    Attributes:
+        cell: [B, 1, 1] float32, cell size (m).
+        lower: [B, 2] float32, the grid's lower-left corner (m, state frame).
+        shape: [B, 2] int64, cells along x and y (at least 1 each).
+        cells: [B, G, Cc] int64, per cell (x-major: ``ix * shape_y + iy``) the indices of its
+            Cc nearest segments, nearest first; padding entries repeat the last real one.
+        bound: [B, G] float32, distance from the cell centre of the nearest segment not listed
+            (inf when every segment is listed), less a rounding slack.
+        center: [B, G, 2] float32, cell centres.
+    """
+
+    cell: torch.Tensor
+    lower: torch.Tensor
+    shape: torch.Tensor
+    cells: torch.Tensor
+    bound: torch.Tensor
+    center: torch.Tensor
+
+
+@dataclass(frozen=True)
 class RoadEdges:
     """Road-edge segments for off-road checks; the road lies on the LEFT of each segment.
 
@@ -93,6 +117,8 @@ class RoadEdges:
         prev_index: [B, E] int64, index of the previous segment of the same polyline
             (wrapping for closed polylines), or the segment itself when there is none.
         next_index: [B, E] int64, likewise for the next segment.
+        grid: the segments bucketed by a grid for the per-step lookup (None: every query
+            scans every segment).
     """
 
     start: torch.Tensor
@@ -100,6 +126,7 @@ class RoadEdges:
     valid: torch.Tensor
     prev_index: torch.Tensor
     next_index: torch.Tensor
+    grid: EdgeGrid | None = None
 
 
 @dataclass(frozen=True)
