@@ -11,7 +11,9 @@ generated scenes.
     python bench/vector_env.py --npc-policy trafficbots [--npc-checkpoint PATH]
 
 With ``trafficbots`` it also measures the policy on the padded token limits (``trim=False``)
-and prints the speed-up of running on the rows the scenario bank uses.
+and prints the speed-up of running on the rows the scenario bank uses. Each row also gives
+the observation bytes per agent step of its layout (``--obs-layout dense indexed``), and the
+ratio of its batched steps/s to the first row of the same B ("x first").
 """
 
 from __future__ import annotations
@@ -55,8 +57,10 @@ def bench(
     device: str,
     threads: int,
     npc_kwargs: dict | None = None,
-) -> tuple[float, float]:
-    """(agent steps/s, batched env steps/s) over ``steps`` batched steps after a warm-up."""
+    obs_layout: str = "dense",
+) -> tuple[float, float, float]:
+    """(agent steps/s, batched env steps/s, observation bytes per agent step) over ``steps``
+    batched steps after a warm-up."""
     env = BatchedTrafficEnv(
         scenarios,
         batch,
@@ -66,8 +70,12 @@ def bench(
         device=device,
         seed=0,
         torch_threads=threads,
+        obs_layout=obs_layout,
     )
-    env.reset(seed=0)
+    obs, _ = env.reset(seed=0)
+    obs_bytes = sum(v.numel() * v.element_size() for v in obs.values()) / max(
+        1, int(env.agent_mask.sum())
+    )
     zeros = torch.zeros(batch, env.num_agents, 2, device=env.device)
     for _ in range(5):
         env.step(zeros)
@@ -81,7 +89,7 @@ def bench(
     if env.device.type == "cuda":
         torch.cuda.synchronize()
     dt = time.perf_counter() - start
-    return agent_steps / dt, steps / dt
+    return agent_steps / dt, steps / dt, obs_bytes
 
 
 def main() -> None:
@@ -100,24 +108,34 @@ def main() -> None:
     p.add_argument("--steps", type=int, default=200, help="batched steps per measurement")
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads of the env")
     p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--obs-layout",
+        nargs="+",
+        choices=["dense", "indexed"],
+        default=["dense", "indexed"],
+        help="observation layouts to measure (ratio printed against the first)",
+    )
     args = p.parse_args()
     scenarios, label = load(args.scenarios, str(args.data))
     print(
         f"torch {torch.__version__}, device {args.device}, {args.threads} threads, "
         f"controlled={args.controlled}, scenarios: {label}"
     )
-    print(f"{'npc policy':<20} {'B':>4} {'agent steps/s':>14} {'env steps/s':>12} {'x padded':>9}")
+    print(
+        f"{'npc policy':<20} {'obs':<8} {'B':>4} {'agent steps/s':>14} {'env steps/s':>12} "
+        f"{'obs B/agent':>12} {'x first':>8}"
+    )
     for policy in args.npc_policy:
         kwargs = {"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else {}
         # TrafficBots runs on the token rows the bank uses; its padded run is the reference.
-        variants = [(policy, kwargs)]
+        variants = [(policy, kwargs, layout) for layout in args.obs_layout]
         if policy == "trafficbots":
-            variants.append(("trafficbots (padded)", {**kwargs, "trim": False}))
+            variants.append(("trafficbots (padded)", {**kwargs, "trim": False}, "dense"))
         try:
             for b in args.batch_sizes:
                 rates = []
-                for label, kw in variants:
-                    asps, esps = bench(
+                for label, kw, layout in variants:
+                    asps, esps, nbytes = bench(
                         scenarios,
                         b,
                         policy,
@@ -126,10 +144,15 @@ def main() -> None:
                         args.device,
                         args.threads,
                         kw,
+                        layout,
                     )
                     rates.append(esps)
-                    ratio = f"{rates[0] / esps:>9.2f}" if len(rates) > 1 else ""
-                    print(f"{label:<20} {b:>4} {asps:>14,.0f} {esps:>12,.1f} {ratio}", flush=True)
+                    ratio = f"{esps / rates[0]:>8.2f}" if len(rates) > 1 else ""
+                    print(
+                        f"{label:<20} {layout:<8} {b:>4} {asps:>14,.0f} {esps:>12,.1f} "
+                        f"{nbytes:>12,.0f} {ratio}",
+                        flush=True,
+                    )
         except FileNotFoundError as e:  # e.g. TrafficBots without weights: the next policy
             print(f"{policy:<20} skipped: {e}")
 

@@ -404,9 +404,12 @@ def observe_indexed(
     itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
     not_other = state.valid.unsqueeze(1) <= itself
     a_idx, a_top = _nearest(dist, not_other, cfg.num_agents)
-    m_dist, t_dist = torch.linalg.vector_norm(ctx.knn_xy - me_xy, dim=-1).split_with_sizes(
+    # x and y apart (no [B, Q, M + L, 2] difference): the same values, a third of the time.
+    dx = ctx.knn_xy[..., 0] - me_xy[..., 0]  # [B, Q, M + L] (+inf for padding pieces)
+    dy = ctx.knn_xy[..., 1] - me_xy[..., 1]
+    m_dist, t_dist = torch.sqrt(dx * dx + dy * dy).split_with_sizes(
         [ctx.pose.shape[1], ctx.tl_pose.shape[1]], -1
-    )  # [B, Q, M] (+inf for padding), [B, Q, L]
+    )  # [B, Q, M], [B, Q, L]
     m_idx, m_top = _nearest(m_dist, None, cfg.num_map)
     tl_invalid, tl_tokens = _lights_at(ctx, state.step)  # [B, 1, L], [B, L, F]
     t_idx, t_top = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights)

@@ -11,6 +11,7 @@ from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.agent_metrics import Route
 from tbsim_env.env.vector_env import (
+    OBS_INDEXED_KEYS,
     ROUTE_KEY,
     BatchedTrafficEnv,
     put_rows,
@@ -354,3 +355,32 @@ def test_stateful_npc_policy_resets_one_slot_without_touching_the_others(scenes)
         torch.testing.assert_close(oa, ob, rtol=0, atol=1e-4)
         torch.testing.assert_close(ra, rb, rtol=0, atol=1e-6)
     assert venv._policy_state.rollout.hist_pose.shape[0] == 2
+
+
+def test_indexed_layout_densifies_to_the_dense_layout_through_restarts(scenes):
+    kw = dict(controlled="all", npc_policy="constant_velocity", seed=3, route_points=4)
+    dense = BatchedTrafficEnv(scenes, 3, **kw)
+    indexed = BatchedTrafficEnv(scenes, 3, obs_layout="indexed", **kw)
+    d_obs, _ = dense.reset()
+    i_obs, _ = indexed.reset()
+    assert set(i_obs) == set(OBS_INDEXED_KEYS) | {ROUTE_KEY}
+    rng = np.random.default_rng(0)
+    restarts = 0
+    for _ in range(120):
+        got = indexed.densify(i_obs)
+        assert got.keys() == d_obs.keys()
+        for key in d_obs:
+            assert torch.equal(got[key], d_obs[key]), key
+        a = torch.from_numpy(rng.uniform(-4, 4, (3, dense.num_agents, 2)).astype(np.float32))
+        d_obs, d_rew, *_, d_info = dense.step(a)
+        i_obs, i_rew, *_, i_info = indexed.step(a)
+        assert torch.equal(d_rew, i_rew)
+        final = indexed.densify(i_info["final_obs"])
+        for key in d_info["final_obs"]:
+            assert torch.equal(final[key], d_info["final_obs"][key]), key
+        restarts += int(i_info["done"].sum())
+    assert restarts >= 3
+    # Per agent step the indexed layout moves a fraction of the dense bytes.
+    per_dense = sum(v[0, 0].numel() for v in d_obs.values())
+    per_indexed = sum(i_obs[k][0, 0].numel() for k in ("index", "pose", "mask"))
+    assert per_indexed * 10 < per_dense

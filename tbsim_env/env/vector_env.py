@@ -57,12 +57,14 @@ from tbsim_env.env.transition import Controllers, transition
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     History,
+    IndexedObservation,
     ObsConfig,
     agent_static_features,
     build_map_context,
+    densify,
     init_history,
     observation_shapes,
-    observe,
+    observe_indexed,
     push_history,
 )
 from tbsim_env.sim.build import build_sim_state
@@ -70,10 +72,23 @@ from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.geometry import to_local
 from tbsim_env.sim.horizon import episode_scenario
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import torch_threads
+from tbsim_env.torch_utils import gather_rows, torch_threads
 
 ROUTE_KEY = "route"
 """Optional extra observation key: upcoming points of the logged route in the ego frame."""
+
+OBS_INDEXED_KEYS = {
+    "scene": "[B] int64, the slot's scenario: its row of ``map_token_bank``",
+    "agent_tokens": "[B, N, H * 5 + H + 7] float32, every agent slot this step: history in "
+    "its own frame, history mask, attributes (length, width, type one-hot, speed)",
+    "light_tokens": "[B, L, 5] float32, traffic-light state one-hot this step",
+    "ego": "[B, Q] int64, each observer's agent slot (its row of agent_tokens)",
+    "index": "[B, Q, Ka + Km + Kt] int64, the agent slots, map pieces and lights it sees",
+    "pose": "[B, Q, Ka + Km + Kt, 3] float32, their (dx, dy, dyaw) in the observer's frame",
+    "mask": "[B, Q, Ka + Km + Kt] float32, 1 where seen",
+    "observer_mask": "[B, Q] float32, 1 for active observers (all else is zero for others)",
+}
+"""Keys of an ``obs_layout="indexed"`` observation (``observation.IndexedObservation``)."""
 
 
 # ---------------------------------------------------------------------- row helpers
@@ -218,6 +233,11 @@ class BatchedTrafficEnv:
         route_points: if > 0, adds the observation key ``"route"`` [B, Q, R, 2]: the next R
             points of the agent's logged route in its frame (not in ``TrafficEnv``).
         route_spacing: m between route points.
+        obs_layout: ``"dense"`` (default): every observer gets its own copy of every token it
+            sees, the ``TrafficEnv`` keys as [B, Q, ...] float32. ``"indexed"``: each token
+            once, and per observer only which tokens it sees (``OBS_INDEXED_KEYS``): about 15x
+            fewer bytes per agent step; ``densify(obs)`` gives the dense layout from it,
+            equal to what ``"dense"`` returns.
         torch_threads: intra-op threads inside ``reset`` / ``step`` (restored afterwards);
             1 (default) is fastest on a shared CPU (a step is many small tensor operations);
             None leaves torch's setting alone (e.g. on a GPU or large idle CPUs).
@@ -242,6 +262,7 @@ class BatchedTrafficEnv:
         seed: int | None = None,
         route_points: int = 0,
         route_spacing: float = 5.0,
+        obs_layout: str = "dense",
         torch_threads: int | None = 1,
     ) -> None:
         if batch_size < 1:
@@ -258,6 +279,9 @@ class BatchedTrafficEnv:
             kwargs.setdefault("device", str(self.device))
             kwargs.setdefault("trim", True)
         npc = make_policy(npc_policy, **kwargs)
+        if obs_layout not in ("dense", "indexed"):
+            raise ValueError(f"obs_layout must be 'dense' or 'indexed', got {obs_layout!r}")
+        self.obs_layout = obs_layout
         self.route_points = int(route_points)
         self.route_spacing = float(route_spacing)
         self.torch_threads = torch_threads
@@ -584,21 +608,70 @@ class BatchedTrafficEnv:
             state, hist, ctx, ext = self._state, self._history, self._ctx, self._ext
             static, route = self._static, self._route
             mask = self.agent_mask if mask is None else mask
-            progress = self._progress
+            progress, scene = self._progress, self.scenario_index
         else:
             state, hist = take_rows(self._state, rows), take_rows(self._history, rows)
             ctx, ext = take_rows(self._ctx, rows), self._ext[rows]
             static, mask = self._static[rows], self.agent_mask[rows]
             route, progress = take_rows(self._route, rows), self._progress[rows]
-        o = observe(state, hist, ctx, ext, self.obs_config, agent_static=static)
-        if self.route_points:
-            b_idx = torch.arange(state.batch_size, device=self.device)[:, None]
-            pose = state.pose[b_idx, ext]
-            o[ROUTE_KEY] = route_features(
-                route, progress, pose, self.route_points, self.route_spacing
-            )
+            scene = self.scenario_index[rows]
+        ind = observe_indexed(state, hist, ctx, ext, self.obs_config, agent_static=static)
         m = mask.float()
-        return {k: v * m.view(*m.shape, *([1] * (v.dim() - 2))) for k, v in o.items()}
+        extra = {}
+        if self.route_points:
+            pose = gather_rows(state.pose, ext)
+            route_xy = route_features(route, progress, pose, self.route_points, self.route_spacing)
+            extra[ROUTE_KEY] = route_xy * m[..., None, None]
+        if self.obs_layout == "indexed":
+            return {
+                "scene": scene.clone(),
+                "agent_tokens": ind.agent_tokens,
+                "light_tokens": ind.light_tokens,
+                "ego": ind.ego.clone(),
+                "index": ind.index,
+                "pose": ind.pose * m[..., None, None],
+                "mask": ind.mask * m[..., None],
+                "observer_mask": m,
+                **extra,
+            }
+        o = densify(ind, self.obs_config.tokens.piece_segments)
+        o = {k: v * m.view(*m.shape, *([1] * (v.dim() - 2))) for k, v in o.items()}
+        return {**o, **extra}
+
+    def densify(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """The dense layout of an ``obs_layout="indexed"`` observation (``step``'s, ``reset``'s
+        or ``infos["final_obs"]``): [B, Q, ...] float32 per key, equal to what the dense
+        layout returns for the same step.
+
+        Map tokens are gathered from ``map_token_bank`` by ``obs["scene"]``, so a final
+        observation refers to the map of the episode it ended.
+        """
+        if self.obs_layout != "indexed":
+            raise ValueError("densify needs an observation of obs_layout='indexed'")
+        obs_cfg = self.obs_config
+        ind = IndexedObservation(
+            agent_tokens=obs["agent_tokens"],
+            map_tokens=self.map_token_bank[obs["scene"]],
+            light_tokens=obs["light_tokens"],
+            ego=obs["ego"],
+            index=obs["index"],
+            pose=obs["pose"],
+            mask=obs["mask"],
+            sizes=(obs_cfg.num_agents, obs_cfg.num_map, obs_cfg.num_traffic_lights),
+        )
+        m = obs["observer_mask"]
+        o = densify(ind, obs_cfg.tokens.piece_segments)
+        o = {k: v * m.view(*m.shape, *([1] * (v.dim() - 2))) for k, v in o.items()}
+        if ROUTE_KEY in obs:
+            o[ROUTE_KEY] = obs[ROUTE_KEY]
+        return o
+
+    @property
+    def map_token_bank(self) -> torch.Tensor:
+        """[S, M, P * 4 + P + NUM_MAP_CLASSES] float32 map-piece tokens of every scenario of
+        the env (row = ``obs["scene"]``), fixed for the env's life: what the ``"index"``
+        entries of map pieces refer to in an indexed observation. Read-only."""
+        return self._bank.ctx.tokens[..., :-3]
 
     def _infos(self, m: StepMetrics) -> dict[str, Any]:
         return {
@@ -651,6 +724,7 @@ class BatchedTrafficEnv:
 
 
 __all__ = [
+    "OBS_INDEXED_KEYS",
     "ROUTE_KEY",
     "BatchedTrafficEnv",
     "put_rows",
