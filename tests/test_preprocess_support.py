@@ -152,3 +152,7 @@ def assert_tokens_equivariant(tok_a, tok_b, theta: float, atol: float = 2e-3) ->
     np.testing.assert_allclose(tok_b.agent_yaw_rate, tok_a.agent_yaw_rate, atol=atol * 10)
     dyaw = wrap_angle_np(tok_b.agent_yaw.astype(np.float64) - tok_a.agent_yaw - theta)
     np.testing.assert_allclose(np.where(tok_a.agent_valid, dyaw, 0.0), 0.0, atol=atol)
+    # The map box turns with the scene: same bounds in the frame that turned by theta.
+    np.testing.assert_allclose(tok_b.map_boundary, tok_a.map_boundary, atol=atol)
+    dframe = wrap_angle_np(float(tok_b.frame_yaw) - float(tok_a.frame_yaw) - theta)
+    assert abs(dframe) <= atol, ("frame_yaw", float(tok_a.frame_yaw), float(tok_b.frame_yaw))

@@ -27,7 +27,8 @@ class TokenBatch:
         mp_pose: [B, M, P, 3] (x m, y m, segment heading rad) per node.
         mp_valid: [B, M, P] bool.
         mp_cls: [B, M] int64 ``MapClass``, -1 padding.
-        mp_boundary: [B, 4] (x_min, x_max, y_min, y_max) m.
+        mp_boundary: [B, 5] the map's box: (x_min, x_max, y_min, y_max) m in the scene frame
+            rotated by the fifth entry, yaw rad (``SceneTokens.frame_yaw``).
         tl_piece: [B, L] int64 map row of the controlled lane piece, -1 padding.
         tl_state: [B, L, T] int64 ``TLState`` (UNKNOWN where invalid).
         tl_valid: [B, L, T] bool.
@@ -200,7 +201,7 @@ def _scene_arrays(t: SceneTokens) -> dict[str, np.ndarray]:
         "mp_pose": mp_pose,
         "mp_valid": map_valid,
         "mp_cls": np.asarray(t.map_class, dtype=np.int64),
-        "mp_boundary": np.asarray(t.map_boundary, dtype=np.float32),
+        "mp_boundary": np.append(t.map_boundary, t.frame_yaw).astype(np.float32),
         "tl_piece": np.asarray(t.tl_piece, dtype=np.int64),
         "tl_state": np.where(tl_valid, t.tl_state, 0).astype(np.int64),
         "tl_valid": tl_valid,

@@ -15,6 +15,7 @@ from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.model import RolloutContext, TrafficBots
 from tbsim_env import constants as C
 from tbsim_env.sim.dynamics import unicycle_step
+from tbsim_env.sim.geometry import rotate
 
 
 @dataclass(frozen=True)
@@ -41,13 +42,15 @@ class Trajectory:
 
 
 def outside_boundary(xy: torch.Tensor, boundary: torch.Tensor) -> torch.Tensor:
-    """[B, N, 2] positions outside [B, 4] (x_min, x_max, y_min, y_max) -> [B, N] bool."""
+    """[B, N, 2] positions outside the box [B, 5] -> [B, N] bool.
+
+    The box is (x_min, x_max, y_min, y_max) in the frame rotated by its fifth entry (yaw,
+    ``TokenBatch.mp_boundary``): the spec's scene frame, so the test turns with the scene.
+    """
     b = boundary[:, None]
-    return (
-        (xy[..., 0] < b[..., 0])
-        | (xy[..., 0] > b[..., 1])
-        | ((xy[..., 1] < b[..., 2]) | (xy[..., 1] > b[..., 3]))
-    )
+    local = rotate(xy, -b[..., 4])
+    x, y = local[..., 0], local[..., 1]
+    return (x < b[..., 0]) | (x > b[..., 1]) | (y < b[..., 2]) | (y > b[..., 3])
 
 
 def rollout(

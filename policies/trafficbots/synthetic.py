@@ -146,6 +146,7 @@ def make_synthetic_tokens(
     return SceneTokens(
         scenario_id=f"synthetic-{seed}",
         origin=np.zeros(2),
+        frame_yaw=np.zeros(()),
         map_pos=map_pos,
         map_dir=map_dir,
         map_valid=map_valid,

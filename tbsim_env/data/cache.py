@@ -45,6 +45,9 @@ from tbsim_env.data.tokens import SceneTokens
 FORMAT = "tbsim-tokens-v1"
 _ARRAY_FIELDS = tuple(f.name for f in dataclasses.fields(SceneTokens) if f.name != "scenario_id")
 _GENERATED = re.compile(r"^generated:(?P<layouts>[a-z_,]+):(?P<start>\d+)-(?P<stop>\d+)$")
+_ADDED_FIELDS = {"frame_yaw": np.zeros((), np.float64)}
+"""Fields that shards written before them lack, with the value that keeps such a shard's
+meaning (``frame_yaw`` 0: its ``map_boundary`` is axis-aligned in the token frame)."""
 
 
 class CacheError(ValueError):
@@ -71,15 +74,25 @@ def read_shard(path: str | Path) -> list[SceneTokens]:
             if meta.get("format") != FORMAT:
                 raise CacheError(f"{path}: not a {FORMAT} shard (metadata {meta.get('format')!r})")
             ids = json.loads(meta["scenario_ids"])
+            keys = set(f.keys())
             out = []
             for i, sid in enumerate(ids):
-                fields = {name: f.get_tensor(f"{i}.{name}") for name in _ARRAY_FIELDS}
+                fields = {name: _read_field(f, keys, f"{i}.{name}") for name in _ARRAY_FIELDS}
                 out.append(SceneTokens(scenario_id=sid, **fields))
             return out
     except CacheError:
         raise
     except Exception as err:  # safetensors raises several exception types on damaged files
         raise CacheError(f"{path}: cannot read shard: {err}") from err
+
+
+def _read_field(f, keys: set[str], key: str) -> np.ndarray:
+    """Array ``key`` ("{scene}.{field}") of an open shard; the default of a field that older
+    shards lack (``_ADDED_FIELDS``) where it is absent."""
+    name = key.split(".", 1)[1]
+    if key not in keys and name in _ADDED_FIELDS:
+        return _ADDED_FIELDS[name].copy()
+    return f.get_tensor(key)
 
 
 def parse_generated(spec: str) -> list[tuple[str, int]]:

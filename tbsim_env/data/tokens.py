@@ -7,7 +7,9 @@ padded to the limits of a ``TokenConfig`` with ``valid`` masks beside them.
 Frame: positions are in the scenario frame shifted by ``origin`` (the SDC xy at the current
 step), *not rotated*, so float32 keeps centimetre precision. Add ``origin`` back to get the
 file's coordinates. Everything the model computes is pairwise-relative, so the absence of a
-rotation does not matter.
+rotation does not matter, except for the spec's axis-aligned map box: ``map_boundary`` is
+axis-aligned in the spec's scene frame, the token frame rotated by ``frame_yaw`` (the SDC's
+heading at the current step), so that it turns with the scene.
 
 Shapes: M = max_map_pieces, P = piece_segments (20), L = max_traffic_lights,
 N = max_agents, T = number of steps (91 for WOMD).
@@ -27,12 +29,15 @@ class SceneTokens:
     Attributes:
         scenario_id: the scenario's id.
         origin: [2] float64, xy subtracted from every position (metres, file frame).
+        frame_yaw: [] float64, yaw (rad) of the spec's scene frame (x along the SDC's heading
+            at the current step) in the token frame; ``map_boundary`` is axis-aligned in it.
         map_pos: [M, P, 3] float32, start point of each segment (node) of each piece.
         map_dir: [M, P, 3] float32, segment vector p_{k+1} - p_k (not normalised, ~1 m).
         map_valid: [M, P] bool, node validity.
         map_class: [M] int64, ``MapClass`` value, -1 for padding.
         map_feature_id: [M] int64, source ``MapFeature.id``, -1 for padding.
-        map_boundary: [4] float32, (x_min, x_max, y_min, y_max) over valid nodes.
+        map_boundary: [4] float32, (x_min, x_max, y_min, y_max) over valid nodes, in the
+            token frame rotated by ``frame_yaw`` (metres).
         tl_piece: [L] int64, row in the map arrays of the controlled lane piece, -1 padding.
         tl_state: [L, T] int64, ``TLState`` per step (UNKNOWN where not valid).
         tl_valid: [L, T] bool.
@@ -53,6 +58,7 @@ class SceneTokens:
 
     scenario_id: str
     origin: np.ndarray
+    frame_yaw: np.ndarray
     map_pos: np.ndarray
     map_dir: np.ndarray
     map_valid: np.ndarray

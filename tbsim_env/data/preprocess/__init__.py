@@ -22,7 +22,12 @@ from tbsim_env.data.preprocess.agents import (
 from tbsim_env.data.preprocess.destination import Goals, destination_labels, last_valid_goals
 from tbsim_env.data.preprocess.map_filter import filter_map_pieces
 from tbsim_env.data.preprocess.map_pieces import MapPieces, build_map_pieces, feature_classes
-from tbsim_env.data.preprocess.scene import preprocess_scenario, scenario_rng, scene_origin
+from tbsim_env.data.preprocess.scene import (
+    preprocess_scenario,
+    scenario_rng,
+    scene_origin,
+    scene_yaw,
+)
 from tbsim_env.data.preprocess.selection import select_agents
 from tbsim_env.data.preprocess.traffic_lights import (
     TrafficLightTokens,
@@ -49,6 +54,7 @@ __all__ = [
     "preprocess_scenario",
     "scenario_rng",
     "scene_origin",
+    "scene_yaw",
     "select_agents",
     "signed_speed",
 ]

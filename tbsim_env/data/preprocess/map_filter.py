@@ -64,32 +64,50 @@ def prune_by_distance(
     return keep
 
 
-def box_filter(pieces: MapPieces, relevant_positions: np.ndarray) -> np.ndarray:
+def rotate_xy(points: np.ndarray, yaw: float) -> np.ndarray:
+    """``points`` [..., D >= 2] with x, y rotated by ``yaw`` (rad, counter-clockwise) about
+    (0, 0); other columns kept. A float64 copy."""
+    out = np.array(points, np.float64, copy=True)
+    c, s = np.cos(yaw), np.sin(yaw)
+    out[..., 0] = c * points[..., 0] - s * points[..., 1]
+    out[..., 1] = s * points[..., 0] + c * points[..., 1]
+    return out
+
+
+def box_filter(
+    pieces: MapPieces, relevant_positions: np.ndarray, frame_yaw: float = 0.0
+) -> np.ndarray:
     """[K] bool: pieces inside the enlarged bounding box of the relevant positions.
 
     Each of the six bounds is tested separately with "some valid node" (spec 1.6 step 2); the
-    margin is max(extent, 500 m) in x and y and max(extent, 6 m) in z.
+    margin is max(extent, 500 m) in x and y and max(extent, 6 m) in z. The box is axis-aligned
+    in the spec's scene frame (x along ``frame_yaw``), not in the token frame, so that it
+    does not depend on the orientation of the file's world frame.
 
     Args:
         pieces: K pieces.
         relevant_positions: [R, 3] float64, R >= 1, same frame as the pieces.
+        frame_yaw: yaw (rad) of the box's x-axis in the pieces' frame.
     """
-    lo = relevant_positions.min(axis=0)
-    hi = relevant_positions.max(axis=0)
+    rel = rotate_xy(relevant_positions, -frame_yaw)
+    pos = rotate_xy(pieces.pos, -frame_yaw)
+    lo = rel.min(axis=0)
+    hi = rel.max(axis=0)
     floor = np.array([spec.BOX_MIN_EXTENT_XY, spec.BOX_MIN_EXTENT_XY, spec.BOX_MIN_EXTENT_Z])
     margin = np.maximum(hi - lo, floor)
     valid = pieces.valid[..., None]
-    above = (valid & (pieces.pos > lo - margin)).any(axis=1)
-    below = (valid & (pieces.pos < hi + margin)).any(axis=1)
+    above = (valid & (pos > lo - margin)).any(axis=1)
+    below = (valid & (pos < hi + margin)).any(axis=1)
     return (above & below).all(axis=1)
 
 
 def filter_map_pieces(
-    pieces: MapPieces, relevant_positions: np.ndarray, cfg: TokenConfig
+    pieces: MapPieces, relevant_positions: np.ndarray, cfg: TokenConfig, frame_yaw: float = 0.0
 ) -> np.ndarray:
     """Rows of the pieces to keep, in their original order (spec 1.6 map steps 2-4).
 
-    1. Box filter around the relevant positions, undone if fewer than 10 pieces survive.
+    1. Box filter around the relevant positions (axis-aligned in the scene frame of
+       ``frame_yaw``), undone if fewer than 10 pieces survive.
     2. Drop pieces with <= 3 valid nodes.
     3. While more than ``cfg.max_map_pieces`` remain: distance pruning on the 3-D distance of
        the first and last node to the relevant positions, r = 500 m halved per pass.
@@ -100,13 +118,15 @@ def filter_map_pieces(
             same frame as the pieces. With R = 0 the box filter is skipped and pruning keeps
             the first pieces in index order.
         cfg: ``max_map_pieces``.
+        frame_yaw: yaw (rad) of the spec's scene frame in the pieces' frame (the SDC's
+            heading, ``scene_yaw``); only the box filter depends on it.
 
     Returns:
         [k] int64 sorted row indices, k <= cfg.max_map_pieces.
     """
     keep = np.ones(pieces.num_pieces, bool)
     if relevant_positions.shape[0] > 0 and pieces.num_pieces > 0:
-        boxed = box_filter(pieces, relevant_positions)
+        boxed = box_filter(pieces, relevant_positions, frame_yaw)
         if boxed.sum() >= spec.BOX_MIN_SURVIVORS:
             keep = boxed
     keep &= pieces.valid.sum(axis=1) >= spec.MIN_VALID_NODES

@@ -1,6 +1,6 @@
 """``preprocess_scenario``: a ``Scenario`` -> padded ``SceneTokens`` (spec section 1).
 
-Order of the steps: frame origin, map pieces, map filtering, traffic-light tokens, agent
+Order of the steps: frame origin and yaw, map pieces, map filtering, traffic-light tokens, agent
 selection, gap filling, destinations, padding to the ``TokenConfig`` limits.
 """
 
@@ -13,7 +13,7 @@ import numpy as np
 from tbsim_env.config import TokenConfig
 from tbsim_env.data.preprocess.agents import AgentAttributes, agent_attributes
 from tbsim_env.data.preprocess.destination import destination_labels, last_valid_goals
-from tbsim_env.data.preprocess.map_filter import filter_map_pieces
+from tbsim_env.data.preprocess.map_filter import filter_map_pieces, rotate_xy
 from tbsim_env.data.preprocess.map_pieces import MapPieces, build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions, select_agents
 from tbsim_env.data.preprocess.traffic_lights import TrafficLightTokens, attach_traffic_lights
@@ -27,21 +27,35 @@ def scenario_rng(scenario_id: str) -> np.random.Generator:
     return np.random.default_rng(int.from_bytes(digest[:8], "little"))
 
 
-def scene_origin(scenario: Scenario) -> np.ndarray:
-    """[2] float64 SDC xy at the current step.
-
-    If the SDC is not valid then, its last valid history position is used, else its first
-    valid position, else (0, 0) (not in the spec, which assumes a valid SDC).
-    """
+def _frame_step(scenario: Scenario) -> int | None:
+    """Step of the SDC state that places the scene frame: the current step; if the SDC is not
+    valid then, its last valid history step, else its first valid step (not in the spec, which
+    assumes a valid SDC); None if the SDC is never valid."""
     valid = scenario.tracks.valid[scenario.sdc_index]
-    xy = scenario.tracks.xyz[scenario.sdc_index, :, :2].astype(np.float64)
     if valid[scenario.current_index]:
-        return xy[scenario.current_index].copy()
+        return scenario.current_index
     history = np.flatnonzero(valid[: scenario.current_index + 1])
     if history.shape[0]:
-        return xy[history[-1]].copy()
+        return int(history[-1])
     anywhere = np.flatnonzero(valid)
-    return xy[anywhere[0]].copy() if anywhere.shape[0] else np.zeros(2)
+    return int(anywhere[0]) if anywhere.shape[0] else None
+
+
+def scene_origin(scenario: Scenario) -> np.ndarray:
+    """[2] float64 SDC xy at the current step (see ``_frame_step``), (0, 0) without any."""
+    step = _frame_step(scenario)
+    if step is None:
+        return np.zeros(2)
+    return scenario.tracks.xyz[scenario.sdc_index, step, :2].astype(np.float64)
+
+
+def scene_yaw(scenario: Scenario) -> float:
+    """SDC heading (rad) at the step of ``scene_origin``, the x-axis of the spec's scene frame
+    (1.5); 0 without any valid SDC state."""
+    step = _frame_step(scenario)
+    if step is None:
+        return 0.0
+    return float(scenario.tracks.heading[scenario.sdc_index, step])
 
 
 def _pad(array: np.ndarray, size: int, fill: float | int | bool, dtype: type) -> np.ndarray:
@@ -51,9 +65,17 @@ def _pad(array: np.ndarray, size: int, fill: float | int | bool, dtype: type) ->
     return out
 
 
-def map_boundary(pieces: MapPieces, agents: AgentAttributes, current_index: int) -> np.ndarray:
+def map_boundary(
+    pieces: MapPieces, agents: AgentAttributes, current_index: int, frame_yaw: float = 0.0
+) -> np.ndarray:
     """[4] (x_min, x_max, y_min, y_max) over valid map nodes; without map, over the agents'
-    valid history positions (spec 1.6); zeros if neither exists."""
+    valid history positions (spec 1.6); zeros if neither exists.
+
+    The box is axis-aligned in the spec's scene frame: the token frame rotated by
+    ``frame_yaw`` (rad). Tokens are not rotated into that frame (a deviation, see
+    ``preprocess_scenario``), but the box is, so that which agents leave the map does not
+    depend on the orientation of the file's world frame.
+    """
     if pieces.valid.any():
         xy = pieces.pos[pieces.valid][:, :2]
     else:
@@ -61,6 +83,7 @@ def map_boundary(pieces: MapPieces, agents: AgentAttributes, current_index: int)
         xy = agents.states.pos[:, : current_index + 1][hist][:, :2]
     if xy.shape[0] == 0:
         return np.zeros(4)
+    xy = rotate_xy(xy, -frame_yaw)
     return np.array([xy[:, 0].min(), xy[:, 0].max(), xy[:, 1].min(), xy[:, 1].max()])
 
 
@@ -70,7 +93,10 @@ def preprocess_scenario(
     """Preprocess one scenario into fixed-size token arrays.
 
     Deliberate deviations from the reference (spec 1.5): positions are shifted by the SDC xy
-    at the current step but not rotated, and no random frame augmentation is applied.
+    at the current step but not rotated, and no random frame augmentation is applied. The
+    steps of the spec that depend on the frame's orientation (the map box filter and
+    ``map_boundary``) still use the spec's scene frame, x along the SDC's heading
+    (``frame_yaw``), so the tokens of a rotated scene are the rotated tokens.
 
     Args:
         scenario: the scenario, file coordinates.
@@ -86,7 +112,7 @@ def preprocess_scenario(
     """
     cfg = cfg if cfg is not None else TokenConfig()
     rng = rng if rng is not None else scenario_rng(scenario.scenario_id)
-    origin = scene_origin(scenario)
+    origin, frame_yaw = scene_origin(scenario), scene_yaw(scenario)
     history = np.zeros_like(scenario.tracks.valid)
     # Spec 1.6 step 1: map reference points are history positions in every split.
     history[:, : scenario.current_index + 1] = scenario.tracks.valid[
@@ -95,19 +121,20 @@ def preprocess_scenario(
     reference = relevant_positions(scenario, origin, history)
 
     all_pieces = build_map_pieces(scenario.road_map, origin, cfg)
-    pieces = all_pieces.take(filter_map_pieces(all_pieces, reference, cfg))
+    pieces = all_pieces.take(filter_map_pieces(all_pieces, reference, cfg, frame_yaw))
     lights = attach_traffic_lights(scenario.signals, pieces, reference, cfg)
     agents = agent_attributes(scenario.tracks, select_agents(scenario, cfg, pieces), origin)
     states = agents.states
     goals = last_valid_goals(states.valid, states.pos, states.yaw, states.speed)
     dest = destination_labels(agents.object_type, goals, pieces, scenario.road_map, rng)
-    return _assemble(scenario, cfg, origin, pieces, lights, agents, dest)
+    return _assemble(scenario, cfg, origin, frame_yaw, pieces, lights, agents, dest)
 
 
 def _assemble(
     scenario: Scenario,
     cfg: TokenConfig,
     origin: np.ndarray,
+    frame_yaw: float,
     pieces: MapPieces,
     lights: TrafficLightTokens,
     agents: AgentAttributes,
@@ -121,12 +148,13 @@ def _assemble(
     return SceneTokens(
         scenario_id=scenario.scenario_id,
         origin=np.asarray(origin, np.float64),
+        frame_yaw=np.asarray(frame_yaw, np.float64),
         map_pos=_pad(pieces.pos, m, 0.0, f32),
         map_dir=_pad(pieces.dir, m, 0.0, f32),
         map_valid=_pad(pieces.valid, m, False, bool),
         map_class=_pad(pieces.map_class, m, -1, np.int64),
         map_feature_id=_pad(pieces.feature_id, m, -1, np.int64),
-        map_boundary=map_boundary(pieces, agents, scenario.current_index).astype(f32),
+        map_boundary=map_boundary(pieces, agents, scenario.current_index, frame_yaw).astype(f32),
         tl_piece=_pad(lights.piece, tl, -1, np.int64),
         tl_state=_pad(lights.state, tl, 0, np.int64),
         tl_valid=_pad(lights.valid, tl, False, bool),
