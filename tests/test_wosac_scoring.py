@@ -261,3 +261,22 @@ def test_float64_rollouts_and_explicit_device(synthetic):
     a = score_scenario(synthetic, replay, "wosac2024")
     b = score_scenario(synthetic, as64, "wosac2024", device="cpu")
     assert dataclasses.asdict(a) == dataclasses.asdict(b)
+
+
+def test_a_scene_logged_beyond_the_rollouts_is_scored_on_their_steps(womd_dir):
+    """WOMD's 20 s scenes (ScenarioNet pickles of ~199 steps): WOSAC rollouts cover the 80
+    steps after the current one, and the scene is scored on its first 91, as the 9 s ones."""
+    from tbsim_env.data import load_scenarios
+    from tbsim_env.evaluation import evaluate_policy
+
+    path = womd_dir / "scenarionet_more" / "scenestreamer" / "sd_waymo_v1.2_a2e36ea909d28a37.pkl"
+    long_scene = load_scenarios(path)[0]
+    assert long_scene.num_steps > 150
+    scores, kept = evaluate_policy(
+        [long_scene], "constant_velocity", num_rollouts=4, keep_rollouts=True
+    )
+    s = scores[0]
+    assert kept[0].num_steps == 80
+    assert 0.0 < s.realism_meta_metric < 1.0 and math.isfinite(s.min_average_displacement_error)
+    cut = long_scene.on_time_grid(long_scene.current_index + 81)
+    assert dataclasses.asdict(s) == dataclasses.asdict(score_scenario(cut, kept[0]))

@@ -239,6 +239,13 @@ class ScenarioFeatures:
     log_valid: torch.Tensor
 
 
+def _scored(scenario: Scenario, rollouts: Rollouts) -> Scenario:
+    """The scenario as far as the rollouts reach: a scene logged beyond them (WOMD's 20 s
+    scenes) is scored on its first ``current + 1 + steps`` steps, as WOSAC scores 9 s."""
+    end = scenario.current_index + 1 + rollouts.num_steps
+    return scenario.on_time_grid(end) if scenario.num_steps > end else scenario
+
+
 def _trajectories(
     scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None
 ) -> tuple[MetricObjects, ObjectTrajectories, ObjectTrajectories]:
@@ -277,6 +284,7 @@ def scenario_features(
         MissingFutureError: the log does not cover the rollouts' steps (a history-only scene).
         MapFeatureError: the scenario has no road edge.
     """
+    scenario = _scored(scenario, rollouts)
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     edges = road_edge_segments(scenario, log.x.device)
@@ -308,6 +316,7 @@ def offroad_indication(
     Raises:
         ScoringError, MissingFutureError, MapFeatureError: as ``score_scenario``.
     """
+    scenario = _scored(scenario, rollouts)
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     dist = distance_to_road_edge(
@@ -325,7 +334,8 @@ def score_scenario(
     """WOSAC scores of simulated rollouts against the logged scenario.
 
     Args:
-        scenario: the logged scenario (WOMD: 91 steps, current index 10).
+        scenario: the logged scenario (WOMD: 91 steps, current index 10; a longer log is
+            scored over the rollouts' steps only).
         rollouts: R simulated futures of every sim agent (extra objects are ignored; validate
             a submission first with ``validate_scenario_rollouts`` for the server's checks).
         version: "wosac2025" (default) or "wosac2024".
