@@ -39,8 +39,7 @@ from tbsim_env.data.conversion import signals_from_entries
 from tbsim_env.data.gpudrive import map_element_to_feature
 from tbsim_env.data.protos import tf_example_pb2
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
-from tbsim_env.data.tfrecord import iter_records
-from tbsim_env.data.womd import wrap_heading_f32
+from tbsim_env.data.womd import iter_parsed_records, wrap_heading_f32
 from tbsim_env.errors import ScenarioFormatError
 
 PathLike = str | os.PathLike
@@ -390,19 +389,4 @@ def read_tf_examples(
         ScenarioFormatError: bad record (unless ``skip_bad``), or no scenarios in the file.
         FileNotFoundError: no such file.
     """
-    name = os.fspath(path)
-    yielded = bad = 0
-    for index, offset, payload in iter_records(name, verify=verify, skip_bad=skip_bad):
-        try:
-            scenario = parse_tf_example(payload, path=name, record=index, offset=offset)
-        except ScenarioFormatError as err:
-            if not skip_bad:
-                raise
-            warnings.warn(f"{err}; skipping this record", stacklevel=2)
-            bad += 1
-            continue
-        yielded += 1
-        yield scenario
-    if yielded == 0:
-        extra = f" ({bad} bad record(s) skipped)" if bad else ""
-        raise ScenarioFormatError(f"no scenarios in file{extra}", name)
+    return iter_parsed_records(path, parse_tf_example, skip_bad=skip_bad, verify=verify)

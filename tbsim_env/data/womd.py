@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
 from operator import attrgetter
@@ -352,15 +352,32 @@ def read_scenarios(
         ScenarioFormatError: bad record (unless ``skip_bad``), or no scenarios in the file.
         FileNotFoundError: no such file.
     """
+    return iter_parsed_records(path, parse_scenario, skip_bad=skip_bad, verify=verify)
+
+
+def iter_parsed_records(
+    path: PathLike,
+    parse: Callable[..., Scenario],
+    *,
+    skip_bad: bool = False,
+    verify: bool = True,
+) -> Iterator[Scenario]:
+    """Yield ``parse(payload, path=, record=, offset=)`` of every record of a TFRecord file
+    (the one loop of the TFRecord readers: skipping bad records, refusing an empty file).
+
+    Raises:
+        ScenarioFormatError: bad record (unless ``skip_bad``), or no scenarios in the file.
+        FileNotFoundError: no such file.
+    """
     name = os.fspath(path)
     yielded = bad = 0
     for index, offset, payload in iter_records(name, verify=verify, skip_bad=skip_bad):
         try:
-            scenario = parse_scenario(payload, path=name, record=index, offset=offset)
+            scenario = parse(payload, path=name, record=index, offset=offset)
         except ScenarioFormatError as err:
             if not skip_bad:
                 raise
-            warnings.warn(f"{err}; skipping this record", stacklevel=2)
+            warnings.warn(f"{err}; skipping this record", stacklevel=3)
             bad += 1
             continue
         yielded += 1
