@@ -187,5 +187,8 @@ and are recomputed over every segment when its list cannot vouch for them)."""
 EDGE_SIMPLIFY_TOLERANCE = 0.02
 """m, road-edge polylines are simplified (Douglas-Peucker) to within this distance for the
 environment's off-road check (about 10x fewer segments; the WOSAC metric uses them as logged)."""
+OFFROAD_RECOMPUTE_BUDGET = 256
+"""Box corners per step a compiled graph recomputes over every road-edge segment when the grid
+cannot vouch for them (eagerly: all of them). A step with more is redone eagerly."""
 NO_EDGE_DISTANCE = -1.0e10
 """m, off-road distance reported when a scenario has no road edge (always on-road)."""

@@ -32,7 +32,7 @@ from tbsim_env.sim.collision import (
     near_limits,
     pairwise_overlap,
 )
-from tbsim_env.sim.edge_grid import build_edge_grid
+from tbsim_env.sim.edge_grid import build_edge_grid, grid_signed_distance
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import _signed_and_unsigned, grid_exact_signed_distance
 from tbsim_env.sim.state import RoadEdges
@@ -282,9 +282,10 @@ def test_grid_edge_distance_matches_reference(scenes, name):
             moved = pose + torch.randn(pose.shape, generator=gen) * torch.tensor([1.0, 1.0, 0.3])
             corners = box_corners(moved, size[..., 0], size[..., 1])  # [1, K, 4, 2]
             points = corners.reshape(1, -1, 2)
-            got, stale = grid_exact_signed_distance(points, with_grid)
+            got, unresolved = grid_exact_signed_distance(points, with_grid)
             ref, _ = _signed_and_unsigned(points, edges, None)
-            assert torch.equal(got, ref)
+            assert torch.equal(got, ref) and not unresolved.any()
+            _, stale = grid_signed_distance(points, with_grid, grid)
             recomputed[count] = recomputed.get(count, 0) + int(stale.sum())
     assert recomputed[2] > 2 * recomputed[16]
 

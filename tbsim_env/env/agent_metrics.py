@@ -101,10 +101,10 @@ class StepMetrics:
         log_valid: bool, the log has the agent at this step.
         agent_distance: [B, Q, N] m, centre distance to every agent slot (``observe`` of the
             same poses can reuse it); None when not computed.
-        offroad_stale: [B, Q] bool, set only under ``torch.compile``, where the points the
-            road-edge grid cannot vouch for are not recomputed inside the graph: the off-road
-            distance may be wrong where it is True, and the caller must redo the step eagerly
-            (``env.fused``). Eagerly None: the distance is exact.
+        offroad_stale: [B, Q] bool, set only under ``torch.compile``: present agents with a
+            box corner the road-edge grid could not vouch for beyond the graph's recompute
+            budget (``OFFROAD_RECOMPUTE_BUDGET``), whose off-road distance may be wrong; the
+            caller must redo the step eagerly (``env.fused``). Eagerly None: always exact.
     """
 
     collision: torch.Tensor
@@ -227,7 +227,7 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
         log_divergence=log_gap,
         log_valid=log_valid,
         agent_distance=gap,
-        offroad_stale=stale if torch.compiler.is_compiling() else None,
+        offroad_stale=(stale & present) if torch.compiler.is_compiling() else None,
     )
     return metrics
 

@@ -87,21 +87,36 @@ def grid_exact_signed_distance(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Signed road-edge distance of points [B, K, 2] through the edges' grid.
 
-    Eagerly the result is exact: the points the grid cannot vouch for are recomputed over
-    every segment of their scenario. Under ``torch.compile`` (no data-dependent branch) they
-    are only flagged.
+    The points the grid cannot vouch for are recomputed over every segment of their scenario:
+    eagerly all of them; under ``torch.compile`` (no data-dependent shapes) a fixed budget of
+    ``OFFROAD_RECOMPUTE_BUDGET`` points, the stale ones first.
 
     Returns:
-        (signed distance [B, K] m, stale [B, K] bool: the grid could not vouch for the point;
-        recomputed eagerly, possibly wrong in a compiled graph).
+        (signed distance [B, K] m, unresolved [B, K] bool: stale points beyond the budget,
+        whose distance may be wrong; never set eagerly).
     """
     if edges.grid is None:
         out = signed_distance_to_edges(points, edges)
         return out, torch.zeros(out.shape, dtype=torch.bool, device=out.device)
     out, stale = grid_signed_distance(points, edges, edges.grid)
-    if torch.compiler.is_compiling() or not bool(stale.any()):
-        return out, stale
-    bi, ki = stale.nonzero(as_tuple=True)
+    if not torch.compiler.is_compiling():
+        if bool(stale.any()):
+            bi, ki = stale.nonzero(as_tuple=True)
+            out = out.index_put((bi, ki), _recompute(points, edges, bi, ki))
+        return out, torch.zeros_like(stale)
+    k = points.shape[1]
+    flat = stale.reshape(-1)
+    budget = min(C.OFFROAD_RECOMPUTE_BUDGET, flat.numel())
+    pick = torch.topk(flat.to(points.dtype), budget, sorted=False).indices
+    exact = _recompute(points, edges, pick // k, pick % k)
+    out = out.reshape(-1).scatter(0, pick, exact).view_as(out)
+    return out, flat.scatter(0, pick, False).view_as(stale)
+
+
+def _recompute(
+    points: torch.Tensor, edges: RoadEdges, bi: torch.Tensor, ki: torch.Tensor
+) -> torch.Tensor:
+    """[P] signed distance of the points ``(bi, ki)`` [P] over every segment of their row."""
     sub = RoadEdges(
         start=edges.start[bi],
         end=edges.end[bi],
@@ -109,8 +124,7 @@ def grid_exact_signed_distance(
         prev_index=edges.prev_index[bi],
         next_index=edges.next_index[bi],
     )
-    exact = signed_distance_to_edges(points[bi, ki][:, None], sub)[:, 0]
-    return out.index_put((bi, ki), exact), stale
+    return signed_distance_to_edges(points[bi, ki][:, None], sub)[:, 0]
 
 
 def box_offroad_distance(
@@ -123,7 +137,7 @@ def box_offroad_distance(
         edges: road edges of the B scenarios.
 
     Returns:
-        ([B, K] m, stale [B, K] bool: see ``grid_exact_signed_distance``).
+        ([B, K] m, unresolved [B, K] bool: see ``grid_exact_signed_distance``).
     """
     b, k = corners[0].shape[:2]
     points = torch.stack(corners, -1).reshape(b, k * 4, 2)
