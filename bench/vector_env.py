@@ -58,6 +58,7 @@ def bench(
     threads: int,
     npc_kwargs: dict | None = None,
     obs_layout: str = "dense",
+    compile: bool = False,
 ) -> tuple[float, float, float]:
     """(agent steps/s, batched env steps/s, observation bytes per agent step) over ``steps``
     batched steps after a warm-up."""
@@ -71,6 +72,7 @@ def bench(
         seed=0,
         torch_threads=threads,
         obs_layout=obs_layout,
+        compile=compile,
     )
     obs, _ = env.reset(seed=0)
     obs_bytes = sum(v.numel() * v.element_size() for v in obs.values()) / max(
@@ -115,6 +117,11 @@ def main() -> None:
         default=["dense", "indexed"],
         help="observation layouts to measure (ratio printed against the first)",
     )
+    p.add_argument(
+        "--compile",
+        action="store_true",
+        help="also measure each layout with compile=True (one torch.compile graph per step)",
+    )
     args = p.parse_args()
     scenarios, label = load(args.scenarios, str(args.data))
     print(
@@ -128,13 +135,15 @@ def main() -> None:
     for policy in args.npc_policy:
         kwargs = {"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else {}
         # TrafficBots runs on the token rows the bank uses; its padded run is the reference.
-        variants = [(policy, kwargs, layout) for layout in args.obs_layout]
+        variants = [(policy, kwargs, layout, False) for layout in args.obs_layout]
+        if args.compile:
+            variants += [(f"{policy} (compiled)", kwargs, lay, True) for lay in args.obs_layout]
         if policy == "trafficbots":
-            variants.append(("trafficbots (padded)", {**kwargs, "trim": False}, "dense"))
+            variants.append(("trafficbots (padded)", {**kwargs, "trim": False}, "dense", False))
         try:
             for b in args.batch_sizes:
                 rates = []
-                for label, kw, layout in variants:
+                for label, kw, layout, compiled in variants:
                     asps, esps, nbytes = bench(
                         scenarios,
                         b,
@@ -145,6 +154,7 @@ def main() -> None:
                         args.threads,
                         kw,
                         layout,
+                        compiled,
                     )
                     rates.append(esps)
                     ratio = f"{esps / rates[0]:>8.2f}" if len(rates) > 1 else ""

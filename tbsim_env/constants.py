@@ -177,8 +177,9 @@ which generated maps have exactly and rounding would put on either side of an ed
 CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
 
 # Off-road check of the environment (tbsim_env.sim.edge_grid).
-EDGE_GRID_CELL = 4.0
-"""m, cell size of the per-scenario road-edge grid."""
+EDGE_GRID_CELL = 2.0
+"""m, cell size of the per-scenario road-edge grid: about 0.2% of the box corners of real
+scenes fall where a cell's list cannot vouch for them (4 m: 3.5%); 1-2 MB per real scene."""
 EDGE_GRID_CANDIDATES = 16
 """Road-edge segments listed per grid cell (nearest to the cell centre first)."""
 EDGE_GRID_MARGIN = 20.0

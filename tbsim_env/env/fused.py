@@ -30,7 +30,15 @@ import torch
 from tbsim_env.config import EnvConfig
 from tbsim_env.env.agent_metrics import Route
 from tbsim_env.env.transition import Transition, advance
-from tbsim_env.observation import History, MapContext, ObsConfig, observe, push_history
+from tbsim_env.observation import (
+    History,
+    IndexedObservation,
+    MapContext,
+    ObsConfig,
+    observe,
+    observe_indexed,
+    push_history,
+)
 from tbsim_env.sim.state import SimState
 
 
@@ -88,27 +96,68 @@ def advance_and_observe(
     return FusedStep(tr, history, obs)
 
 
+class IndexedStep(NamedTuple):
+    """Result of ``advance_and_observe_indexed``: the transition, the history with the new
+    state appended, and the indexed observation of the query agents."""
+
+    transition: Transition
+    history: History
+    obs: IndexedObservation
+
+
+def advance_and_observe_indexed(
+    state: SimState,
+    action: torch.Tensor,
+    query: torch.Tensor,
+    route: Route,
+    progress: torch.Tensor,
+    goal_reached: torch.Tensor,
+    has_goal: torch.Tensor,
+    config: EnvConfig,
+    history: History,
+    ctx: MapContext,
+    obs_config: ObsConfig,
+    agent_static: torch.Tensor,
+    active: torch.Tensor,
+) -> IndexedStep:
+    """``BatchedTrafficEnv``'s step after the NPC actions: ``advance`` (only ``active`` query
+    agents may leave), the history, and ``observe_indexed`` of the query agents (arguments as
+    ``advance_and_observe``)."""
+    tr = advance(state, action, query, route, progress, goal_reached, has_goal, config, active)
+    history = push_history(history, tr.state)
+    obs = observe_indexed(tr.state, history, ctx, query, obs_config, agent_static)
+    return IndexedStep(tr, history, obs)
+
+
 class StepFunction:
-    """``advance_and_observe``, eager or compiled with ``torch.compile``.
+    """A fused step function (``advance_and_observe`` by default), eager or compiled with
+    ``torch.compile``.
 
     Attributes:
         eager_redos: compiled steps redone eagerly because the road-edge grid could not
-            vouch for a box corner (see the module docstring).
+            vouch for more box corners than the graph recomputes (see the module docstring).
     """
 
-    def __init__(self, compile: bool = False) -> None:
+    def __init__(self, compile: bool = False, fn=advance_and_observe) -> None:
         self.eager_redos = 0
-        self._fn = torch.compile(advance_and_observe, fullgraph=True) if compile else None
+        self._eager = fn
+        self._fn = torch.compile(fn, fullgraph=True) if compile else None
 
-    def __call__(self, *args) -> FusedStep:
-        """``advance_and_observe(*args)``, through the compiled graph when there is one."""
+    def __call__(self, *args):
+        """``fn(*args)``, through the compiled graph when there is one."""
         if self._fn is None:
-            return advance_and_observe(*args)
+            return self._eager(*args)
         out = self._fn(*args)
         if bool(out.transition.metrics.offroad_stale.any()):
             self.eager_redos += 1
-            out = advance_and_observe(*args)
+            out = self._eager(*args)
         return out
 
 
-__all__ = ["FusedStep", "StepFunction", "advance_and_observe"]
+__all__ = [
+    "FusedStep",
+    "IndexedStep",
+    "StepFunction",
+    "advance_and_observe",
+    "advance_and_observe_indexed",
+]

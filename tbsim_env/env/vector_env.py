@@ -47,13 +47,14 @@ from policies.base import Policy, PolicyState
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, goal_mask, step_metrics
+from tbsim_env.env.fused import StepFunction, advance_and_observe_indexed
 from tbsim_env.env.parallel_env import (
     ControlledSpec,
     agent_name,
     controlled_indices,
     resolve_scenarios,
 )
-from tbsim_env.env.transition import Controllers, transition
+from tbsim_env.env.transition import Controllers, npc_actions
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     History,
@@ -65,7 +66,6 @@ from tbsim_env.observation import (
     init_history,
     observation_shapes,
     observe_indexed,
-    push_history,
 )
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
@@ -238,6 +238,10 @@ class BatchedTrafficEnv:
             once, and per observer only which tokens it sees (``OBS_INDEXED_KEYS``): about 15x
             fewer bytes per agent step; ``densify(obs)`` gives the dense layout from it,
             equal to what ``"dense"`` returns.
+        compile: run the step after the NPC actions (dynamics, metrics, rewards, history,
+            observations) as one ``torch.compile`` graph; results equal the eager ones to
+            float rounding. The first step compiles (tens of seconds, a C++ compiler on the
+            CPU), and again once for another batch shape.
         torch_threads: intra-op threads inside ``reset`` / ``step`` (restored afterwards);
             1 (default) is fastest on a shared CPU (a step is many small tensor operations);
             None leaves torch's setting alone (e.g. on a GPU or large idle CPUs).
@@ -263,6 +267,7 @@ class BatchedTrafficEnv:
         route_points: int = 0,
         route_spacing: float = 5.0,
         obs_layout: str = "dense",
+        compile: bool = False,
         torch_threads: int | None = 1,
     ) -> None:
         if batch_size < 1:
@@ -282,6 +287,7 @@ class BatchedTrafficEnv:
         if obs_layout not in ("dense", "indexed"):
             raise ValueError(f"obs_layout must be 'dense' or 'indexed', got {obs_layout!r}")
         self.obs_layout = obs_layout
+        self._step_fn = StepFunction(compile, advance_and_observe_indexed)
         self.route_points = int(route_points)
         self.route_spacing = float(route_spacing)
         self.torch_threads = torch_threads
@@ -548,22 +554,26 @@ class BatchedTrafficEnv:
         ext_action = torch.zeros(*self._state.pose.shape[:2], 2, device=self.device)
         bi, qi = active.nonzero(as_tuple=True)
         ext_action[bi, self._ext[bi, qi]] = act[bi, qi]
-        tr = transition(
+        action, self._policy_state = npc_actions(
+            self._state, ext_action, self._ctrl, self._policy_state, self._generator
+        )
+        fused = self._step_fn(
             self._state,
-            ext_action,
-            self._ctrl,
+            action,
             self._ext,
-            self._policy_state,
-            self._generator,
             self._route,
             self._progress,
             self._goal_reached,
             self._has_goal,
             self.config,
-            active=active,
+            self._history,
+            self._ctx,
+            self.obs_config,
+            self._static,
+            active,
         )
+        tr = fused.transition
         state, out = tr.state, tr.outcome
-        self._policy_state = tr.policy_state
         self._progress = out.progress_best
         self._goal_reached = tr.goal_reached
         reward = out.reward * active
@@ -571,11 +581,13 @@ class BatchedTrafficEnv:
         trunc_slot = state.step >= self._end  # [B]
         trunc = active & trunc_slot[:, None] & ~term
         self._state = state
-        self._history = push_history(self._history, state)
+        self._history = fused.history
         self.agent_mask = active & ~term & ~trunc
         self._ep_return += reward
         self._ep_length += 1
-        obs = self._observe(mask=active)
+        obs = self._package(fused.obs, active, state, self._ext, self._route, self._progress)
+        if self.obs_layout == "indexed":
+            obs["scene"] = self.scenario_index.clone()
         done = ~self.agent_mask.any(-1)  # [B]
         infos = self._infos(tr.metrics)
         infos["active"] = active
@@ -616,6 +628,22 @@ class BatchedTrafficEnv:
             route, progress = take_rows(self._route, rows), self._progress[rows]
             scene = self.scenario_index[rows]
         ind = observe_indexed(state, hist, ctx, ext, self.obs_config, agent_static=static)
+        obs = self._package(ind, mask, state, ext, route, progress)
+        if self.obs_layout == "indexed":
+            obs["scene"] = scene.clone()
+        return obs
+
+    def _package(
+        self,
+        ind: IndexedObservation,
+        mask: torch.Tensor,
+        state: SimState,
+        ext: torch.Tensor,
+        route: Route,
+        progress: torch.Tensor,
+    ) -> dict[str, torch.Tensor]:
+        """The observation dict of ``obs_layout`` from ``observe_indexed``'s result, zero for
+        observers outside ``mask`` [B, Q] (an indexed one's ``"scene"`` is the caller's)."""
         m = mask.float()
         extra = {}
         if self.route_points:
@@ -624,7 +652,6 @@ class BatchedTrafficEnv:
             extra[ROUTE_KEY] = route_xy * m[..., None, None]
         if self.obs_layout == "indexed":
             return {
-                "scene": scene.clone(),
                 "agent_tokens": ind.agent_tokens,
                 "light_tokens": ind.light_tokens,
                 "ego": ind.ego.clone(),

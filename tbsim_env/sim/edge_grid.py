@@ -101,7 +101,7 @@ def build_edge_grid(
     """
     grids = [scene_edge_grid(s, e, cell, count, margin) for s, e in segments]
     b, g = len(grids), max(len(x["bound"]) for x in grids)
-    cells = np.zeros((b, g, count), np.int64)
+    cells = np.zeros((b, g, count), np.int32)
     bound = np.full((b, g), np.inf, np.float32)
     center = np.zeros((b, g, 2), np.float32)
     for i, x in enumerate(grids):
@@ -158,7 +158,7 @@ def grid_signed_distance(
     local = dist.argmin(-1, keepdim=True)
     d = dist.gather(-1, local)[..., 0]
     t_best = t.gather(-1, local)[..., 0]
-    best = cand.gather(-1, local)[..., 0]  # [B, K]
+    best = cand.gather(-1, local)[..., 0].long()  # [B, K]
     sign = joint_sign(points, edges, best, t_best)
     out = torch.where(edges.valid.any(-1, keepdim=True), sign * d, C.NO_EDGE_DISTANCE)
     centre = gather_rows(grid.center, cell)

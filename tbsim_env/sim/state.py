@@ -91,7 +91,7 @@ class EdgeGrid:
         cell: [B, 1, 1] float32, cell size (m).
         lower: [B, 2] float32, the grid's lower-left corner (m, state frame).
         shape: [B, 2] int64, cells along x and y (at least 1 each).
-        cells: [B, G, Cc] int64, per cell (x-major: ``ix * shape_y + iy``) the indices of its
+        cells: [B, G, Cc] int32, per cell (x-major: ``ix * shape_y + iy``) the indices of its
             Cc nearest segments, nearest first; padding entries repeat the last real one.
         bound: [B, G] float32, distance from the cell centre of the nearest segment not listed
             (inf when every segment is listed), less a rounding slack.
