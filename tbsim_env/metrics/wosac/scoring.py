@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.constants import ObjectType
+from tbsim_env.constants import NUM_FUTURE, ObjectType
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import (
@@ -239,10 +239,10 @@ class ScenarioFeatures:
     log_valid: torch.Tensor
 
 
-def _scored(scenario: Scenario, rollouts: Rollouts) -> Scenario:
-    """The scenario as far as the rollouts reach: a scene logged beyond them (WOMD's 20 s
-    scenes) is scored on its first ``current + 1 + steps`` steps, as WOSAC scores 9 s."""
-    end = scenario.current_index + 1 + rollouts.num_steps
+def _scored(scenario: Scenario) -> Scenario:
+    """The scenario as WOSAC scores it: a scene logged beyond the 80 steps after the current
+    one (WOMD's 20 s scenes) is cut to its first ``current + 81`` steps."""
+    end = scenario.current_index + 1 + NUM_FUTURE
     return scenario.on_time_grid(end) if scenario.num_steps > end else scenario
 
 
@@ -284,7 +284,7 @@ def scenario_features(
         MissingFutureError: the log does not cover the rollouts' steps (a history-only scene).
         MapFeatureError: the scenario has no road edge.
     """
-    scenario = _scored(scenario, rollouts)
+    scenario = _scored(scenario)
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     edges = road_edge_segments(scenario, log.x.device)
@@ -316,7 +316,7 @@ def offroad_indication(
     Raises:
         ScoringError, MissingFutureError, MapFeatureError: as ``score_scenario``.
     """
-    scenario = _scored(scenario, rollouts)
+    scenario = _scored(scenario)
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     dist = distance_to_road_edge(
