@@ -41,10 +41,41 @@ MAX_ACCEL = (5.0, 5.0, 7.0, 6.0, 5.0)
 MAX_YAW_RATE = (1.5, 1.5, 7.0, 3.0, 1.5)
 """Maximum |yaw rate| in rad/s per ``ObjectType``."""
 
+# --------------------------------------------------------------------------- plausibility
+# The bounds of what a scene or a submission may hold: ``Scenario.validate`` (every reader,
+# and the environments for scenarios given as objects) and the submission validator refuse
+# anything beyond them with one error naming the file, record, object, step and field. Real
+# WOMD data stays far inside (the shared samples: speeds <= 87 m/s, boxes <= 17 m, scenes
+# <= 0.62 km across, stored headings <= 17.3 rad), and within them float32 arithmetic after
+# recentering on the scene (``SimState.origin``) cannot overflow: no squared speed, distance
+# or arc length comes near float32's 3.4e38.
 MAX_ABS_COORDINATE = 1.0e7
 """Metres. Largest |x|, |y|, |z| a scene or a submission may hold: 10,000 km, beyond any local
 metric frame on Earth. Readers and the submission validator refuse larger values (a corrupt
 exponent would otherwise reach the geometry code, e.g. densifying a 1e30 m polyline)."""
+MAX_SCENE_EXTENT = 2.0e3
+"""Metres. Largest width (x) and height (y) of the box holding a scene's valid track positions
+and map points: what is simulated lies within it of the scene's origin, where float32 keeps
+0.1 mm, and the road-edge grid of the off-road check (``EDGE_GRID_CELL`` cells over the edges'
+box) stays below about a million cells."""
+MAX_SPEED = 500.0
+"""m/s. Largest |velocity| of a valid track state (1,800 km/h: nothing on a road; WOMD's worst
+glitches stay below 100 m/s)."""
+MAX_BOX_SIZE = 100.0
+"""Metres. Largest length, width or height of a valid track state's box; the smallest is any
+positive size (a box of size 0 or less is refused)."""
+MAX_ABS_HEADING = 1.0e3
+"""Radians. Largest |heading| as stored, of a track state or a submitted trajectory (WOMD stores
+headings off by whole turns, up to ~17 rad in the samples; a rollout that integrates yaw rates
+unwrapped reaches ~70 rad). float32 keeps 1e-4 rad at this bound."""
+MAX_TRACK_ID = 2**31 - 1
+"""Largest track id (``Track.id``, also ``objects_of_interest``: int32 in scenario.proto); track
+ids are non-negative (-1 marks padding)."""
+MAX_FEATURE_ID = 2**63 - 1
+"""Largest map feature id (``MapFeature.id``, signal lane ids: int64 in scenario.proto); they
+are non-negative (-1 marks padding) and unique within a scene."""
+NUM_DIFFICULTY_LEVELS = 3
+"""``RequiredPrediction.DifficultyLevel`` values: NONE, LEVEL_1, LEVEL_2 (0-2)."""
 
 
 # --------------------------------------------------------------------------- raw map

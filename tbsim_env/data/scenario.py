@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tbsim_env.constants import DT, MAX_ABS_COORDINATE, MapFeatureType, ObjectType
+from tbsim_env import constants as C
+from tbsim_env.constants import DT, MapFeatureType, ObjectType, SignalState
 from tbsim_env.errors import MissingFutureError, ScenarioFormatError
 
 
@@ -227,7 +228,8 @@ def _impossible_state(tracks: Tracks) -> str | None:
     """The first physically impossible value of a valid track state, described, or None.
 
     Poses and velocities must be finite, positions within ``MAX_ABS_COORDINATE`` of the
-    origin, box sizes (length, width, height) positive and finite.
+    origin, headings as stored within ``MAX_ABS_HEADING``, speeds at most ``MAX_SPEED``, box
+    sizes (length, width, height) positive and at most ``MAX_BOX_SIZE`` (constants.py).
     """
     for name, parts in _STATE_PARTS:
         arr = getattr(tracks, name)
@@ -236,12 +238,18 @@ def _impossible_state(tracks: Tracks) -> str | None:
         arr = arr if arr.ndim == 3 else arr[..., None]  # [A, T, C]
         valid = tracks.valid[..., None]
         finite = np.isfinite(arr)
+        magnitude = np.abs(np.where(finite, arr, 0.0))
         checks = [(valid & ~finite, "is non-finite")]
         if name == "xyz":
-            far = np.abs(np.where(finite, arr, 0.0)) > MAX_ABS_COORDINATE
-            checks.append((valid & far, f"lies beyond {MAX_ABS_COORDINATE:g} m of the origin"))
+            far = magnitude > C.MAX_ABS_COORDINATE
+            checks.append((valid & far, f"lies beyond {C.MAX_ABS_COORDINATE:g} m of the origin"))
+        elif name == "raw_heading":
+            turns = magnitude > C.MAX_ABS_HEADING
+            checks.append((valid & turns, f"is beyond {C.MAX_ABS_HEADING:g} rad"))
         elif name == "size":
             checks.append((valid & finite & (arr <= 0), "is not positive (a box needs a size)"))
+            big = magnitude > C.MAX_BOX_SIZE
+            checks.append((valid & big, f"is larger than {C.MAX_BOX_SIZE:g} m"))
         for bad, what in checks:
             if bad.any():
                 k, step, c = (int(i) for i in np.argwhere(bad)[0])
@@ -249,7 +257,55 @@ def _impossible_state(tracks: Tracks) -> str | None:
                     f"track {int(tracks.id[k])} (index {k}) at step {step}: field "
                     f"{parts[c]!r} of a valid state {what}: {float(arr[k, step, c])!r}"
                 )
+    # Finite components: the norm in float64 cannot overflow.
+    speed = np.linalg.norm(tracks.velocity.astype(np.float64), axis=-1)
+    fast = tracks.valid & (speed > C.MAX_SPEED)
+    if fast.any():
+        k, step = (int(i) for i in np.argwhere(fast)[0])
+        return (
+            f"track {int(tracks.id[k])} (index {k}) at step {step}: the speed of a valid state "
+            f"(fields 'velocity_x', 'velocity_y') is {float(speed[k, step]):.6g} m/s, beyond "
+            f"{C.MAX_SPEED:g} m/s"
+        )
     return None
+
+
+def _out_of_range(values: np.ndarray, lo: int, hi: int) -> int | None:
+    """Index of the first entry of ``values`` outside [lo, hi], or None."""
+    bad = (values < lo) | (values > hi)
+    return int(np.argmax(bad)) if bad.any() else None
+
+
+def _scene_extent_problem(scenario: Scenario) -> str | None:
+    """Describe a scene wider or higher than ``MAX_SCENE_EXTENT`` (valid track positions and
+    map points), naming the two points farthest apart along that axis; None if it fits."""
+    t = scenario.tracks
+    a_idx, s_idx = np.nonzero(t.valid)
+    track_xy = t.xyz[a_idx, s_idx, :2]
+    m = scenario.road_map
+    sizes = [len(p) for p in m.polylines]
+    map_xy = np.concatenate([p[:, :2] for p in m.polylines]) if sizes else np.zeros((0, 2))
+    xy = np.concatenate([track_xy, map_xy])
+    if xy.shape[0] == 0:
+        return None
+    span = xy.max(0) - xy.min(0)
+    axis = int(np.argmax(span))
+    if span[axis] <= C.MAX_SCENE_EXTENT:
+        return None
+    feature = np.repeat(np.arange(len(sizes)), sizes)
+
+    def label(row: int) -> str:
+        if row < track_xy.shape[0]:
+            return f"track {int(t.id[a_idx[row]])} at step {int(s_idx[row])}"
+        return f"map feature {int(m.id[feature[row - track_xy.shape[0]]])}"
+
+    lo, hi = int(np.argmin(xy[:, axis])), int(np.argmax(xy[:, axis]))
+    name = "xy"[axis]
+    return (
+        f"the scene spans {span[axis]:.6g} m along {name} ({label(lo)} at {name} = "
+        f"{xy[lo, axis]:.6g}, {label(hi)} at {name} = {xy[hi, axis]:.6g}); a scene may span at "
+        f"most {C.MAX_SCENE_EXTENT:g} m"
+    )
 
 
 @dataclass(frozen=True)
@@ -406,7 +462,16 @@ class Scenario:
         return role
 
     def validate(self) -> Scenario:
-        """Check shapes, dtypes and cross references; raise ``ScenarioFormatError``.
+        """Check shapes, dtypes, cross references and plausibility; raise
+        ``ScenarioFormatError`` naming the track or feature, step and field at fault.
+
+        The plausibility bounds (units and reasons in ``tbsim_env.constants``, section
+        "plausibility"): valid track states finite, within ``MAX_ABS_COORDINATE``, speeds up to
+        ``MAX_SPEED``, boxes positive and up to ``MAX_BOX_SIZE``, stored headings within
+        ``MAX_ABS_HEADING``; the scene within ``MAX_SCENE_EXTENT``; ids in their proto ranges
+        (track ids ``[0, MAX_TRACK_ID]``, map and signal lane ids ``[0, MAX_FEATURE_ID]``, map
+        ids unique), difficulties 0-2, signal states 0-8 with finite stop points; timestamps
+        finite and increasing; the current step among the steps with a track valid at it.
 
         Returns self so that readers can ``return Scenario(...).validate()``.
         """
@@ -420,6 +485,11 @@ class Scenario:
         n_t = self.timestamps.shape[0]
         if n_t < 2:
             fail(f"field 'timestamps_seconds' has {n_t} entries; need at least 2 steps")
+        if not np.isfinite(self.timestamps).all():
+            fail("field 'timestamps_seconds' has a non-finite value")
+        if not (np.diff(self.timestamps) > 0).all():
+            step = int(np.argmax(np.diff(self.timestamps) <= 0)) + 1
+            fail(f"field 'timestamps_seconds' is not increasing at step {step}")
         a = t.num_tracks
         expect = {
             "id": (a,),
@@ -436,6 +506,9 @@ class Scenario:
                 fail(f"track field {name!r} has shape {got}, expected {shape}")
         if t.valid.dtype != bool:
             fail("track field 'valid' must be bool")
+        bad = _out_of_range(t.id, 0, C.MAX_TRACK_ID)
+        if bad is not None:
+            fail(f"track index {bad}: id {int(t.id[bad])} outside [0, {C.MAX_TRACK_ID}]")
         if len(np.unique(t.id)) != a:
             fail("track ids ('Track.id') are not unique")
         bad_type = ~np.isin(t.object_type, [int(x) for x in ObjectType])
@@ -451,6 +524,11 @@ class Scenario:
                 f"'current_time_index' {self.current_index} is not among the {n_t} steps "
                 "(a scenario needs at least its current step)"
             )
+        if not t.valid[:, self.current_index].any():
+            fail(
+                f"no track is valid at the current step {self.current_index} "
+                "('current_time_index'): nothing to simulate"
+            )
         if self.logged_steps is not None:
             if not self.current_index < self.logged_steps <= n_t:
                 fail(f"'logged_steps' {self.logged_steps} outside ({self.current_index}, {n_t}]")
@@ -459,13 +537,47 @@ class Scenario:
                 fail(f"a track or signal is valid after the log's end (step {self.logged_steps})")
         if not 0 <= self.sdc_index < a:
             fail(f"'sdc_track_index' {self.sdc_index} outside [0, {a})")
-        if len(self.tracks_to_predict) and (
-            self.tracks_to_predict.min() < 0 or self.tracks_to_predict.max() >= a
-        ):
-            fail("'tracks_to_predict' has a track_index outside the track list")
+        self._validate_roles(fail)
+        self._validate_map(fail)
+        self._validate_signals(fail, n_t)
+        extent = _scene_extent_problem(self)
+        if extent:
+            fail(extent)
+        return self
+
+    def _validate_roles(self, fail) -> None:
+        """Tracks to predict, their difficulties and the objects of interest."""
+        a = self.tracks.num_tracks
+        ttp = self.tracks_to_predict
+        bad = _out_of_range(ttp, 0, a - 1)
+        if bad is not None:
+            fail(
+                f"'tracks_to_predict' entry {bad}: track_index {int(ttp[bad])} outside the "
+                f"track list [0, {a})"
+            )
+        if self.predict_difficulty.shape != ttp.shape:
+            fail(
+                f"'tracks_to_predict' has {ttp.shape[0]} entries but "
+                f"{self.predict_difficulty.shape[0]} difficulties"
+            )
+        bad = _out_of_range(self.predict_difficulty, 0, C.NUM_DIFFICULTY_LEVELS - 1)
+        if bad is not None:
+            fail(
+                f"'tracks_to_predict' entry {bad}: difficulty {int(self.predict_difficulty[bad])}"
+                f" outside [0, {C.NUM_DIFFICULTY_LEVELS - 1}]"
+            )
+        bad = _out_of_range(self.objects_of_interest, 0, C.MAX_TRACK_ID)
+        if bad is not None:
+            fail(
+                f"'objects_of_interest' entry {bad}: id {int(self.objects_of_interest[bad])} "
+                f"outside [0, {C.MAX_TRACK_ID}]"
+            )
+
+    def _validate_map(self, fail) -> None:
+        """Map shapes, ids, polylines and speed limits."""
         m = self.road_map
         f = m.num_features
-        for name in ("feature_type", "subtype", "speed_limit_mph"):
+        for name in ("id", "feature_type", "subtype", "speed_limit_mph"):
             if getattr(m, name).shape != (f,):
                 fail(f"map field {name!r} has shape {getattr(m, name).shape}, expected ({f},)")
         for name in (
@@ -478,17 +590,61 @@ class Scenario:
         ):
             if len(getattr(m, name)) != f:
                 fail(f"map field {name!r} has {len(getattr(m, name))} entries, expected {f}")
+        bad = _out_of_range(m.id, 0, C.MAX_FEATURE_ID)
+        if bad is not None:
+            fail(f"map feature index {bad}: id {int(m.id[bad])} outside [0, {C.MAX_FEATURE_ID}]")
+        ids, first, counts = np.unique(m.id, return_index=True, return_counts=True)
+        if (counts > 1).any():
+            k = int(np.argmax(counts > 1))
+            fail(
+                f"map feature id {int(ids[k])} is used by {int(counts[k])} features (the "
+                f"first at index {int(first[k])}); map feature ids must be unique"
+            )
+        bad_type = ~np.isin(m.feature_type, [int(x) for x in MapFeatureType])
+        if bad_type.any():
+            fail(f"map feature {int(m.id[np.argmax(bad_type)])}: unknown feature type")
         for k, pl in enumerate(m.polylines):
             if pl.ndim != 2 or pl.shape[1] != 3 or pl.shape[0] == 0:
                 fail(f"map feature {int(m.id[k])}: polyline has shape {pl.shape}")
             if not np.isfinite(pl).all():
                 fail(f"map feature {int(m.id[k])}: polyline has a non-finite point")
-            if np.abs(pl).max() > MAX_ABS_COORDINATE:
+            if np.abs(pl).max() > C.MAX_ABS_COORDINATE:
                 fail(
                     f"map feature {int(m.id[k])}: polyline has a point beyond "
-                    f"{MAX_ABS_COORDINATE:g} m of the origin ({np.abs(pl).max():.6g} m)"
+                    f"{C.MAX_ABS_COORDINATE:g} m of the origin ({np.abs(pl).max():.6g} m)"
                 )
+        limit = m.speed_limit_mph
+        bad_limit = ~np.isfinite(limit) | (limit < 0)
+        if bad_limit.any():
+            k = int(np.argmax(bad_limit))
+            fail(f"map feature {int(m.id[k])}: 'speed_limit_mph' is {float(limit[k])!r}")
+
+    def _validate_signals(self, fail, n_t: int) -> None:
+        """Signal shapes, lane ids, states and stop points."""
         s = self.signals
-        if s.state.shape != (s.num_signals, n_t) or s.valid.shape != (s.num_signals, n_t):
+        n = s.num_signals
+        if s.state.shape != (n, n_t) or s.valid.shape != (n, n_t):
             fail("traffic-signal arrays do not match (num_signals, num_steps)")
-        return self
+        if s.stop_point.shape != (n, 3):
+            fail(f"traffic-signal 'stop_point' has shape {s.stop_point.shape}, expected ({n}, 3)")
+        bad = _out_of_range(s.lane_id, 0, C.MAX_FEATURE_ID)
+        if bad is not None:
+            fail(f"traffic signal {bad}: lane id {int(s.lane_id[bad])} is negative")
+        if len(np.unique(s.lane_id)) != n:
+            fail("traffic signals: a lane id has two rows")
+        bad_state = s.valid & ((s.state < 0) | (s.state >= len(SignalState)))
+        if bad_state.any():
+            k, step = (int(i) for i in np.argwhere(bad_state)[0])
+            fail(
+                f"traffic signal of lane {int(s.lane_id[k])} at step {step}: unknown state "
+                f"{int(s.state[k, step])}"
+            )
+        finite = np.isfinite(s.stop_point)
+        far = np.abs(np.where(finite, s.stop_point, 0.0)) > C.MAX_ABS_COORDINATE
+        if (~finite | far).any():
+            k, c = (int(i) for i in np.argwhere(~finite | far)[0])
+            fail(
+                f"traffic signal of lane {int(s.lane_id[k])}: 'stop_point' {'xyz'[c]} is "
+                f"{float(s.stop_point[k, c])!r}; it must be finite and within "
+                f"{C.MAX_ABS_COORDINATE:g} m of the origin"
+            )
