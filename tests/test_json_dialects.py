@@ -240,7 +240,7 @@ TL = ["tl_states", "374"]
         (_set(["roads", 0, "id"], 7), r"roads\[1\]: missing key 'id'"),
         (_set([*TL, "state", 3], "purple"), r"tl_states\['374'\]\.state\[3\]: unknown"),
         (_set([*TL, "time_index", 3], 99), r"tl_states\['374'\]\.time_index: a step outside"),
-        (_set([*TL, "time_index", 3], 2.5), r"tl_states\['374'\]\.time_index: expected"),
+        (_set([*TL, "time_index", 3], 2.5), r"tl_states\['374'\]\.time_index\[3\]: expected"),
         (_del([*TL, "x"]), r"tl_states\['374'\]: missing key 'x'"),
         (_set([*TL, "x"], [0.0] * 3), r"tl_states\['374'\]: the lists"),
         (_set(["tl_states"], [1]), "'tl_states' must be an object"),

@@ -41,6 +41,7 @@ from tbsim_env.config import TokenConfig
 from tbsim_env.constants import NUM_STEPS
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
+from tbsim_env.errors import TbsimError
 
 FORMAT = "tbsim-tokens-v1"
 _ARRAY_FIELDS = tuple(f.name for f in dataclasses.fields(SceneTokens) if f.name != "scenario_id")
@@ -50,7 +51,7 @@ _ADDED_FIELDS = {"frame_yaw": np.zeros((), np.float64)}
 meaning (``frame_yaw`` 0: its ``map_boundary`` is axis-aligned in the token frame)."""
 
 
-class CacheError(ValueError):
+class CacheError(TbsimError, ValueError):
     """A cache folder or shard is missing, corrupt or of another format."""
 
 

@@ -49,6 +49,9 @@ import numpy as np
 from tbsim_env.constants import (
     CURRENT_INDEX,
     DT,
+    MAX_FEATURE_ID,
+    MAX_TRACK_ID,
+    NUM_DIFFICULTY_LEVELS,
     MapFeatureType,
     ObjectType,
 )
@@ -68,6 +71,7 @@ PathLike = str | os.PathLike
 
 INVALID_SENTINEL = -10000.0
 """Value GPUDrive writes into position/velocity/heading at invalid steps."""
+_INT64 = 2**63
 SIGNAL_LANE_MATCH_M = 0.5
 """Metres. Largest distance from a signal's stop point to the first point of the lane it is
 matched to when the roads carry no ids (the controlled lane starts at the stop point: 0.00 m
@@ -143,11 +147,45 @@ def _get(obj: Any, key: str, where: str, ctx: _Ctx) -> Any:
     return obj[key]
 
 
+def _is_number(value: Any) -> bool:
+    """A JSON number: int or float, not a boolean (``true`` is not 1.0 here)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _first_non_number(rows: Any) -> tuple[bool, Any]:
+    """(found, leaf): the first leaf of a number or a (nested) list of numbers that is not a
+    JSON number (``_is_number``)."""
+    if isinstance(rows, (list, tuple)):
+        for item in rows:
+            found, leaf = _first_non_number(item)
+            if found:
+                return True, leaf
+        return False, None
+    return (False, None) if _is_number(rows) else (True, rows)
+
+
 def _array(rows: Any, dtype: type, where: str, ctx: _Ctx) -> np.ndarray:
+    """``rows`` (a number or nested lists of numbers) as an array; booleans, strings, nulls
+    and integers beyond float64 are refused."""
+    found, leaf = _first_non_number(rows)
+    if found:
+        raise ctx.error(f"{where}: expected numbers, got {leaf!r:.40}")
     try:
         return np.asarray(rows, dtype=dtype)
-    except (TypeError, ValueError) as err:
-        raise ctx.error(f"{where}: values are not numbers ({err})") from err
+    except (TypeError, ValueError, OverflowError) as err:
+        raise ctx.error(f"{where}: values are not numbers of this range ({err})") from err
+
+
+def _int(value: Any, where: str, ctx: _Ctx, lo: int, hi: int) -> int:
+    """A JSON integer in [lo, hi] (booleans and non-integral numbers are refused)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ctx.error(f"{where}: expected an integer, got {value!r:.40}")
+    if not lo <= value <= hi:
+        text = (
+            str(value) if value.bit_length() <= 128 else f"an integer of {value.bit_length()} bits"
+        )
+        raise ctx.error(f"{where}: {text} outside [{lo}, {hi}]")
+    return value
 
 
 def _xyz_columns(points: dict, keys: tuple[str, ...], where: str, ctx: _Ctx) -> np.ndarray:
@@ -200,7 +238,9 @@ def _object_arrays(obj: Any, k: int, ctx: _Ctx, has_ids: bool) -> dict[str, Any]
     vel = _xyz_rows(_get(obj, "velocity", w, ctx), ("x", "y"), f"{w}.velocity", ctx)
     heading = _array(_get(obj, "heading", w, ctx), np.float64, f"{w}.heading", ctx)
     valid_raw = _get(obj, "valid", w, ctx)
-    if not isinstance(valid_raw, list) or not all(isinstance(v, (bool, int)) for v in valid_raw):
+    if not isinstance(valid_raw, list) or not all(
+        isinstance(v, bool) or (isinstance(v, int) and v in (0, 1)) for v in valid_raw
+    ):
         raise ctx.error(f"{w}.valid: expected a list of booleans")
     valid = np.asarray(valid_raw, dtype=bool)
     lengths = {len(pos), len(vel), heading.reshape(-1).shape[0], len(valid)}
@@ -220,9 +260,7 @@ def _object_arrays(obj: Any, k: int, ctx: _Ctx, has_ids: bool) -> dict[str, Any]
     type_name = _get(obj, "type", w, ctx)
     if not isinstance(type_name, str) or type_name not in OBJECT_TYPES:
         raise ctx.error(f"{w}.type: unknown object type {type_name!r}")
-    obj_id = _get(obj, "id", w, ctx) if has_ids else k + 1
-    if isinstance(obj_id, bool) or not isinstance(obj_id, int):
-        raise ctx.error(f"{w}.id: expected an integer, got {obj_id!r}")
+    obj_id = _int(_get(obj, "id", w, ctx), f"{w}.id", ctx, 0, MAX_TRACK_ID) if has_ids else k + 1
     return {
         "id": obj_id,
         "type": int(OBJECT_TYPES[type_name]),
@@ -297,7 +335,8 @@ def _road_map(roads: Any, ctx: _Ctx) -> RoadMap:
         w = f"roads[{k}]"
         type_name = _get(road, "type", w, ctx)
         element = road.get("map_element_id")
-        mapped = map_element_to_feature(element) if isinstance(element, int) else None
+        is_int = isinstance(element, int) and not isinstance(element, bool)
+        mapped = map_element_to_feature(element) if is_int else None
         if mapped is None:
             if not isinstance(type_name, str) or type_name not in ROAD_TYPES:
                 skipped.append(f"{w} (type {type_name!r}, map_element_id {element!r})")
@@ -309,9 +348,9 @@ def _road_map(roads: Any, ctx: _Ctx) -> RoadMap:
                 f"{w}: type {type_name!r} disagrees with map_element_id {element} "
                 f"({mapped[0].name.lower()})"
             )
-        feature_id = _get(road, "id", w, ctx) if has_ids else k + 1
-        if isinstance(feature_id, bool) or not isinstance(feature_id, int):
-            raise ctx.error(f"{w}.id: expected an integer, got {feature_id!r}")
+        feature_id = (
+            _int(_get(road, "id", w, ctx), f"{w}.id", ctx, 0, MAX_FEATURE_ID) if has_ids else k + 1
+        )
         pts = _xyz_rows(_get(road, "geometry", w, ctx), ("x", "y", "z"), f"{w}.geometry", ctx)
         if pts.shape[0] == 0:
             skipped.append(f"{w} (no geometry)")
@@ -332,13 +371,12 @@ def _roads_have_ids(roads: Any) -> bool:
     return isinstance(roads, list) and any(isinstance(r, dict) and "id" in r for r in roads)
 
 
-def _int_list(value: Any, where: str, ctx: _Ctx) -> np.ndarray:
-    """[n] int64 from a JSON list of integers."""
-    if not isinstance(value, list) or not all(
-        isinstance(v, int) and not isinstance(v, bool) for v in value
-    ):
+def _int_list(value: Any, where: str, ctx: _Ctx, lo: int, hi: int) -> np.ndarray:
+    """[n] int64 from a JSON list of integers in [lo, hi]."""
+    if not isinstance(value, list):
         raise ctx.error(f"{where}: expected a list of integers")
-    return _array(value, np.int64, where, ctx).reshape(-1)
+    out = [_int(v, f"{where}[{i}]", ctx, lo, hi) for i, v in enumerate(value)]
+    return np.asarray(out, np.int64).reshape(-1)
 
 
 def _tl_entry(
@@ -354,7 +392,7 @@ def _tl_entry(
         i = states.index(None)
         raise ctx.error(f"{w}.state[{i}]: unknown traffic-signal state {names[i]!r:.40}")
     if "time_index" in entry:
-        steps = _int_list(entry["time_index"], f"{w}.time_index", ctx)
+        steps = _int_list(entry["time_index"], f"{w}.time_index", ctx, -_INT64, _INT64 - 1)
     elif len(names) == n_steps:
         steps = np.arange(n_steps, dtype=np.int64)
     else:
@@ -420,22 +458,25 @@ def _signals(
 
 def _metadata(meta: Any, ctx: _Ctx) -> tuple[int, np.ndarray, np.ndarray, np.ndarray]:
     """(sdc index, tracks_to_predict indices, difficulties, objects_of_interest ids)."""
-    sdc = _get(meta, "sdc_track_index", "metadata", ctx)
-    if isinstance(sdc, bool) or not isinstance(sdc, int):
-        raise ctx.error(f"metadata.sdc_track_index: expected an integer, got {sdc!r}")
+    last = MAX_TRACK_ID  # Scenario.validate names an index outside the track list
+    sdc = _int(
+        _get(meta, "sdc_track_index", "metadata", ctx), "metadata.sdc_track_index", ctx, 0, last
+    )
     ttp = meta.get("tracks_to_predict", [])
     if not isinstance(ttp, list):
         raise ctx.error("metadata.tracks_to_predict: expected a list")
-    idx = [
-        _get(r, "track_index", f"metadata.tracks_to_predict[{i}]", ctx) for i, r in enumerate(ttp)
-    ]
-    diff = [r.get("difficulty", 0) for r in ttp]
+    idx, diff = [], []
+    for i, r in enumerate(ttp):
+        w = f"metadata.tracks_to_predict[{i}]"
+        idx.append(_int(_get(r, "track_index", w, ctx), f"{w}.track_index", ctx, 0, last))
+        level = r.get("difficulty", 0)
+        diff.append(_int(level, f"{w}.difficulty", ctx, 0, NUM_DIFFICULTY_LEVELS - 1))
     ooi = meta.get("objects_of_interest", [])
     return (
         sdc,
-        _array(idx, np.int64, "metadata.tracks_to_predict", ctx).reshape(-1),
-        _array(diff, np.int8, "metadata.tracks_to_predict.difficulty", ctx).reshape(-1),
-        _array(ooi, np.int64, "metadata.objects_of_interest", ctx).reshape(-1),
+        np.asarray(idx, np.int64).reshape(-1),
+        np.asarray(diff, np.int8).reshape(-1),
+        _int_list(ooi, "metadata.objects_of_interest", ctx, 0, MAX_TRACK_ID),
     )
 
 
@@ -497,7 +538,7 @@ def read_gpudrive_json(path: PathLike) -> Scenario:
     try:
         with open(name, "rb") as fh:
             data = json.loads(fh.read())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+    except (ValueError, UnicodeDecodeError) as err:  # JSONDecodeError, over-long integers
         raise ScenarioFormatError(f"not valid JSON: {err}", name) from err
     except RecursionError as err:
         raise ScenarioFormatError("not valid JSON: nested too deeply", name) from err
