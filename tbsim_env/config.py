@@ -89,7 +89,9 @@ class EnvConfig:
 
     Attributes:
         start_step: step the episode starts at (the log must hold it; history before it comes
-            from the log).
+            from the log). It must be every scenario's current step (``current_time_index``,
+            10 in WOMD): the environments refuse a scenario whose current step differs
+            (``UnusableScenarioError``).
         end_step: last simulated step; None means step 90 (``C.NUM_STEPS - 1``, the end of a
             WOMD episode), whatever the log's length. See ``last_step``.
         reward: reward weights.

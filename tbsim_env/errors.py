@@ -79,6 +79,34 @@ class MissingFutureError(TbsimError, ValueError):
         )
 
 
+class UnusableScenarioError(TbsimError, ValueError):
+    """A valid scenario cannot serve the task asked of it: an environment whose controlled
+    agents are not valid at its start step, or whose start step is not the scenario's current
+    step (``current_time_index``).
+
+    Attributes:
+        scenario_id: the scenario, or None when the message is about several.
+        source: where it came from (file, record), or None.
+        reason: what is wrong.
+    """
+
+    def __init__(
+        self, reason: str, scenario_id: str | None = None, source: str | None = None
+    ) -> None:
+        self.scenario_id = scenario_id
+        self.source = source
+        self.reason = reason
+        where = f"scenario {scenario_id}" if scenario_id is not None else ""
+        if source is not None:
+            where = f"{where} ({source})" if where else source
+        super().__init__(f"{where}: {reason}" if where else reason)
+
+
+class PolicyError(TbsimError, RuntimeError):
+    """A policy returned something the simulation cannot use (non-finite NPC actions); the
+    message names the policy and the agents."""
+
+
 class ActionError(TbsimError, ValueError):
     """An action given to the environment is not usable (NaN, wrong shape, unknown agent)."""
 

@@ -42,7 +42,7 @@ from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, goal_ma
 from tbsim_env.env.fused import StepFunction
 from tbsim_env.env.rewards import RewardOutcome
 from tbsim_env.env.transition import Controllers, npc_actions
-from tbsim_env.errors import ActionError
+from tbsim_env.errors import ActionError, UnusableScenarioError
 from tbsim_env.observation import (
     History,
     MapContext,
@@ -68,13 +68,20 @@ def agent_name(track_id: int) -> str:
 
 
 def resolve_scenarios(scenarios: Any) -> list[Scenario]:
-    """Scenarios from None (embedded default), a path / glob / folder, or a list of either."""
+    """Scenarios from None (embedded default), a path / glob / folder, or a list of either.
+
+    ``Scenario`` objects given directly are validated like the ones a reader returns
+    (``Scenario.validate``: shapes, references, plausibility bounds).
+
+    Raises:
+        ScenarioFormatError: a file or a given ``Scenario`` is malformed or implausible.
+    """
     if scenarios is None:
         from tbsim_env.data.generator import default_scenarios
 
         return list(default_scenarios())
     if isinstance(scenarios, Scenario):
-        return [scenarios]
+        return [scenarios.validate()]
     from tbsim_env.data import load_scenarios
 
     if isinstance(scenarios, (str, os.PathLike)):
@@ -82,7 +89,7 @@ def resolve_scenarios(scenarios: Any) -> list[Scenario]:
     else:
         items = list(scenarios)
         if all(isinstance(s, Scenario) for s in items):
-            out = items
+            out = [s.validate() for s in items]
         else:
             out = load_scenarios(items)
     if not out:
@@ -118,14 +125,17 @@ def controlled_indices(scenario: Scenario, controlled: ControlledSpec, start: in
     out = []
     for tid in controlled:
         if int(tid) not in ids:
-            raise ValueError(
-                f"scenario {scenario.scenario_id!r} has no track with id {tid} "
-                f"(controlled={list(controlled)!r})"
+            raise UnusableScenarioError(
+                f"no track with id {tid} (controlled={list(controlled)!r})",
+                scenario.scenario_id,
+                scenario.source,
             )
         if not valid[ids[int(tid)]]:
-            raise ValueError(
-                f"track {tid} of scenario {scenario.scenario_id!r} is not valid at step {start}, "
-                "so it cannot be controlled from the start"
+            raise UnusableScenarioError(
+                f"track {tid} is not valid at step {start}, so it cannot be controlled from "
+                "the start",
+                scenario.scenario_id,
+                scenario.source,
             )
         out.append(ids[int(tid)])
     return out
@@ -141,7 +151,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
             WOMD scenes).
         controlled: which agents the caller controls: ``"sdc"`` (default),
             ``"tracks_to_predict"`` (those plus the SDC), ``"all"`` valid at the start, or a
-            list of WOMD track ids.
+            list of WOMD track ids. A scenario where it selects no agent valid at the start
+            is refused (``UnusableScenarioError`` naming it and its file).
         npc_policy: ``"trafficbots"`` (default: the shipped pretrained TrafficBots V1.5, see
             docs/MODEL_CARD.md), ``"log_replay"`` (exact), ``"constant_velocity"``, or a policy
             object.
@@ -224,6 +235,12 @@ class TrafficEnv(ParallelEnv, EzPickle):
         names: dict[str, None] = {}
         for sc in self.scenarios:
             idx = controlled_indices(sc, controlled, start)
+            if not idx and controlled != "none":
+                raise UnusableScenarioError(
+                    f"controlled={controlled!r} selects no agent valid at the start step {start}",
+                    sc.scenario_id,
+                    sc.source,
+                )
             self._controlled.append(idx)
             for i in idx:
                 names[agent_name(sc.tracks.id[i])] = None

@@ -20,6 +20,7 @@ from policies.base import Policy
 from tbsim_env.config import EnvConfig
 from tbsim_env.env.agent_metrics import Route, StepMetrics, step_metrics
 from tbsim_env.env.rewards import RewardOutcome, reward_and_termination
+from tbsim_env.errors import PolicyError
 from tbsim_env.sim import core
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange
@@ -99,10 +100,26 @@ def npc_actions(
     generator: torch.Generator,
 ) -> tuple[torch.Tensor, Any]:
     """(The actions of every slot [B, N, 2]: the NPC policy's merged with ``ext_action``, the
-    policy's next state); ``ext_action`` and ``policy_state`` unchanged without NPCs."""
+    policy's next state); ``ext_action`` and ``policy_state`` unchanged without NPCs.
+
+    Raises:
+        PolicyError: the policy gave a NaN or infinite action to an NPC it drives (naming the
+            policy, and the batch rows and track ids of those NPCs); the dynamics never see it.
+    """
     if not ctrl.has_npc:
         return ext_action, policy_state
     npc_action, policy_state = ctrl.policy.act(state, policy_state, generator)
+    bad = ctrl.npc & state.valid & ~torch.isfinite(npc_action).all(-1)
+    if bool(bad.any()):
+        rows, slots = bad.nonzero(as_tuple=True)
+        ids = state.agents.track_id[rows, slots].tolist()
+        agents = [f"row {r} track {t}" for r, t in zip(rows.tolist(), ids)]
+        more = f" and {len(agents) - 5} more" if len(agents) > 5 else ""
+        name = getattr(ctrl.policy, "name", type(ctrl.policy).__name__)
+        raise PolicyError(
+            f"NPC policy {name!r} returned a non-finite action at step "
+            f"{int(state.step.max())} for {len(agents)} agent(s): {', '.join(agents[:5])}{more}"
+        )
     action = core.merge_actions((ctrl.npc, npc_action), (ctrl.external, ext_action))
     return action, policy_state
 

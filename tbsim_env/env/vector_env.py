@@ -55,7 +55,7 @@ from tbsim_env.env.parallel_env import (
     resolve_scenarios,
 )
 from tbsim_env.env.transition import Controllers, npc_actions
-from tbsim_env.errors import ActionError
+from tbsim_env.errors import ActionError, UnusableScenarioError
 from tbsim_env.observation import (
     History,
     IndexedObservation,
@@ -215,7 +215,8 @@ class BatchedTrafficEnv:
             folder, or a list of ``Scenario``.
         batch_size: B, number of scenario slots stepped at once.
         controlled: ``"sdc"``, ``"tracks_to_predict"``, ``"all"`` or a list of track ids.
-            Scenarios where nothing is controllable are left out of the draw.
+            Scenarios where nothing is controllable are left out of the draw
+            (``UnusableScenarioError`` naming them when none is left).
         npc_policy: ``"log_replay"``, ``"constant_velocity"``, ``"trafficbots"``, a
             registered name or a ``Policy``. A stateful policy's state must be a tree
             (dataclass / dict / tuple) of tensors with the batch as leading dimension and
@@ -304,7 +305,12 @@ class BatchedTrafficEnv:
                 kept.append(sc)
                 ext_lists.append(idx)
         if not kept:
-            raise ValueError(f"no scenario has an agent to control with controlled={controlled!r}")
+            names = ", ".join(f"{sc.scenario_id} ({sc.source})" for sc in all_scenarios[:3])
+            more = f" and {len(all_scenarios) - 3} more" if len(all_scenarios) > 3 else ""
+            raise UnusableScenarioError(
+                f"controlled={controlled!r} selects no agent valid at the start step {start} "
+                f"in any of the scenarios: {names}{more}"
+            )
         self.scenarios: list[Scenario] = kept
         # A slot restarts alone into the batch's policy state, so the state's shapes must not
         # depend on which scenarios the slots hold: a policy that can fix them for the bank

@@ -18,6 +18,7 @@ from __future__ import annotations
 from tbsim_env import constants as C
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
+from tbsim_env.errors import UnusableScenarioError
 
 
 def wosac_end_step(scenario: Scenario) -> int:
@@ -42,9 +43,21 @@ def episode_scenario(scenario: Scenario, config: EnvConfig, *, replays_log: bool
     Raises:
         MissingFutureError: the log does not reach ``start_step``, or (``replays_log``) the
             last step of the episode.
+        UnusableScenarioError: the scenario's current step (``current_time_index``) is not
+            ``start_step``: an episode starts at the scene's current step, with its history
+            before it, so one that starts elsewhere would treat logged future as history or
+            history as future.
     """
     start, end = config.start_step, config.last_step
     scenario.require_log_until(start, f"an episode that starts at step {start}")
+    if scenario.current_index != start:
+        raise UnusableScenarioError(
+            f"its current step ('current_time_index') is {scenario.current_index}, but the "
+            f"episode starts at step {start} (EnvConfig.start_step); set start_step to the "
+            "current step",
+            scenario.scenario_id,
+            scenario.source,
+        )
     if replays_log:
         scenario.require_log_until(
             end, "replaying the NPCs' log (npc_policy='log_replay') to the episode's last step"
