@@ -34,21 +34,34 @@ def score_submission_file(
 
     Raises:
         SubmissionError: unreadable file, a scenario of the submission not among
-            ``scenarios``, or rollouts that fail the server's checks.
+            ``scenarios`` or listed twice, or rollouts that fail the server's checks (each
+            naming the file, and the scenario, joint scene, object, step and field at fault).
     """
     version = parse_version(version)
     by_id = {s.scenario_id: s for s in scenarios}
+    name = os.fspath(path)
     submission = read_submission(path)
     if not submission.scenario_rollouts:
-        raise SubmissionError(f"{os.fspath(path)}: the submission holds no scenario rollouts")
-    out = []
-    for rollouts in submission.scenario_rollouts:
-        scenario = by_id.get(rollouts.scenario_id)
-        if scenario is None:
+        raise SubmissionError(f"{name}: the submission holds no scenario rollouts")
+    first: dict[str, int] = {}
+    for k, rollouts in enumerate(submission.scenario_rollouts):
+        sid = rollouts.scenario_id
+        if sid in first:
             raise SubmissionError(
-                f"{os.fspath(path)}: scenario {rollouts.scenario_id!r} of the submission is not "
-                f"among the {len(by_id)} given scenarios"
+                f"{name}: scenario {sid!r} is listed twice (entries {first[sid]} and {k} of "
+                "scenario_rollouts); each scenario may be submitted once"
             )
-        validate_scenario_rollouts(rollouts, scenario)
-        out.append(score_scenario(scenario, rollouts_from_proto(rollouts, device), version))
-    return out
+        first[sid] = k
+        if sid not in by_id:
+            raise SubmissionError(
+                f"{name}: scenario {sid!r} of the submission is not among the "
+                f"{len(by_id)} given scenarios"
+            )
+        try:
+            validate_scenario_rollouts(rollouts, by_id[sid])
+        except SubmissionError as err:
+            raise SubmissionError(f"{name}: {err}") from err
+    return [
+        score_scenario(by_id[r.scenario_id], rollouts_from_proto(r, device), version)
+        for r in submission.scenario_rollouts
+    ]

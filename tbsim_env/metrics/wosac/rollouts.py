@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tbsim_env.constants import NUM_FUTURE
+from tbsim_env.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import NUM_ROLLOUTS
@@ -81,6 +81,23 @@ class Rollouts:
             z=self.z[index],
             heading=self.heading[index],
         )
+
+    def impossible_value(self) -> str | None:
+        """The first value no real rollout holds, described (rollout, object, step, field), or
+        None: every value must be finite, positions within ``MAX_ABS_COORDINATE`` and
+        headings within ``MAX_ABS_HEADING`` (the submission validator's rule)."""
+        for name in ("x", "y", "z", "heading"):
+            values = getattr(self, name)
+            bound = MAX_ABS_HEADING if name == "heading" else MAX_ABS_COORDINATE
+            bad = ~(values.abs() <= bound)  # NaN compares False
+            if bool(bad.any()):
+                r, a, t = (int(i) for i in bad.nonzero()[0])
+                return (
+                    f"rollout {r}, object {int(self.object_id[a])}, step {t} of the simulated "
+                    f"future: {name} is {float(values[r, a, t])!r}; every value must be finite "
+                    f"and within {bound:g} {'rad' if name == 'heading' else 'm'}"
+                )
+        return None
 
     def to(self, device: torch.device | str) -> Rollouts:
         """The same rollouts on another device."""

@@ -255,6 +255,9 @@ def _trajectories(
         raise ScoringError(
             f"rollouts are for scenario {rollouts.scenario_id!r}, not {scenario.scenario_id!r}"
         )
+    impossible = rollouts.impossible_value()
+    if impossible:
+        raise ScoringError(f"scenario {scenario.scenario_id} ({scenario.source}): {impossible}")
     first = scenario.current_index + 1
     scenario.require_log_until(scenario.current_index + rollouts.num_steps, "WOSAC scoring")
     if first + rollouts.num_steps != scenario.num_steps:
@@ -342,7 +345,8 @@ def score_scenario(
         device: where to compute (default: the rollouts' device).
 
     Raises:
-        ScoringError: wrong scenario id, missing sim agents, or a step count that does not fit.
+        ScoringError: wrong scenario id, missing sim agents, a step count that does not fit,
+            or a non-finite or out-of-bound rollout value (``Rollouts.impossible_value``).
         MissingFutureError: the log does not cover the rollouts' steps (a history-only scene).
         MapFeatureError: the scenario has no road edge.
     """

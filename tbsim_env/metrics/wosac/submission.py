@@ -5,7 +5,8 @@ challenge server expects. ``validate_scenario_rollouts`` does the server's check
 (docs/wosac.md section 1): scenario id present, 32 joint scenes, 80 steps in each of x, y, z and
 heading, and exactly the sim agents (tracks valid at the current step) in every joint scene;
 and it refuses what no real rollout holds: a non-finite coordinate or heading, a coordinate
-beyond ``MAX_ABS_COORDINATE``.
+beyond ``MAX_ABS_COORDINATE``, a heading beyond ``MAX_ABS_HEADING`` (constants.py), naming the
+scenario, joint scene, object, step and field.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 import torch
 from google.protobuf.message import DecodeError
 
-from tbsim_env.constants import MAX_ABS_COORDINATE, NUM_FUTURE
+from tbsim_env.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.protos import sim_agents_submission_pb2 as pb
@@ -37,8 +38,10 @@ def read_submission(path: str | os.PathLike[str]) -> pb.SimAgentsChallengeSubmis
 
     Raises:
         SubmissionError: if the file is not a valid submission proto.
+        FileNotFoundError: no such file.
     """
-    data = open(path, "rb").read()
+    with open(path, "rb") as fh:
+        data = fh.read()
     sub = pb.SimAgentsChallengeSubmission()
     try:
         sub.ParseFromString(data)
@@ -161,16 +164,19 @@ def validate_scenario_rollouts(
 def _impossible_value(name: str, values: np.ndarray) -> str | None:
     """What is wrong with a trajectory's ``values`` [S] of coordinate ``name``, or None.
 
-    Every value must be finite; positions (not the heading) within ``MAX_ABS_COORDINATE``.
+    Every value must be finite; positions within ``MAX_ABS_COORDINATE``, headings within
+    ``MAX_ABS_HEADING``.
     """
+    bound, unit = (MAX_ABS_HEADING, "rad") if name == "heading" else (MAX_ABS_COORDINATE, "m")
     ok = np.isfinite(values)
-    if name != "heading":
-        ok &= np.abs(np.where(ok, values, 0.0)) <= MAX_ABS_COORDINATE
+    ok &= np.abs(np.where(ok, values, 0.0)) <= bound
     if ok.all():
         return None
     k = int(np.argmin(ok))
-    rule = "finite" if name == "heading" else f"finite and within {MAX_ABS_COORDINATE:g} m"
-    return f"{name}[{k}] is {float(values[k])!r}; every value must be {rule}"
+    return (
+        f"step {k} of the simulated future: {name} is {float(values[k])!r}; every value must "
+        f"be finite and within {bound:g} {unit}"
+    )
 
 
 def rollouts_from_proto(
