@@ -368,7 +368,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except (TbsimError, FileNotFoundError, ValueError) as err:
-        print(f"tbsim {args.command}: error: {err}", file=sys.stderr)
+        message = " ".join(str(err).split())  # one line, whatever the message holds
+        print(f"tbsim {args.command}: error: {message}", file=sys.stderr)
         return 2
 
 
