@@ -30,7 +30,6 @@ from __future__ import annotations
 import os
 import warnings
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 import numpy as np
 from google.protobuf.message import DecodeError
@@ -39,7 +38,7 @@ from tbsim_env.data.conversion import signals_from_entries
 from tbsim_env.data.gpudrive import map_element_to_feature
 from tbsim_env.data.protos import tf_example_pb2
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
-from tbsim_env.data.womd import iter_parsed_records, wrap_heading_f32
+from tbsim_env.data.womd import _Where, iter_parsed_records, wrap_heading_f32
 from tbsim_env.errors import ScenarioFormatError
 
 PathLike = str | os.PathLike
@@ -51,23 +50,6 @@ _TRACK_FIELDS = ("x", "y", "z", "bbox_yaw", "velocity_x", "velocity_y", "length"
 _SIGNAL_FIELDS = ("state", "valid", "id", "x", "y", "z")
 _NUM_SIGNAL_STATES = 9
 _MAX_ID = 2.0**53  # float32 ids beyond this are not exact integers anyway
-
-
-@dataclass(frozen=True)
-class _Where:
-    """Location of a record, for error messages."""
-
-    path: str | None
-    record: int | None = None
-    offset: int | None = None
-
-    @property
-    def source(self) -> str:
-        name = self.path if self.path is not None else "<memory>"
-        return name if self.record is None else f"{name}#record{self.record}"
-
-    def error(self, reason: str) -> ScenarioFormatError:
-        return ScenarioFormatError(reason, self.path, self.record, self.offset)
 
 
 def decode_example(payload: bytes, where: _Where | None = None) -> dict[str, np.ndarray | list]:
