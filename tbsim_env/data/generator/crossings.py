@@ -233,14 +233,15 @@ def plan_crossings(
     rng: np.random.Generator,
     warmup_s: float,
     offset_s: float,
+    speed_range: tuple[float, float] = (1.2, 1.6),
 ) -> CrossingPlan:
     """Draw up to n crossing pedestrians (at most one per crossing).
 
     Each gets a crossing, a side to start from, a crossing line on the crosswalk, a walking
-    speed (1.2-1.6 m/s) and a time to reach the kerb (log time, 0 at the first logged
-    step): at a signalised junction, the first two go to the crossings whose walk window
-    opens in the logged window (arriving up to 5 s before it opens), the others arrive at
-    random; at an unsignalised junction all arrive between -4 s and 5 s.
+    speed (uniform in ``speed_range``, m/s) and a time to reach the kerb (log time, 0 at the
+    first logged step): at a signalised junction, the first two go to the crossings whose
+    walk window opens in the logged window (arriving up to 5 s before it opens), the others
+    arrive at random; at an unsignalised junction all arrive between -4 s and 5 s.
 
     Args:
         net: road network (with ``crossings``).
@@ -248,6 +249,7 @@ def plan_crossings(
         rng: random generator.
         warmup_s: seconds simulated before the first logged step.
         offset_s: signal plan phase offset in seconds.
+        speed_range: walking speed range, m/s.
     """
     n = min(int(n), len(net.crossings))
     if n <= 0:
@@ -271,7 +273,7 @@ def plan_crossings(
     chosen = np.asarray(order[:n], np.int64)
     side = rng.choice([-1.0, 1.0], size=n)
     along = rng.uniform(0.0, 1.0, n)
-    speed = rng.uniform(1.2, 1.6, n)
+    speed = rng.uniform(*speed_range, n)
     size = np.stack([rng.uniform(0.6, 0.9, n), rng.uniform(0.6, 0.9, n), rng.uniform(1.6, 1.9, n)])
     extent = road_extent(net)
     path = np.zeros((n, 6, 2))

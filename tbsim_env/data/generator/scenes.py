@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
+from tbsim_env.data.generator.behaviour import CALIBRATED, Behaviour
 from tbsim_env.data.generator.crossings import plan_crossings
 from tbsim_env.data.generator.driver import (
     DriveLog,
@@ -127,6 +128,12 @@ def _vru_rng(layout: str, seed: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 2])
 
 
+def _ped_rng(layout: str, seed: int) -> np.random.Generator:
+    """Stream of the sidewalk pedestrians' calibrated behaviour (standing, speed fluctuation,
+    sway): its own, so that without it every other draw is as before."""
+    return np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 3])
+
+
 def frame_offset(layout: str, seed: int) -> tuple[float, float]:
     """Seeded world offset of a scene (its own stream, so the traffic draws are unchanged)."""
     rng = np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 1])
@@ -218,13 +225,96 @@ def _clip_to_box(a: np.ndarray, b: np.ndarray, half: float) -> tuple[np.ndarray,
     return xy[0], xy[-1]
 
 
-def _pedestrians(
-    net: RoadNetwork, n: int, rng: np.random.Generator, observed: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Pedestrians walking along the observed part ([-observed, observed]^2) of the sidewalks
-    at constant speed: (size [P,3], xy, heading, vel, valid), arrays over the logged steps;
-    they become invalid past its ends."""
+STANDING_OFFSET_M: float = 2.5
+"""Standing pedestrians stand this far beyond their sidewalk's walking line, away from the road
+(walkers keep 0.6 m to their right of it and sway at most ``MAX_SWAY_M``), m."""
+
+MAX_SWAY_M: float = 0.4
+"""Largest sideways offset of a swaying walker from its lane of the sidewalk, m."""
+
+WALK_SPEED_LIMITS: tuple[float, float] = (0.3, 2.5)
+"""A walker's fluctuating speed stays in this range, m/s."""
+
+
+def _ou(rng: np.random.Generator, n: int, sigma: float, tau: float) -> np.ndarray:
+    """[n] stationary Ornstein-Uhlenbeck process on the DT grid (std ``sigma``, time constant
+    ``tau`` in s), 0 when sigma is 0 (nothing drawn then)."""
+    if sigma <= 0.0:
+        return np.zeros(n)
+    a = float(np.exp(-DT / tau))
+    eps = rng.standard_normal(n)
+    out = np.empty(n)
+    out[0] = sigma * eps[0]
+    for k in range(1, n):
+        out[k] = a * out[k - 1] + np.sqrt(1.0 - a * a) * sigma * eps[k]
+    return out
+
+
+@dataclass(frozen=True)
+class _Walk:
+    """The observed part of one sidewalk walking line.
+
+    Attributes:
+        a: [2] start point, m; d: [2] unit direction from a; total: length, m.
+        outward: [2] unit normal pointing away from the road.
+    """
+
+    a: np.ndarray
+    d: np.ndarray
+    total: float
+    outward: np.ndarray
+
+    @classmethod
+    def of(cls, line: np.ndarray, observed: float) -> _Walk:
+        a, b = _clip_to_box(line[0], line[-1], observed)
+        total = float(np.linalg.norm(b - a))
+        d = (b - a) / total
+        normal = np.array([-d[1], d[0]])
+        # The layouts' roads run through the origin: away from it is away from the road.
+        outward = normal if normal @ (0.5 * (a + b)) >= 0.0 else -normal
+        return cls(a=a, d=d, total=total, outward=outward)
+
+
+def _walker(
+    walk: _Walk, start: float, sign: float, speed: float, rng: np.random.Generator, b: Behaviour
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One sidewalk walker keeping 0.6 m to its right of the line: (xy [T, 2], heading [T],
+    velocity [T, 2], along [T] m from the line's start). With ``b.walkers_wander`` its speed
+    fluctuates and it sways sideways (``_ou`` draws from rng), heading along its motion."""
     t = DT * np.arange(NUM_STEPS)
+    direction = walk.d * sign
+    side = np.array([-direction[1], direction[0]]) * -0.6  # keep to the right
+    if not b.walkers_wander:
+        along = start + sign * speed * t
+        xy = walk.a + along[:, None] * walk.d + side
+        heading = np.full(NUM_STEPS, np.arctan2(direction[1], direction[0]))
+        return xy, heading, np.broadcast_to(speed * direction, (NUM_STEPS, 2)), along
+    tau = b.ped_wander_tau
+    v = np.clip(speed + _ou(rng, NUM_STEPS, b.ped_speed_sigma, tau), *WALK_SPEED_LIMITS)
+    sway = np.clip(_ou(rng, NUM_STEPS, b.ped_sway_sigma, tau), -MAX_SWAY_M, MAX_SWAY_M)
+    along = start + sign * np.concatenate([[0.0], np.cumsum(v[:-1]) * DT])
+    xy = walk.a + along[:, None] * walk.d + side + sway[:, None] * walk.outward
+    vel = np.gradient(xy, DT, axis=0)
+    return xy, np.arctan2(vel[:, 1], vel[:, 0]), vel, along
+
+
+def _pedestrians(
+    net: RoadNetwork,
+    n: int,
+    rng: np.random.Generator,
+    observed: float,
+    behaviour: Behaviour,
+    ped_rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pedestrians on the observed part ([-observed, observed]^2) of the sidewalks: walkers
+    (``_walker``) and, a ``behaviour.ped_standing_share`` of them, pedestrians standing still
+    ``STANDING_OFFSET_M`` beyond the walking line facing a random way. Returns (size [P, 3],
+    xy [P, T, 2], heading [P, T], velocity [P, T, 2], valid [P, T]) over the logged steps;
+    walkers become invalid past the line's ends.
+
+    Draws of the layout stream ``rng`` are the same whatever the behaviour; standing and
+    wandering draw from ``ped_rng`` only.
+    """
     size = np.zeros((n, 3))
     xy = np.zeros((n, NUM_STEPS, 2))
     heading = np.zeros((n, NUM_STEPS))
@@ -233,21 +323,19 @@ def _pedestrians(
     if n == 0 or not net.sidewalks:
         return size[:0], xy[:0], heading[:0], vel[:0], valid[:0]
     for k in range(n):
-        walk = net.sidewalks[rng.integers(len(net.sidewalks))]
-        a, b = _clip_to_box(walk[0], walk[-1], observed)
-        total = float(np.linalg.norm(b - a))
-        d = (b - a) / total
+        walk = _Walk.of(net.sidewalks[rng.integers(len(net.sidewalks))], observed)
         sign = 1.0 if rng.random() < 0.5 else -1.0
-        direction = d * sign
-        side = np.array([-direction[1], direction[0]]) * -0.6  # keep to the right
         # Slot along the walk so that pedestrians on the same walk do not overlap.
-        start = (k + rng.uniform(0.1, 0.9)) / n * total
-        speed = rng.uniform(1.0, 1.6)
-        along = start + sign * speed * t
-        xy[k] = a + along[:, None] * d + side
-        heading[k] = np.arctan2(direction[1], direction[0])
-        vel[k] = speed * direction
-        valid[k] = (along >= 0.0) & (along <= total)
+        start = (k + rng.uniform(0.1, 0.9)) / n * walk.total
+        speed = rng.uniform(*behaviour.ped_speed)
+        if behaviour.ped_standing_share > 0.0 and ped_rng.random() < behaviour.ped_standing_share:
+            spot = walk.a + start * walk.d + STANDING_OFFSET_M * walk.outward
+            xy[k] = spot
+            heading[k] = ped_rng.uniform(-np.pi, np.pi)
+            valid[k] = True
+        else:
+            xy[k], heading[k], vel[k], along = _walker(walk, start, sign, speed, ped_rng, behaviour)
+            valid[k] = (along >= 0.0) & (along <= walk.total)
         size[k] = [rng.uniform(0.6, 0.9), rng.uniform(0.6, 0.9), rng.uniform(1.6, 1.9)]
     heading = wrap_angle_np(heading)
     return size, xy, heading, vel, valid
@@ -260,6 +348,7 @@ def generate_scenario(
     num_vehicles: int | None = None,
     num_pedestrians: int | None = None,
     num_crossing: int | None = None,
+    behaviour: Behaviour = CALIBRATED,
 ) -> Scenario:
     """Generate one WOMD-like scenario (91 steps at 10 Hz, current index 10).
 
@@ -274,6 +363,9 @@ def generate_scenario(
         num_pedestrians: pedestrians on the sidewalks; None uses the layout default.
         num_crossing: pedestrians who cross on the crosswalks (at most one per crosswalk,
             none on layouts without); None draws a layout default.
+        behaviour: how the agents move (speeds, acceleration, headways, walking); the
+            calibrated one by default, ``behaviour.UNCALIBRATED`` gives the scenes of the
+            generator before its calibration.
 
     Returns:
         A validated ``Scenario``: vehicles and cyclists, then sidewalk and crossing
@@ -292,7 +384,7 @@ def generate_scenario(
     ):
         raise ValueError("num_vehicles must be >= 1, num_pedestrians and num_crossing >= 0")
     traffic = TRAFFIC[layout]
-    cfg = traffic.driver
+    cfg = behaviour.driver(traffic.driver)
     rng = _rng(layout, seed)
     observed = LAYOUT_BUILDERS[layout]().half_extent
     net = LAYOUT_BUILDERS[layout](observed + MAP_MARGIN_M)
@@ -326,7 +418,9 @@ def generate_scenario(
     lo, hi = traffic.crossing_pedestrians
     if num_crossing is None:
         num_crossing = int(vru.integers(lo, hi + 1)) if hi > 0 else 0
-    crossing = plan_crossings(net, num_crossing, vru, cfg.warmup_s, offset_s)
+    crossing = plan_crossings(
+        net, num_crossing, vru, cfg.warmup_s, offset_s, behaviour.crossing_speed
+    )
     log = simulate(
         net,
         routes,
@@ -345,7 +439,9 @@ def generate_scenario(
     window = slice(warm, warm + NUM_STEPS)
     slot, vxy, vhead, vvel, vvalid = _vehicle_tracks(routes, log, window)
     n_ped = traffic.pedestrians if num_pedestrians is None else num_pedestrians
-    psize, pxy, phead, pvel, pvalid = _pedestrians(net, n_ped, rng, observed)
+    psize, pxy, phead, pvel, pvalid = _pedestrians(
+        net, n_ped, rng, observed, behaviour, _ped_rng(layout, seed)
+    )
     cxy, chead, cvel = crossing.poses(log.ped_s[:, window], log.ped_speed[:, window])
     n_ped += crossing.num
     psize = np.concatenate([psize, crossing.size])
