@@ -1,10 +1,11 @@
-"""``tbsim`` command line: demo, info, render.
+"""``tbsim`` command line: demo, info, render, WOSAC export and scoring, viewer, training.
 
 Examples::
 
     tbsim demo --out demo.mp4                 # embedded generated scenes, no data needed
     tbsim info path/to/shard.tfrecord         # one line per scenario
     tbsim render shard.tfrecord --scenario 637f20cafde22ff8 --out x.mp4
+    tbsim view shard.tfrecord --policy constant_velocity --out view.html   # open in a browser
 """
 
 from __future__ import annotations
@@ -200,6 +201,35 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _pick_scenario(scenarios: list, scenario_id: str | None, where: str):
+    """The scenario named ``scenario_id`` (default: the first), or a one-line error."""
+    if scenario_id is None:
+        return scenarios[0]
+    for sc in scenarios:
+        if sc.scenario_id == scenario_id:
+            return sc
+    raise ValueError(f"no scenario {scenario_id!r} in {where}")
+
+
+def _cmd_view(args: argparse.Namespace) -> int:
+    from tbsim_env.rendering import viewer
+
+    sc = _pick_scenario(_load([args.scenario]), args.scenario_id, args.scenario)
+    if args.submission:
+        shown = viewer.submission_rollouts(sc, args.submission)
+        title = f"submission {args.submission}"
+    elif args.policy:
+        shown = viewer.policy_rollouts(
+            sc, args.policy, num_rollouts=args.rollouts, seed=args.seed, checkpoint=args.checkpoint
+        )
+        title = f"policy {args.policy}, seed {args.seed}"
+    else:
+        shown, title = [], "logged scene"
+    n = viewer.write_viewer(args.out, sc, [*shown, viewer.log_rollout(sc)], title)
+    print(f"wrote {args.out} ({n / 1e6:.1f} MB): scenario {sc.scenario_id}, {len(shown)} rollouts")
+    return 0
+
+
 def _cmd_preprocess(args: argparse.Namespace) -> int:
     from tbsim_env.config import TokenConfig
     from tbsim_env.data.cache import build_cache
@@ -308,6 +338,18 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
     v.add_argument("--plot", default=None, help="PNG of log vs simulated feature histograms")
     v.set_defaults(func=_cmd_evaluate)
+
+    vw = sub.add_parser("view", help="write a self-contained HTML viewer of a scenario's rollouts")
+    vw.add_argument("scenario", help="a scenario file (TFRecord, pickle, JSON), glob or folder")
+    vw.add_argument("--scenario-id", default=None, help="which scenario (default: the first)")
+    shown = vw.add_mutually_exclusive_group()
+    shown.add_argument("--submission", default=None, help="show the rollouts of this .binproto")
+    shown.add_argument("--policy", default=None, choices=policies, help="simulate this policy")
+    vw.add_argument("--rollouts", type=int, default=8, help="--policy: rollouts to simulate")
+    vw.add_argument("--seed", type=int, default=0, help="--policy: seed (as export-wosac)")
+    vw.add_argument("--checkpoint", default=None, help="--policy trafficbots: checkpoint path")
+    vw.add_argument("--out", required=True, help="HTML file to write")
+    vw.set_defaults(func=_cmd_view)
 
     pp = sub.add_parser("preprocess", help="build a sharded token cache for training")
     pp.add_argument(
