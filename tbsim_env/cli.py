@@ -11,6 +11,7 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -109,9 +110,67 @@ def _load(files: Sequence[str], skip_bad: bool = False):
     return load_scenarios(list(files), skip_bad=skip_bad)
 
 
+def _sharded(args: argparse.Namespace) -> bool:
+    """Whether to run as resumable shards (``--ray`` or ``--work-dir``)."""
+    return args.ray is not None or args.work_dir is not None
+
+
+def _executor(args: argparse.Namespace):
+    from tbsim_env.distributed import LocalExecutor, RayExecutor
+
+    if args.ray is None:
+        return LocalExecutor()
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        raise ValueError("--ray needs the ray package: pip install ray (or the rl extra)") from None
+    return RayExecutor(address=args.ray, num_workers=args.ray_workers)
+
+
+def _settings(args: argparse.Namespace):
+    from tbsim_env.distributed import RolloutSettings
+
+    return RolloutSettings(
+        args.policy, args.rollouts, args.seed, args.checkpoint, args.road_edge_weight
+    )
+
+
+def _print_run(report, work: Path) -> None:
+    rate = report.scenarios / report.seconds if report.seconds > 0 else 0.0
+    print(
+        f"{len(report.written)} shards computed ({report.scenarios} scenarios, "
+        f"{rate:.2f} scenarios/s), {len(report.skipped)} already in {work}"
+    )
+
+
+def _export_sharded(args: argparse.Namespace) -> int:
+    from tbsim_env import distributed as D
+
+    out = Path(args.out)
+    to_dir = args.out.endswith("/") or out.is_dir()
+    if to_dir and args.work_dir and Path(args.work_dir).resolve() != out.resolve():
+        raise ValueError("with --out DIR/ the shard files are the output: leave out --work-dir")
+    work = out if to_dir else Path(args.work_dir or f"{out}.shards")
+    shards = D.plan_shards(args.data, "submission.binproto-{k:05d}-of-{n:05d}", args.shard_size)
+    report = D.run_shards(
+        D.ExportTask(_settings(args), args.skip_bad), shards, work, _executor(args)
+    )
+    _print_run(report, work)
+    D.require_complete(report, work)
+    if to_dir:
+        n = D.check_submission_shards(work, shards)
+        print(f"{out}: a submission of {n} scenarios in {len(shards)} shard files")
+    else:
+        n = D.merge_submissions(work, shards, out)
+        print(f"wrote {out}: {n} scenarios from {len(shards)} shards")
+    return 0
+
+
 def _cmd_export_wosac(args: argparse.Namespace) -> int:
     from tbsim_env.evaluation import check_logged_future, export_submission
 
+    if _sharded(args):
+        return _export_sharded(args)
     scenarios = _load(args.data, args.skip_bad)
     if args.policy == "log_replay":  # before any file is written
         check_logged_future(scenarios, "log replay")
@@ -160,15 +219,47 @@ def _report(scores, json_path: str | None) -> None:
         print(f"wrote {json_path}")
 
 
+def _report_dataset(scores, json_path: str | None) -> None:
+    import json
+
+    from tbsim_env.distributed import dataset_table
+    from tbsim_env.metrics.wosac import scores_to_json
+
+    print(dataset_table(scores))
+    if json_path:
+        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
+        Path(json_path).write_text(json.dumps(scores_to_json(scores), indent=1))
+        print(f"wrote {json_path}")
+
+
+def _score_sharded(args: argparse.Namespace, paths: list[Path]) -> int:
+    from tbsim_env import distributed as D
+
+    shards = [
+        D.Shard(k, f"scores-{p.name}.json", (D.ShardItem(str(p.resolve())),))
+        for k, p in enumerate(paths)
+    ]
+    work = Path(args.work_dir or f"{args.submission.rstrip('/')}.scores")
+    data = tuple(os.path.abspath(d) for d in args.data)
+    task = D.ScoreTask(data, args.version, args.skip_bad)
+    report = D.run_shards(task, shards, work, _executor(args))
+    _print_run(report, work)
+    D.require_complete(report, work)
+    _report_dataset(D.merge_scores(work, shards), args.json)
+    return 0
+
+
 def _cmd_wosac_score(args: argparse.Namespace) -> int:
     from tbsim_env.metrics.wosac import score_submission_file
 
-    scenarios = _load(args.data, args.skip_bad)
     paths = (
         sorted(Path(args.submission).glob("*binproto*"))
         if Path(args.submission).is_dir()
         else [Path(args.submission)]
     )
+    if _sharded(args):
+        return _score_sharded(args, paths)
+    scenarios = _load(args.data, args.skip_bad)
     scores = []
     for path in paths:
         scores += score_submission_file(scenarios, path, args.version)
@@ -176,9 +267,26 @@ def _cmd_wosac_score(args: argparse.Namespace) -> int:
     return 0
 
 
+def _evaluate_sharded(args: argparse.Namespace) -> int:
+    from tbsim_env import distributed as D
+
+    if args.plot:
+        raise ValueError("--plot needs every rollout in one process: not with --ray / --work-dir")
+    work = Path(args.work_dir or f"tbsim-evaluate-{args.policy}.shards")
+    shards = D.plan_shards(args.data, "scores-{k:05d}-of-{n:05d}.json", args.shard_size)
+    task = D.EvaluateTask(_settings(args), args.version, args.skip_bad)
+    report = D.run_shards(task, shards, work, _executor(args))
+    _print_run(report, work)
+    D.require_complete(report, work)
+    _report_dataset(D.merge_scores(work, shards), args.json)
+    return 0
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from tbsim_env.evaluation import evaluate_policy, feature_samples, plot_histograms
 
+    if _sharded(args):
+        return _evaluate_sharded(args)
     scenarios = _load(args.data, args.skip_bad)
     scores, rollouts = evaluate_policy(
         scenarios,
@@ -318,9 +426,36 @@ def build_parser() -> argparse.ArgumentParser:
             "(spec: 0, collisions only)",
         )
 
+    def shard_args(sp: argparse.ArgumentParser, sizes: bool = True) -> None:
+        sp.add_argument(
+            "--ray",
+            nargs="?",
+            const="local",
+            default=None,
+            metavar="ADDRESS",
+            help="run the shards as Ray tasks: a local Ray instance, or the cluster at ADDRESS",
+        )
+        sp.add_argument(
+            "--ray-workers", type=int, default=None, help="CPUs of a local Ray instance (all)"
+        )
+        sp.add_argument(
+            "--work-dir",
+            default=None,
+            help="folder of finished shards, each written once; a rerun computes only the "
+            "missing ones (implied by --ray; without --ray the shards run here, one by one)",
+        )
+        if sizes:
+            sp.add_argument(
+                "--shard-size",
+                type=int,
+                default=None,
+                help="scenarios per shard (default: one shard per input file)",
+            )
+
     e = sub.add_parser("export-wosac", help="write a WOSAC SimAgentsChallengeSubmission")
     wosac_common(e)
     rollout_args(e)
+    shard_args(e)
     e.add_argument("--out", required=True, help="OUT.binproto, or DIR/ for one file per input")
     e.set_defaults(func=_cmd_export_wosac)
 
@@ -329,6 +464,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--submission", required=True, help="a .binproto file or a folder of shards")
     w.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
     w.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
+    shard_args(w, sizes=False)
     w.set_defaults(func=_cmd_wosac_score)
 
     v = sub.add_parser("evaluate", help="roll out a policy and score it (no proto written)")
@@ -337,6 +473,7 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
     v.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
     v.add_argument("--plot", default=None, help="PNG of log vs simulated feature histograms")
+    shard_args(v)
     v.set_defaults(func=_cmd_evaluate)
 
     vw = sub.add_parser("view", help="write a self-contained HTML viewer of a scenario's rollouts")

@@ -107,6 +107,17 @@ def iter_rollouts(
         yield sc, fn(sc, num_rollouts, scenario_seed(seed, sc.scenario_id))
 
 
+def submission_metadata(policy: str) -> SubmissionMetadata:
+    """The method description tbsim writes for a policy's submission."""
+    return SubmissionMetadata(
+        account_name="tbsim",
+        unique_method_name=f"tbsim-{policy}",
+        description=f"tbsim {policy} closed-loop rollouts",
+        num_model_parameters="0",
+        acknowledge_complies_with_closed_loop_requirement=True,
+    )
+
+
 def export_submission(
     scenarios: Sequence[Scenario],
     policy: str,
@@ -131,13 +142,7 @@ def export_submission(
     """
     if policy == "log_replay":
         check_logged_future(scenarios, "log replay")
-    metadata = metadata or SubmissionMetadata(
-        account_name="tbsim",
-        unique_method_name=f"tbsim-{policy}",
-        description=f"tbsim {policy} closed-loop rollouts",
-        num_model_parameters="0",
-        acknowledge_complies_with_closed_loop_requirement=True,
-    )
+    metadata = metadata or submission_metadata(policy)
     protos = []
     for sc, r in iter_rollouts(
         scenarios,
@@ -280,4 +285,5 @@ __all__ = [
     "make_rollout_fn",
     "plot_histograms",
     "scenario_seed",
+    "submission_metadata",
 ]
