@@ -178,3 +178,23 @@ def test_cli_view(one_scenario_path: Path, womd_dir: Path, tmp_path: Path, capsy
     assert len(embedded_data(out.read_text())["rollouts"]) == 33
     assert main(["view", path, "--scenario-id", "nope", "--out", str(out)]) == 2
     assert "no scenario 'nope'" in capsys.readouterr().err
+
+
+def test_history_only_scene(womd_dir: Path) -> None:
+    """A WOSAC test-split scene (11 logged steps): the log ends at the current step, the
+    policy's rollouts cover the 80 steps after it."""
+    from tbsim_env.rendering.viewer import policy_rollouts
+
+    folder = womd_dir / "gpudrive_history" / "gpudrive"
+    sc = next(s for s in load_scenarios(folder) if not s.has_future)
+    shown = [*policy_rollouts(sc, "constant_velocity", num_rollouts=1), log_rollout(sc)]
+    d = build_viewer_data(sc, shown)
+    cur = sc.current_index
+    assert d["num_steps"] == cur + 1 + NUM_FUTURE
+    sim = sc.tracks.valid[:, cur]
+    rollout, log = _array(d["rollouts"][0]["x"]), _array(d["rollouts"][1]["x"])
+    assert np.isfinite(rollout[sim]).all() and np.isnan(rollout[~sim]).all()
+    assert np.isnan(log[:, cur + 1 :]).all()
+    assert np.array_equal(np.isfinite(log[:, : cur + 1]), sc.tracks.valid[:, : cur + 1])
+    signals = np.array(d["signals"]["state"], int).reshape(-1, d["num_steps"])
+    assert (signals[:, cur + 1 :] == -1).all()
