@@ -241,3 +241,23 @@ def test_screenshot_matches_scene(page, scene) -> None:
     assert _colour_share(img, _pixel(data, *_rear_point(sc, a, x, y, yaw)), rgb) > 0.8
     old = _pixel(data, *_rear_point(sc, a, *t.xyz[a, cur, :2], t.heading[a, cur]))
     assert _colour_share(img, old, rgb) < 0.5
+
+
+def test_play_and_pause(page, scene) -> None:
+    import time
+
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    sc = scene[0]
+    play = page.find_element("id", "play")
+    play.click()
+    assert play.text == "Pause"
+    WebDriverWait(page, 10).until(
+        lambda d: d.execute_script("return TBSIM.state.step") >= sc.current_index + 3
+    )
+    play.click()
+    assert play.text == "Play"
+    stopped = page.execute_script("return TBSIM.state.step")
+    time.sleep(0.5)
+    assert page.execute_script("return TBSIM.state.step") == stopped
+    assert f"step {stopped}" in page.find_element("id", "clock").text
