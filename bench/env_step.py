@@ -15,20 +15,21 @@ batch 64.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from tbsim_env.data import load_scenarios
-from tbsim_env.env import TrafficEnv
-from tbsim_env.env import fused as fu
-from tbsim_env.env import transition as tr
-from tbsim_env.sim import core
-from tbsim_env.sim.build import build_sim_state
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stages import format_split, stage_times  # noqa: E402
+
+from tbsim_env.data import load_scenarios  # noqa: E402
+from tbsim_env.env import TrafficEnv  # noqa: E402
+from tbsim_env.sim import core  # noqa: E402
+from tbsim_env.sim.build import build_sim_state  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
 
@@ -52,41 +53,6 @@ def bench_env(env: TrafficEnv, episodes: int) -> tuple[float, float, int]:
             steps += 1
     dt = time.perf_counter() - start
     return steps / dt, steps * n_agents / dt, steps
-
-
-@contextlib.contextmanager
-def timed_parts(totals: dict[str, float]):
-    """Accumulate the seconds ``TrafficEnv`` spends in each part of a step into ``totals``.
-
-    Wraps the functions ``TrafficEnv.step`` calls (in ``tbsim_env.env.transition`` and
-    ``fused``; restored on exit); what is not in a part is the env's own Python glue
-    (dicts, numpy conversion, infos).
-    """
-    parts = {
-        "core.step": (tr.core, "step"),
-        "step_metrics": (tr, "step_metrics"),
-        "reward": (tr, "reward_and_termination"),
-        "push_history": (fu, "push_history"),
-        "observe": (fu, "observe"),
-    }
-    saved = {name: getattr(mod, attr) for name, (mod, attr) in parts.items()}
-
-    def wrap(name, fn):
-        def timed(*args, **kwargs):
-            t = time.perf_counter()
-            out = fn(*args, **kwargs)
-            totals[name] = totals.get(name, 0.0) + time.perf_counter() - t
-            return out
-
-        return timed
-
-    for name, (mod, attr) in parts.items():
-        setattr(mod, attr, wrap(name, saved[name]))
-    try:
-        yield
-    finally:
-        for name, (mod, attr) in parts.items():
-            setattr(mod, attr, saved[name])
 
 
 def bench_core(scenarios, batch: int, steps: int) -> float:
@@ -138,17 +104,17 @@ def main() -> None:
     print(
         f"    the same with compile=True:                 {c_sps:8.0f} env steps/s "
         f"({c_asps:,.0f} agent steps/s; {c_sps / env_sps:.2f}x eager; first episode, "
-        f"compile included, {warm:.1f} s; {compiled._step_fn.eager_redos} steps redone eagerly)"
+        f"compile included, {warm:.1f} s; {compiled.step_function.eager_redos} steps redone "
+        "eagerly)"
     )
     totals: dict[str, float] = {}
-    with timed_parts(totals):
+    with stage_times(totals):
+        start = time.perf_counter()
         sps, _, steps = bench_env(eager, args.episodes)
-    per_step = {k: 1e3 * v / steps for k, v in totals.items()}
-    rest = 1e3 / sps - sum(per_step.values())
+        wall = time.perf_counter() - start
     print(
-        f"    eager per step (separate timed run, {1e3 / sps:.3f} ms): "
-        + ", ".join(f"{k} {v:.3f}" for k, v in per_step.items())
-        + f", env glue and resets {rest:.3f} ms"
+        f"    eager stages (separate timed run, {1e3 * wall / steps:.3f} ms per step): "
+        + format_split(totals, wall)
     )
     for b in (1, 16, 64):
         asps = bench_core(scenarios, b, 400)

@@ -13,19 +13,26 @@ generated scenes.
 With ``trafficbots`` it also measures the policy on the padded token limits (``trim=False``)
 and prints the speed-up of running on the rows the scenario bank uses. Each row also gives
 the observation bytes per agent step of its layout (``--obs-layout dense indexed``), and the
-ratio of its batched steps/s to the first row of the same B ("x first").
+ratio of its batched steps/s to the first row of the same B ("x first"). ``--stages`` adds,
+under each eager row, the share of the step spent per stage (NPC policy, dynamics, collision,
+off-road, the rest of the metrics, rewards, history, observations, densify, autoreset, glue).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from tbsim_env.env.vector_env import BatchedTrafficEnv
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from stages import format_split, stage_times  # noqa: E402
+
+from tbsim_env.env.vector_env import BatchedTrafficEnv  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
 
@@ -48,50 +55,66 @@ def load(source: str, data: str) -> tuple[list, str]:
     return default_scenarios(8), "generated scenes (8)"
 
 
-def bench(
-    scenarios: list,
-    batch: int,
-    npc_policy: str,
-    controlled: str,
-    steps: int,
-    device: str,
-    threads: int,
-    npc_kwargs: dict | None = None,
-    obs_layout: str = "dense",
-    compile: bool = False,
-) -> tuple[float, float, float]:
-    """(agent steps/s, batched env steps/s, observation bytes per agent step) over ``steps``
-    batched steps after a warm-up."""
+@dataclass(frozen=True)
+class Case:
+    """One measurement: the env's settings and how long to run."""
+
+    batch: int
+    npc_policy: str
+    controlled: str
+    steps: int
+    device: str
+    threads: int
+    npc_kwargs: dict | None = None
+    obs_layout: str = "dense"
+    compile: bool = False
+
+
+def bench(scenarios: list, case: Case, stages: bool = False) -> tuple[float, float, float, str]:
+    """(agent steps/s, batched env steps/s, observation bytes per agent step, stage split)
+    over ``case.steps`` batched steps after a warm-up; the split ("" unless ``stages``) is
+    measured in a second run of the same steps (the timers cost time of their own)."""
     env = BatchedTrafficEnv(
         scenarios,
-        batch,
-        controlled=controlled,
-        npc_policy=npc_policy,
-        npc_kwargs=npc_kwargs,
-        device=device,
+        case.batch,
+        controlled=case.controlled,
+        npc_policy=case.npc_policy,
+        npc_kwargs=case.npc_kwargs,
+        device=case.device,
         seed=0,
-        torch_threads=threads,
-        obs_layout=obs_layout,
-        compile=compile,
+        torch_threads=case.threads,
+        obs_layout=case.obs_layout,
+        compile=case.compile,
     )
     obs, _ = env.reset(seed=0)
     obs_bytes = sum(v.numel() * v.element_size() for v in obs.values()) / max(
         1, int(env.agent_mask.sum())
     )
-    zeros = torch.zeros(batch, env.num_agents, 2, device=env.device)
+    zeros = torch.zeros(case.batch, env.num_agents, 2, device=env.device)
     for _ in range(5):
         env.step(zeros)
+    agent_steps, dt = _run(env, zeros, case.steps)
+    split = ""
+    if stages and not case.compile:
+        totals: dict[str, float] = {}
+        with stage_times(totals):
+            _, wall = _run(env, zeros, case.steps)
+        split = format_split(totals, wall)
+    return agent_steps / dt, case.steps / dt, obs_bytes, split
+
+
+def _run(env: BatchedTrafficEnv, actions: torch.Tensor, steps: int) -> tuple[int, float]:
+    """(active agent steps, seconds) of ``steps`` batched steps."""
     agent_steps = 0
     if env.device.type == "cuda":
         torch.cuda.synchronize()
     start = time.perf_counter()
     for _ in range(steps):
         agent_steps += int(env.agent_mask.sum())
-        env.step(zeros)
+        env.step(actions)
     if env.device.type == "cuda":
         torch.cuda.synchronize()
-    dt = time.perf_counter() - start
-    return agent_steps / dt, steps / dt, obs_bytes
+    return agent_steps, time.perf_counter() - start
 
 
 def main() -> None:
@@ -122,6 +145,11 @@ def main() -> None:
         action="store_true",
         help="also measure each layout with compile=True (one torch.compile graph per step)",
     )
+    p.add_argument(
+        "--stages",
+        action="store_true",
+        help="also print each eager row's time split per stage (bench/stages.py)",
+    )
     args = p.parse_args()
     scenarios, label = load(args.scenarios, str(args.data))
     print(
@@ -144,8 +172,7 @@ def main() -> None:
             for b in args.batch_sizes:
                 rates = []
                 for label, kw, layout, compiled in variants:
-                    asps, esps, nbytes = bench(
-                        scenarios,
+                    case = Case(
                         b,
                         policy,
                         args.controlled,
@@ -156,6 +183,7 @@ def main() -> None:
                         layout,
                         compiled,
                     )
+                    asps, esps, nbytes, split = bench(scenarios, case, args.stages)
                     rates.append(esps)
                     ratio = f"{esps / rates[0]:>8.2f}" if len(rates) > 1 else ""
                     print(
@@ -163,6 +191,8 @@ def main() -> None:
                         f"{nbytes:>12,.0f} {ratio}",
                         flush=True,
                     )
+                    if split:
+                        print(f"    stages: {split}", flush=True)
         except FileNotFoundError as e:  # e.g. TrafficBots without weights: the next policy
             print(f"{policy:<20} skipped: {e}")
 

@@ -28,7 +28,7 @@ def frames_of(scenario, checkpoint: str | None, times: tuple[int, ...]) -> list[
     env.reset(seed=0)
     layer = MapLayer.build(scenario, view_for(scenario, size=(420, 420)))
     groups = np.full(env.sim_state.num_agents, int(AgentGroup.POLICY), np.int64)
-    groups[env._external[0].numpy()] = int(AgentGroup.EXTERNAL)
+    groups[env.episode.setup.external[0].numpy()] = int(AgentGroup.EXTERNAL)
     out, trail = [], []
     a = env.agents[0]
     for step in range(1, max(times) + 1):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 from tbsim_env import constants as C
@@ -43,7 +44,8 @@ class RewardConfig:
 
     reward = collision * [collided] + offroad * [off road] + progress * (metres gained along
     the logged route this step) + goal * [goal reached this step] + log_divergence * (distance
-    to the logged position at this step, metres) + alive * 1.
+    to the logged position at this step, metres) + alive * 1, plus the weighted terms a user
+    registered (``tbsim_env.env.rewards.register_reward_term``) and listed in ``terms``.
 
     Attributes:
         collision: weight of the collision indicator (usually negative).
@@ -53,6 +55,7 @@ class RewardConfig:
         log_divergence: weight per metre of distance to the log (usually <= 0).
         alive: constant reward per step.
         goal_radius: m, distance to the logged final position that counts as reached.
+        terms: ((name, weight), ...) of registered reward terms beyond the built-ins.
     """
 
     collision: float = -1.0
@@ -62,6 +65,13 @@ class RewardConfig:
     log_divergence: float = 0.0
     alive: float = 0.0
     goal_radius: float = 2.0
+    terms: tuple[tuple[str, float], ...] = ()
+
+    def __post_init__(self) -> None:
+        # Stored as a tuple of pairs, so that the config stays hashable and immutable; a
+        # mapping is accepted too.
+        items = self.terms.items() if isinstance(self.terms, Mapping) else self.terms
+        object.__setattr__(self, "terms", tuple((str(n), float(w)) for n, w in items))
 
 
 @dataclass(frozen=True)

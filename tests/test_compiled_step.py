@@ -18,7 +18,8 @@ from tbsim_env import constants as C
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
-from tbsim_env.env.fused import StepFunction, advance_and_observe
+from tbsim_env.env.compiled import StepFunction
+from tbsim_env.env.episode import StepConfig, step
 from tbsim_env.sim.edge_grid import build_edge_grid
 
 if not (shutil.which("c++") or shutil.which("g++")):
@@ -102,31 +103,21 @@ def test_points_the_edge_grid_cannot_vouch_for_are_recomputed_or_redone(scenes, 
     coarse = state.replace(
         road_edges=dataclasses.replace(edges, grid=build_edge_grid(segments, count=1))
     )
-    args = (
-        torch.zeros(1, state.num_agents, 2),
-        env._ext_slots,
-        env._route,
-        env._progress,
-        env._goal_reached,
-        env._has_goal,
-        env.config,
-        env._history,
-        env._ctx,
-        env.obs_config,
-        env._agent_static,
-    )
+    episode = dataclasses.replace(env.episode, sim=coarse)
+    config = StepConfig(env.config, env.obs_config, dense=True)
+    actions = torch.zeros(1, episode.setup.query.shape[1], 2)
     with torch.inference_mode():
-        want = advance_and_observe(state, *args).transition.metrics
+        want = step(env.episode, actions, None, config)[1].metrics
         # Within the recompute budget the graph recomputes the corners itself.
-        step = StepFunction(compile=True)
-        got = step(coarse, *args).transition.metrics
-        assert step.eager_redos == 0 and not got.offroad_stale.any()
+        fn = StepFunction(config, compile=True)
+        got = fn(episode, actions, None)[1].metrics
+        assert fn.eager_redos == 0 and not got.offroad_stale.any()
         torch.testing.assert_close(got.offroad_distance, want.offroad_distance, atol=1e-5, rtol=0)
         # Beyond it the step is redone eagerly.
         monkeypatch.setattr(C, "OFFROAD_RECOMPUTE_BUDGET", 1)
-        step = StepFunction(compile=True)
-        got = step(coarse, *args).transition.metrics
-    assert step.eager_redos == 1
+        fn = StepFunction(config, compile=True)
+        got = fn(episode, actions, None)[1].metrics
+    assert fn.eager_redos == 1
     assert got.offroad_stale is None, "the eager redo's result"
     torch.testing.assert_close(got.offroad_distance, want.offroad_distance, rtol=0, atol=0)
 

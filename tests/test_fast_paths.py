@@ -15,12 +15,10 @@ import pytest
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.config import RewardConfig, TerminationConfig
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
-from tbsim_env.env.agent_metrics import StepMetrics, build_route, step_metrics
-from tbsim_env.env.rewards import reward_and_termination
+from tbsim_env.env.agent_metrics import build_route, step_metrics
 from tbsim_env.observation import observe
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
@@ -187,17 +185,12 @@ def test_observe_and_core_step_match_references(scenes, name):
     rng = np.random.default_rng(0)
     for _ in range(30):
         with torch.inference_mode():
-            s = env.sim_state
-            got = observe(
-                s, env._history, env._ctx, env._ext_slots, env.obs_config, env._agent_static
-            )
-            ref = _reference_observe(
-                s, env._history, env._ctx, env._ext_slots, env.obs_config, env._agent_static
-            )
-            dist = agent_distances(s.pose[0, env._ext_slots], s.pose)
-            shared = observe(
-                s, env._history, env._ctx, env._ext_slots, env.obs_config, env._agent_static, dist
-            )
+            s, history, setup = env.sim_state, env.episode.history, env.episode.setup
+            args = (s, history, setup.ctx, setup.query, env.obs_config, setup.static)
+            got = observe(*args)
+            ref = _reference_observe(*args)
+            dist = agent_distances(s.pose[0, setup.query], s.pose)
+            shared = observe(*args, dist)
             for key in ref:
                 assert torch.equal(got[key], ref[key]), key
                 assert torch.equal(shared[key], ref[key]), key
@@ -288,59 +281,6 @@ def test_grid_edge_distance_matches_reference(scenes, name):
             _, stale = grid_signed_distance(points, with_grid, grid)
             recomputed[count] = recomputed.get(count, 0) + int(stale.sum())
     assert recomputed[2] > 2 * recomputed[16]
-
-
-def test_reward_matches_the_full_sum():
-    gen = torch.Generator().manual_seed(3)
-    shape = (4, 50)
-
-    def metrics():
-        flag = lambda: torch.rand(shape, generator=gen) > 0.7  # noqa: E731
-        pos = lambda: torch.rand(shape, generator=gen) * 5  # noqa: E731
-        return StepMetrics(
-            collision=flag(),
-            offroad=flag(),
-            offroad_distance=pos() - 2,
-            progress=pos(),
-            goal_distance=pos(),
-            log_divergence=pos(),
-            log_valid=flag(),
-        )
-
-    configs = [
-        RewardConfig(),
-        RewardConfig(collision=0.0, offroad=0.0, progress=0.0, goal=0.0),
-        RewardConfig(log_divergence=-0.1, alive=0.5),
-        RewardConfig(collision=-2.0, progress=0.0, alive=-0.0),
-    ]
-    terms = [
-        TerminationConfig(),
-        TerminationConfig(False, False, False),
-        TerminationConfig(True, True, False),
-    ]
-    for rc in configs:
-        for tc in terms:
-            m = metrics()
-            best, reached = (
-                torch.rand(shape, generator=gen) * 5,
-                torch.rand(shape, generator=gen) > 0.5,
-            )
-            has_goal = torch.rand(shape, generator=gen) > 0.2
-            out = reward_and_termination(m, best, reached, has_goal, rc, tc)
-            gained = (m.progress - best).clamp_min(0.0)
-            goal_now = (m.goal_distance <= rc.goal_radius) & has_goal & ~reached
-            ref = (
-                rc.collision * m.collision
-                + rc.offroad * m.offroad
-                + rc.progress * gained
-                + rc.goal * goal_now
-                + rc.log_divergence * m.log_divergence
-                + rc.alive
-            ).float()
-            term = (m.collision & tc.collision) | (m.offroad & tc.offroad) | (goal_now & tc.goal)
-            assert torch.equal(out.reward, ref)
-            assert torch.equal(out.reward.signbit(), ref.signbit())
-            assert torch.equal(out.terminated, term) and torch.equal(out.goal_now, goal_now)
 
 
 def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):

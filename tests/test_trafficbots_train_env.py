@@ -158,7 +158,7 @@ def test_trafficbots_npcs_react_to_the_controlled_agent(random_checkpoint):
         a = env.agents[0]
         for _ in range(15):
             env.step({a: action})
-        return env.sim_state.pose.clone(), env._ctrl.npc.clone()
+        return env.sim_state.pose.clone(), env.episode.setup.npc.clone()
 
     pose_a, npc = run(np.array([0.0, 0.0], np.float32))
     pose_b, _ = run(np.array([-5.0, 0.5], np.float32))

@@ -14,11 +14,10 @@ from tbsim_env.env.vector_env import (
     OBS_INDEXED_KEYS,
     ROUTE_KEY,
     BatchedTrafficEnv,
-    put_rows,
     route_features,
-    take_rows,
 )
 from tbsim_env.errors import ActionError
+from tbsim_env.rows import take_rows, with_rows
 
 
 @pytest.fixture(scope="module")
@@ -262,17 +261,20 @@ def test_route_observation_key(scenes):
     assert (obs[ROUTE_KEY][:, 0, 0, 0] > 0).all()
 
 
-def test_take_and_put_rows_round_trip(scenes):
+def test_take_and_with_rows_round_trip(scenes):
     venv = BatchedTrafficEnv(scenes, 3, seed=0)
     venv.reset(scenario_indices=[0, 1, 2])
     state = venv.sim_state
     rows = torch.tensor([2, 0])
     sub = take_rows(state, rows)
     assert sub.batch_size == 2 and torch.equal(sub.pose[0], state.pose[2])
-    copy = take_rows(state, torch.arange(3))
-    put_rows(copy, torch.tensor([1]), take_rows(state, torch.tensor([0])))
+    before = state.log.pose.clone()
+    copy = with_rows(state, torch.tensor([1]), take_rows(state, torch.tensor([0])))
     assert torch.equal(copy.log.pose[1], state.log.pose[0])
     assert torch.equal(copy.log.pose[2], state.log.pose[2])
+    assert torch.equal(state.log.pose, before), "with_rows returns a new tree"
+    with pytest.raises(ValueError, match="cannot take"):
+        with_rows(state.pose, torch.tensor([0]), state.pose[:1, :3])
     with pytest.raises(TypeError):
         take_rows(object(), rows)
 
@@ -305,7 +307,7 @@ def test_trimmed_trafficbots_npcs_match_the_padded_ones_across_slot_restarts(sce
             obs, rew, *_, info = venv.step(a)
             trace.append((obs["agents"].clone(), rew.clone()))
             drawn.update(venv.scenario_index.tolist())
-            n_rows.add(venv._policy_state.ctx.mp.feat.shape[1])
+            n_rows.add(venv.episode.policy_state.ctx.mp.feat.shape[1])
         return trace, drawn, n_rows, venv
 
     padded, _, pad_rows, _ = run(False)
@@ -354,7 +356,7 @@ def test_stateful_npc_policy_resets_one_slot_without_touching_the_others(scenes)
     for (oa, ra), (ob, rb) in zip(calm[:calm_restart], crashed[:calm_restart]):
         torch.testing.assert_close(oa, ob, rtol=0, atol=1e-4)
         torch.testing.assert_close(ra, rb, rtol=0, atol=1e-6)
-    assert venv._policy_state.rollout.hist_pose.shape[0] == 2
+    assert venv.episode.policy_state.rollout.hist_pose.shape[0] == 2
 
 
 def test_indexed_layout_densifies_to_the_dense_layout_through_restarts(scenes):

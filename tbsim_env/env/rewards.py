@@ -1,7 +1,24 @@
-"""Reward and termination of externally controlled agents: one definition for every env."""
+"""Rewards and terminations of externally controlled agents: one definition for every env.
+
+The reward of a step is a weighted sum of *named terms*:
+
+    reward = sum over terms of weight(term) * term(inputs)
+
+Each term is a pure function of ``RewardInputs`` (the step's metrics, the progress gained and
+whether the goal was reached this step) returning [B, Q]. The built-in terms are
+``REWARD_TERM_NAMES``; ``register_reward_term`` adds one, and ``RewardConfig(terms=...)`` gives
+it a weight::
+
+    register_reward_term("speeding", lambda x: (x.speed - 15.0).clamp_min(0.0))
+    config = EnvConfig(reward=RewardConfig(terms=(("speeding", -0.1),)))
+
+Terms with weight 0 are not computed. ``RewardOutcome.terms`` holds every computed term, so
+``reward == sum(weight * term)`` can be checked (and logged) per term.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -12,72 +29,162 @@ from tbsim_env.torch_utils import const
 
 
 @dataclass(frozen=True)
+class RewardInputs:
+    """What a reward term may read, each [B, Q] over the query agents.
+
+    Attributes:
+        metrics: ``step_metrics`` of the new state.
+        gained: m of progress along the logged route beyond the best so far (>= 0).
+        goal_now: bool, the agent reached its goal this step (first time).
+        speed: m/s, the agent's speed in the new state.
+    """
+
+    metrics: StepMetrics
+    gained: torch.Tensor
+    goal_now: torch.Tensor
+    speed: torch.Tensor
+
+
+RewardTerm = Callable[[RewardInputs], torch.Tensor]
+"""A reward term: ``RewardInputs`` -> [B, Q] values (bool or float)."""
+
+_TERMS: dict[str, RewardTerm] = {
+    "collision": lambda x: x.metrics.collision,
+    "offroad": lambda x: x.metrics.offroad,
+    "progress": lambda x: x.gained,
+    "goal": lambda x: x.goal_now,
+    "log_divergence": lambda x: x.metrics.log_divergence,
+    "alive": lambda x: torch.ones_like(x.gained),
+}
+
+REWARD_TERM_NAMES = tuple(_TERMS)
+"""The built-in terms, weighted by the ``RewardConfig`` fields of the same names."""
+
+
+def register_reward_term(name: str, term: RewardTerm) -> None:
+    """Add a reward term that ``RewardConfig(terms=((name, weight), ...))`` can weight.
+
+    Args:
+        name: the term's name (not a built-in one; re-registering a user term replaces it).
+        term: pure function ``RewardInputs -> [B, Q]`` tensor; it runs inside the compiled
+            step when the env compiles, so it must be tensor code without data-dependent
+            Python branches.
+    """
+    if name in REWARD_TERM_NAMES:
+        raise ValueError(f"{name!r} is a built-in reward term; weight it with RewardConfig")
+    if not callable(term):
+        raise TypeError(f"reward term {name!r} must be callable, got {type(term).__name__}")
+    _TERMS[name] = term
+
+
+def reward_weights(config: RewardConfig) -> dict[str, float]:
+    """{term name: weight} of every non-zero term of ``config``, built-ins first.
+
+    Raises:
+        ValueError: ``config.terms`` names a term nobody registered, or twice.
+    """
+    weights = {name: float(getattr(config, name)) for name in REWARD_TERM_NAMES}
+    for name, weight in config.terms:
+        if name not in _TERMS or name in REWARD_TERM_NAMES:
+            known = sorted(set(_TERMS) - set(REWARD_TERM_NAMES))
+            raise ValueError(
+                f"RewardConfig.terms names {name!r}, which is not a registered reward term "
+                f"(registered: {known}; built-ins are RewardConfig fields)"
+            )
+        if name in weights:
+            raise ValueError(f"RewardConfig.terms weights {name!r} twice")
+        weights[name] = float(weight)
+    return {k: w for k, w in weights.items() if w != 0.0}
+
+
+@dataclass(frozen=True)
 class RewardOutcome:
     """Result of ``reward_and_termination``.
 
     Attributes:
-        reward: [B, Q] float32 reward of this step.
+        reward: [B, Q] float32 reward of this step: the weighted sum of ``terms``.
+        terms: {name: [B, Q]} the unweighted value (bool or float) of every term with a
+            non-zero weight.
         terminated: [B, Q] bool, the agent's episode ends by an event this step.
         goal_now: [B, Q] bool, the agent reached its goal this step (first time).
         progress_best: [B, Q] m, best progress so far (the new baseline).
     """
 
     reward: torch.Tensor
+    terms: dict[str, torch.Tensor]
     terminated: torch.Tensor
     goal_now: torch.Tensor
     progress_best: torch.Tensor
 
 
+@dataclass(frozen=True)
+class Baseline:
+    """Per-agent reward state before the step, each [B, Q].
+
+    Attributes:
+        progress_best: m, best progress along the logged route so far.
+        goal_reached: bool, the goal was reached before this step.
+        has_goal: bool, the logged route is longer than the goal radius.
+    """
+
+    progress_best: torch.Tensor
+    goal_reached: torch.Tensor
+    has_goal: torch.Tensor
+
+
 def reward_and_termination(
     metrics: StepMetrics,
-    progress_best: torch.Tensor,
-    goal_reached: torch.Tensor,
-    has_goal: torch.Tensor,
+    speed: torch.Tensor,
+    baseline: Baseline,
     reward_config: RewardConfig,
     termination_config: TerminationConfig,
 ) -> RewardOutcome:
-    """Per-agent reward and termination of one step (the definition of ``TrafficEnv``).
-
-    reward = collision * [collided] + offroad * [off road] + progress * (metres of new
-    progress beyond the best so far) + goal * [goal reached now] + log_divergence * gap + alive.
+    """Per-agent reward and termination of one step (the definition of both envs).
 
     Args:
         metrics: ``step_metrics`` of the new state, fields [B, Q].
-        progress_best: [B, Q] m, best progress along the logged route before this step.
-        goal_reached: [B, Q] bool, the goal was reached before this step.
-        has_goal: [B, Q] bool, the logged route is longer than the goal radius.
-        reward_config: reward weights.
+        speed: [B, Q] m/s of the query agents in the new state.
+        baseline: progress, goal and has-goal state before this step.
+        reward_config: term weights and the goal radius.
         termination_config: termination events.
     """
-    rc, tc = reward_config, termination_config
-    # Weights as cached float32 constants: the same bits as Python floats (which become
-    # float32 scalars here), without wrapping a new tensor per operation. Zeros stay Python
-    # floats (the constant cache does not tell 0.0 from -0.0).
-    w = lambda value: value if value == 0 else const(float(value), progress_best)  # noqa: E731
-    gained = (metrics.progress - progress_best).clamp_min(0.0)
-    goal_now = (metrics.goal_distance <= w(rc.goal_radius)) & has_goal & ~goal_reached
-    coll, off = metrics.collision, metrics.offroad
-    # Terms with weight 0 are skipped: they add (+/-) 0 (the metrics are finite), and the
-    # final ``+ rc.alive`` turns a -0 sum into +0 exactly as the full sum would.
-    terms = (
-        (rc.collision, coll),
-        (rc.offroad, off),
-        (rc.progress, gained),
-        (rc.goal, goal_now),
-        (rc.log_divergence, metrics.log_divergence),
-    )
+    best = baseline.progress_best
+    gained = (metrics.progress - best).clamp_min(0.0)
+    radius = const(float(reward_config.goal_radius), best)
+    goal_now = (metrics.goal_distance <= radius) & baseline.has_goal & ~baseline.goal_reached
+    inputs = RewardInputs(metrics=metrics, gained=gained, goal_now=goal_now, speed=speed)
+    terms: dict[str, torch.Tensor] = {}
     reward = None
-    for weight, value in terms:
-        if weight != 0.0:
-            reward = w(weight) * value if reward is None else reward + w(weight) * value
-    reward = (torch.zeros_like(gained) if reward is None else reward) + w(rc.alive)
-    events = [x for on, x in ((tc.collision, coll), (tc.offroad, off), (tc.goal, goal_now)) if on]
-    term = torch.zeros_like(coll) if not events else events[0]
+    for name, weight in reward_weights(reward_config).items():
+        value = _TERMS[name](inputs)
+        terms[name] = value
+        # A cached float32 constant: the bits of the Python float, without a new tensor.
+        weighted = const(weight, best) * value
+        reward = weighted if reward is None else reward + weighted
+    # "+ 0.0" makes an all -0 sum +0, as a sum over the zero-weight terms would.
+    reward = torch.zeros_like(gained) if reward is None else reward + 0.0
+    tc = termination_config
+    events = [x for on, x in ((tc.collision, metrics.collision), (tc.offroad, metrics.offroad),
+                              (tc.goal, goal_now)) if on]  # fmt: skip
+    terminated = torch.zeros_like(metrics.collision) if not events else events[0]
     for x in events[1:]:
-        term = term | x
+        terminated = terminated | x
     return RewardOutcome(
         reward=reward.float(),
-        terminated=term,
+        terms=terms,
+        terminated=terminated,
         goal_now=goal_now,
-        progress_best=torch.maximum(progress_best, metrics.progress),
+        progress_best=torch.maximum(best, metrics.progress),
     )
+
+
+__all__ = [
+    "REWARD_TERM_NAMES",
+    "Baseline",
+    "RewardInputs",
+    "RewardOutcome",
+    "RewardTerm",
+    "register_reward_term",
+    "reward_and_termination",
+    "reward_weights",
+]

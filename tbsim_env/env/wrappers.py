@@ -158,7 +158,7 @@ class SlotAgentsParallelEnv(ParallelEnv, EzPickle):
         self.env = TrafficEnv(scenarios, **env_kwargs)
         self.render_mode = self.env.render_mode
         self.flatten = flatten
-        q = max(len(c) for c in self.env._controlled)
+        q = max(len(c) for c in self.env.controlled_tracks)
         self.possible_agents = [f"agent_{i}" for i in range(q)]
         self.agents: list[str] = []
         self._dict_space = self.env.observation_space(self.env.possible_agents[0])

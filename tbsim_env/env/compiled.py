@@ -1,0 +1,66 @@
+"""``StepFunction``: the episode core's ``step``, eager or as one ``torch.compile`` graph.
+
+A batch-of-one step is a few hundred tiny tensor operations, so most of its time is
+per-operation overhead (Python, the dispatcher, allocation). One compiled graph of fused C++
+kernels removes most of it (``bench/env_step.py`` and ``bench/vector_env.py --compile`` print
+both). The NPC policy acts before the step, outside the graph (``episode.npc_actions``).
+
+A compiled graph cannot branch on data, so the eager shortcuts are not taken inside it (each
+checks ``torch.compiler.is_compiling()``): a batch of one reading its step as a Python number,
+collision tests that stop early when nobody is near, and off-road corners the road-edge grid
+cannot vouch for recomputed over every segment. The graph recomputes a bounded number of such
+corners and reports the rest in ``StepMetrics.offroad_stale``; ``StepFunction`` then redoes the
+step eagerly (rare: a corner far from the map, or in a cell crowded with edges).
+
+Compiled results equal the eager ones up to float rounding (inductor fuses and reorders
+arithmetic: observations differ by ~1e-7). Compiling takes ~15 s on the first step (and again,
+once, for another batch shape: the second graph has dynamic shapes) and needs a C++ compiler,
+as ``torch.compile`` on the CPU does.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from tbsim_env.env.episode import EpisodeState, StepConfig, StepOutput, step
+
+
+class StepFunction:
+    """``episode.step`` with fixed constants, eager or compiled.
+
+    Args:
+        config: the step's constants (they become constants of the graph).
+        compile: trace ``step`` into one ``torch.compile`` graph (``fullgraph=True``).
+
+    Attributes:
+        eager_redos: compiled steps redone eagerly because the road-edge grid could not
+            vouch for more box corners than the graph recomputes.
+    """
+
+    def __init__(self, config: StepConfig, compile: bool = False) -> None:
+        self.config = config
+        self.eager_redos = 0
+        self._fn = torch.compile(step, fullgraph=True) if compile else None
+
+    @property
+    def compiled(self) -> bool:
+        return self._fn is not None
+
+    def __call__(
+        self, state: EpisodeState, actions: torch.Tensor, npc_action: torch.Tensor | None
+    ) -> tuple[EpisodeState, StepOutput]:
+        """``step(state, actions, npc_action, config)``, through the graph when compiled."""
+        if self._fn is None:
+            return step(state, actions, npc_action, self.config)
+        # The policy's state is not the graph's business (any structure, never read by step).
+        body = dataclasses.replace(state, policy_state=None)
+        nxt, out = self._fn(body, actions, npc_action, self.config)
+        if bool(out.metrics.offroad_stale.any()):
+            self.eager_redos += 1
+            nxt, out = step(body, actions, npc_action, self.config)
+        return dataclasses.replace(nxt, policy_state=state.policy_state), out
+
+
+__all__ = ["StepFunction"]

@@ -1,0 +1,89 @@
+"""Row operations on trees of batched tensors (dataclasses, dicts, lists, tuples of [B, ...]).
+
+The environments keep an episode as a frozen dataclass of ``[B, ...]`` tensors; starting new
+episodes in some rows is ``with_rows(state, rows, fresh)`` and looking at some rows is
+``take_rows(state, rows)``. Both are pure: they return new trees and modify nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import torch
+
+
+def take_rows(tree: Any, rows: torch.Tensor) -> Any:
+    """Gather rows (leading batch dimension) of every tensor of a dataclass / dict / tuple tree.
+
+    Args:
+        tree: a tensor, None, or a (frozen) dataclass, dict, list or tuple of those.
+        rows: [R] int64 row indices.
+
+    Returns:
+        The same structure with every tensor ``x`` replaced by ``x[rows]`` (a copy).
+
+    Raises:
+        TypeError: a leaf is neither a tensor nor None.
+    """
+    if tree is None:
+        return None
+    if isinstance(tree, torch.Tensor):
+        return tree[rows]
+    if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
+        return dataclasses.replace(
+            tree,
+            **{f.name: take_rows(getattr(tree, f.name), rows) for f in dataclasses.fields(tree)},
+        )
+    if isinstance(tree, dict):
+        return {k: take_rows(v, rows) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return _rebuild(tree, [take_rows(v, rows) for v in tree])
+    raise TypeError(f"cannot take rows of {type(tree).__name__}; use tensors and dataclasses")
+
+
+def with_rows(dst: Any, rows: torch.Tensor, src: Any, strict: bool = True) -> Any:
+    """``dst`` with the rows ``rows`` of every tensor replaced by ``src``'s (a new tree).
+
+    Args:
+        dst: tree (tensor, dataclass, dict, list, tuple) whose tensors have a leading batch.
+        rows: [R] int64 rows of ``dst`` to replace.
+        src: the same structure with R rows.
+        strict: raise on non-tensor leaves (other than None); when False they are kept as
+            in ``dst`` (batch-wide metadata such as a policy's step counter).
+
+    Raises:
+        ValueError: a tensor's trailing shape differs between the trees.
+        TypeError: the structures differ, or a non-tensor leaf with ``strict``.
+    """
+    if dst is None and src is None:
+        return None
+    if isinstance(dst, torch.Tensor):
+        if not isinstance(src, torch.Tensor) or dst.shape[1:] != src.shape[1:]:
+            got = tuple(src.shape) if isinstance(src, torch.Tensor) else type(src).__name__
+            raise ValueError(f"with_rows: {tuple(dst.shape)} rows cannot take {got}")
+        return dst.index_copy(0, rows, src.to(dst.dtype))
+    if dataclasses.is_dataclass(dst) and not isinstance(dst, type):
+        if type(src) is not type(dst):
+            raise TypeError(f"with_rows: {type(dst).__name__} vs {type(src).__name__}")
+        fields = {
+            f.name: with_rows(getattr(dst, f.name), rows, getattr(src, f.name), strict)
+            for f in dataclasses.fields(dst)
+        }
+        return dataclasses.replace(dst, **fields)
+    if isinstance(dst, dict):
+        return {k: with_rows(dst[k], rows, src[k], strict) for k in dst}
+    if isinstance(dst, (list, tuple)):
+        items = [with_rows(a, rows, b, strict) for a, b in zip(dst, src, strict=True)]
+        return _rebuild(dst, items)
+    if not strict and type(src) is type(dst):
+        return dst
+    raise TypeError(f"cannot put rows into {type(dst).__name__}; use tensors and dataclasses")
+
+
+def _rebuild(seq: list | tuple, items: list) -> list | tuple:
+    """A list or tuple of ``seq``'s type (a named tuple included) holding ``items``."""
+    return type(seq)(*items) if hasattr(seq, "_fields") else type(seq)(items)
+
+
+__all__ = ["take_rows", "with_rows"]
