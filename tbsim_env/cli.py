@@ -136,10 +136,11 @@ def _settings(args: argparse.Namespace):
 
 
 def _print_run(report, work: Path) -> None:
-    rate = report.scenarios / report.seconds if report.seconds > 0 else 0.0
+    wall = max(report.seconds, 1e-9)
     print(
         f"{len(report.written)} shards computed ({report.scenarios} scenarios, "
-        f"{rate:.2f} scenarios/s), {len(report.skipped)} already in {work}"
+        f"{report.scenarios / wall:.2f} scenarios/s, {report.task_seconds / wall:.1f} tasks "
+        f"at once on average), {len(report.skipped)} already in {work}"
     )
 
 

@@ -345,6 +345,8 @@ class RunReport:
         failed: {shard name: one-line error} of the shards that failed in this run.
         scenarios: scenarios of the shards written by this run.
         seconds: wall time of this run, s.
+        task_seconds: summed wall time of the tasks written by this run, s (over ``seconds``:
+            how many ran at once).
     """
 
     total: int
@@ -353,6 +355,7 @@ class RunReport:
     failed: dict[str, str]
     scenarios: int
     seconds: float
+    task_seconds: float = 0.0
 
     @property
     def complete(self) -> bool:
@@ -440,7 +443,7 @@ def run_shards(
         stale.unlink()
     done = [s.name for s in shards if (work_dir / s.name).is_file()]
     todo = [s for s in shards if s.name not in set(done)]
-    written, failed, count = [], {}, 0
+    written, failed, count, busy = [], {}, 0, 0.0
     bar = tqdm(total=len(shards), initial=len(done), unit="shard", disable=not progress)
     for shard, out in (executor or LocalExecutor()).run(task, todo):
         if isinstance(out, BaseException):
@@ -449,12 +452,12 @@ def run_shards(
             atomic_write(work_dir / shard.name, out.payload)
             written.append(shard.name)
             count += out.num_scenarios
+            busy += out.seconds
             bar.set_postfix(scenarios_per_s=f"{count / (time.perf_counter() - t0):.2f}")
         bar.update(1)
     bar.close()
-    return RunReport(
-        len(shards), tuple(written), tuple(done), failed, count, time.perf_counter() - t0
-    )
+    wall = time.perf_counter() - t0
+    return RunReport(len(shards), tuple(written), tuple(done), failed, count, wall, busy)
 
 
 def require_complete(report: RunReport, work_dir: str | Path) -> None:
