@@ -244,3 +244,17 @@ def test_ray_killed_worker_then_rerun_completes_the_rest(
     assert sorted(_calls(logs)) == sorted([s.name for s in shards] + [shards[0].name])
     assert {k: v for k, v in _stamps(work).items() if k in before} == before
     assert D.check_submission_shards(work, shards) == 5
+
+
+def test_cli_ray(ray_local, data: list[str], tmp_path: Path, capsys) -> None:
+    common = ["--data", *data, "--policy", "constant_velocity", "--rollouts", "2", "--seed", "5"]
+    out = tmp_path / "sub.binproto"
+    assert main(["export-wosac", *common, "--ray", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "4 shards computed (5 scenarios" in printed and f"wrote {out}: 5 scenarios" in printed
+    assert len(list(Path(f"{out}.shards").glob("submission.binproto-*"))) == 4
+    export_submission(
+        load_scenarios(data), "constant_velocity", tmp_path / "plain.binproto",
+        num_rollouts=2, seed=5,
+    )  # fmt: skip
+    assert out.read_bytes() == (tmp_path / "plain.binproto").read_bytes()
