@@ -378,6 +378,50 @@ def _cmd_average(args: argparse.Namespace) -> int:
     return 0
 
 
+def _shard_args(sp: argparse.ArgumentParser, sizes: bool = True) -> None:
+    """--ray, --ray-workers, --work-dir (and --shard-size): run as resumable shards."""
+    sp.add_argument(
+        "--ray",
+        nargs="?",
+        const="local",
+        default=None,
+        metavar="ADDRESS",
+        help="run the shards as Ray tasks: a local Ray instance, or the cluster at ADDRESS",
+    )
+    sp.add_argument(
+        "--ray-workers", type=int, default=None, help="CPUs of a local Ray instance (all)"
+    )
+    sp.add_argument(
+        "--work-dir",
+        default=None,
+        help="folder of finished shards, each written once; a rerun computes only the "
+        "missing ones. Without --ray the shards run here, one by one. Default with --ray: "
+        "--out DIR/ itself, OUT.shards, tbsim-evaluate-POLICY.shards or SUBMISSION.scores",
+    )
+    if sizes:
+        sp.add_argument(
+            "--shard-size",
+            type=int,
+            default=None,
+            help="scenarios per shard (default: one shard per input file)",
+        )
+
+
+def _view_parser(sub, policies: tuple[str, ...]) -> None:
+    """The ``tbsim view`` subcommand."""
+    vw = sub.add_parser("view", help="write a self-contained HTML viewer of a scenario's rollouts")
+    vw.add_argument("scenario", help="a scenario file (TFRecord, pickle, JSON), glob or folder")
+    vw.add_argument("--scenario-id", default=None, help="which scenario (default: the first)")
+    shown = vw.add_mutually_exclusive_group()
+    shown.add_argument("--submission", default=None, help="show the rollouts of this .binproto")
+    shown.add_argument("--policy", default=None, choices=policies, help="simulate this policy")
+    vw.add_argument("--rollouts", type=int, default=8, help="--policy: rollouts to simulate")
+    vw.add_argument("--seed", type=int, default=0, help="--policy: seed (as export-wosac)")
+    vw.add_argument("--checkpoint", default=None, help="--policy trafficbots: checkpoint path")
+    vw.add_argument("--out", required=True, help="HTML file to write")
+    vw.set_defaults(func=_cmd_view)
+
+
 def build_parser() -> argparse.ArgumentParser:
     from tbsim_env.data.generator.scenes import LAYOUTS
 
@@ -427,36 +471,10 @@ def build_parser() -> argparse.ArgumentParser:
             "(spec: 0, collisions only)",
         )
 
-    def shard_args(sp: argparse.ArgumentParser, sizes: bool = True) -> None:
-        sp.add_argument(
-            "--ray",
-            nargs="?",
-            const="local",
-            default=None,
-            metavar="ADDRESS",
-            help="run the shards as Ray tasks: a local Ray instance, or the cluster at ADDRESS",
-        )
-        sp.add_argument(
-            "--ray-workers", type=int, default=None, help="CPUs of a local Ray instance (all)"
-        )
-        sp.add_argument(
-            "--work-dir",
-            default=None,
-            help="folder of finished shards, each written once; a rerun computes only the "
-            "missing ones (implied by --ray; without --ray the shards run here, one by one)",
-        )
-        if sizes:
-            sp.add_argument(
-                "--shard-size",
-                type=int,
-                default=None,
-                help="scenarios per shard (default: one shard per input file)",
-            )
-
     e = sub.add_parser("export-wosac", help="write a WOSAC SimAgentsChallengeSubmission")
     wosac_common(e)
     rollout_args(e)
-    shard_args(e)
+    _shard_args(e)
     e.add_argument("--out", required=True, help="OUT.binproto, or DIR/ for one file per input")
     e.set_defaults(func=_cmd_export_wosac)
 
@@ -465,7 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--submission", required=True, help="a .binproto file or a folder of shards")
     w.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
     w.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
-    shard_args(w, sizes=False)
+    _shard_args(w, sizes=False)
     w.set_defaults(func=_cmd_wosac_score)
 
     v = sub.add_parser("evaluate", help="roll out a policy and score it (no proto written)")
@@ -474,20 +492,10 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
     v.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
     v.add_argument("--plot", default=None, help="PNG of log vs simulated feature histograms")
-    shard_args(v)
+    _shard_args(v)
     v.set_defaults(func=_cmd_evaluate)
 
-    vw = sub.add_parser("view", help="write a self-contained HTML viewer of a scenario's rollouts")
-    vw.add_argument("scenario", help="a scenario file (TFRecord, pickle, JSON), glob or folder")
-    vw.add_argument("--scenario-id", default=None, help="which scenario (default: the first)")
-    shown = vw.add_mutually_exclusive_group()
-    shown.add_argument("--submission", default=None, help="show the rollouts of this .binproto")
-    shown.add_argument("--policy", default=None, choices=policies, help="simulate this policy")
-    vw.add_argument("--rollouts", type=int, default=8, help="--policy: rollouts to simulate")
-    vw.add_argument("--seed", type=int, default=0, help="--policy: seed (as export-wosac)")
-    vw.add_argument("--checkpoint", default=None, help="--policy trafficbots: checkpoint path")
-    vw.add_argument("--out", required=True, help="HTML file to write")
-    vw.set_defaults(func=_cmd_view)
+    _view_parser(sub, policies)
 
     pp = sub.add_parser("preprocess", help="build a sharded token cache for training")
     pp.add_argument(
