@@ -1,0 +1,102 @@
+"""The episode core (``tbsim_env.env.episode``): pure functions over an immutable state."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from policies import make_policy
+from tbsim_env.config import EnvConfig
+from tbsim_env.data.generator import default_scenarios
+from tbsim_env.env import episode as ep
+from tbsim_env.env.setup import select_scenarios
+from tbsim_env.observation import ObsConfig
+from tbsim_env.rows import take_rows
+
+
+@pytest.fixture(scope="module")
+def core():
+    """(bank, config) of three generated scenes with every agent controlled."""
+    config = ep.StepConfig(EnvConfig(), ObsConfig())
+    policy = make_policy("log_replay")
+    sel = select_scenarios(default_scenarios(3), "all", config.env, policy, False)
+    bank = ep.build_bank(sel.scenarios, sel.queries, True, config, torch.device("cpu"))
+    return bank, config
+
+
+def _tensors(tree) -> list[torch.Tensor]:
+    if isinstance(tree, torch.Tensor):
+        return [tree]
+    if dataclasses.is_dataclass(tree):
+        return [t for f in dataclasses.fields(tree) for t in _tensors(getattr(tree, f.name))]
+    if isinstance(tree, (list, tuple)):
+        return [t for x in tree for t in _tensors(x)]
+    if isinstance(tree, dict):
+        return [t for x in tree.values() for t in _tensors(x)]
+    return []
+
+
+def _equal(a, b) -> bool:
+    ta, tb = _tensors(a), _tensors(b)
+    return len(ta) == len(tb) and all(torch.equal(x, y) for x, y in zip(ta, tb))
+
+
+def test_step_and_reset_modify_nothing(core):
+    bank, config = core
+    state, _ = ep.start(bank, torch.tensor([0, 1, 2]), config)
+    before = [t.clone() for t in _tensors(state)]
+    bank_before = [t.clone() for t in _tensors(bank)]
+    gen = torch.Generator().manual_seed(0)
+    for _ in range(5):
+        actions = torch.randn(3, bank.setup.query.shape[1], 2, generator=gen)
+        nxt, _ = ep.step(state, actions, None, config)
+        ep.reset_rows(bank, nxt, torch.tensor([1]), torch.tensor([2]), config)
+    assert all(torch.equal(x, y) for x, y in zip(_tensors(state), before))
+    assert all(torch.equal(x, y) for x, y in zip(_tensors(bank), bank_before))
+
+
+def test_step_is_a_function_of_its_inputs(core):
+    bank, config = core
+    state, _ = ep.start(bank, torch.tensor([2, 0]), config)
+    gen = torch.Generator().manual_seed(1)
+    actions = torch.randn(2, bank.setup.query.shape[1], 2, generator=gen)
+    a_state, a_out = ep.step(state, actions, None, config)
+    b_state, b_out = ep.step(state, actions, None, config)
+    assert _equal(a_state, b_state) and _equal(a_out, b_out)
+
+
+@pytest.mark.parametrize("rows", [[1], [2, 0], [0, 1, 2], [2, 0, 1], [1, 0, 2]])
+def test_reset_rows_equals_a_fresh_start_of_those_rows(core, rows):
+    bank, config = core
+    state, _ = ep.start(bank, torch.tensor([0, 1, 2]), config)
+    actions = torch.zeros(3, bank.setup.query.shape[1], 2)
+    for _ in range(3):
+        state, _ = ep.step(state, actions, None, config)
+    rows_t = torch.tensor(rows)
+    ks = torch.tensor([(r + 1) % 3 for r in rows])
+    out = ep.reset_rows(bank, state, rows_t, ks, config)
+    fresh, _ = ep.start(bank, ks, config)
+    for i, r in enumerate(rows):
+        assert _equal(take_rows(out, torch.tensor([r])), take_rows(fresh, torch.tensor([i])))
+    for r in set(range(3)) - set(rows):
+        assert _equal(take_rows(out, torch.tensor([r])), take_rows(state, torch.tensor([r])))
+
+
+def test_slot_actions_read_only_alive_external_agents(core):
+    bank, config = core
+    state, _ = ep.start(bank, torch.tensor([0]), config)
+    q = state.setup.query.shape[1]
+    actions = torch.full((1, q, 2), float("nan"))
+    alive = state.alive.clone()
+    alive[0, 1:] = False  # only the first controlled agent acts
+    state = dataclasses.replace(state, alive=alive)
+    actions[0, 0] = torch.tensor([1.0, -0.5])
+    slots = ep.slot_actions(state, actions, None)
+    assert torch.isfinite(slots).all()
+    first = int(state.setup.query[0, 0])
+    assert torch.equal(slots[0, first], torch.tensor([1.0, -0.5]))
+    others = torch.ones(slots.shape[1], dtype=torch.bool)
+    others[first] = False
+    assert not slots[0, others].any()
