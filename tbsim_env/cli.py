@@ -323,7 +323,13 @@ def _pick_scenario(scenarios: list, scenario_id: str | None, where: str):
 def _cmd_view(args: argparse.Namespace) -> int:
     from tbsim_env.rendering import viewer
 
-    sc = _pick_scenario(_load([args.scenario]), args.scenario_id, args.scenario)
+    scenarios = _load([args.scenario])
+    if args.submission and args.scenario_id is None:  # the first scenario the file holds
+        from tbsim_env.metrics.wosac import read_submission
+
+        held = {r.scenario_id for r in read_submission(args.submission).scenario_rollouts}
+        scenarios = [s for s in scenarios if s.scenario_id in held] or scenarios
+    sc = _pick_scenario(scenarios, args.scenario_id, args.scenario)
     if args.submission:
         shown = viewer.submission_rollouts(sc, args.submission)
         title = f"submission {args.submission}"

@@ -176,6 +176,16 @@ def test_cli_view(one_scenario_path: Path, womd_dir: Path, tmp_path: Path, capsy
     sub = womd_dir / "wosac_reference" / "rollouts_const_vel.binproto"
     assert main(["view", path, "--submission", str(sub), "--out", str(out)]) == 0
     assert len(embedded_data(out.read_text())["rollouts"]) == 33
+    # A folder: the first scenario, or with a submission the first one it holds.
+    folder = tmp_path / "mixed"
+    folder.mkdir()
+    for p in sorted((womd_dir / "gpudrive").glob("*.json")):
+        (folder / p.name).symlink_to(p)
+    (folder / "z.tfrecord").symlink_to(one_scenario_path)  # sorted last
+    assert main(["view", str(folder), "--out", str(out)]) == 0
+    assert embedded_data(out.read_text())["scenario_id"] != "637f20cafde22ff8"
+    assert main(["view", str(folder), "--submission", str(sub), "--out", str(out)]) == 0
+    assert embedded_data(out.read_text())["scenario_id"] == "637f20cafde22ff8"
     assert main(["view", path, "--scenario-id", "nope", "--out", str(out)]) == 2
     assert "no scenario 'nope'" in capsys.readouterr().err
 
