@@ -156,6 +156,26 @@ def load_shard(shard: Shard, skip_bad: bool = False) -> list[Scenario]:
     return out
 
 
+def load_by_id(sources: Sequence[str], wanted: set[str], skip_bad: bool = False) -> list[Scenario]:
+    """The scenarios of ``sources`` whose ids are in ``wanted``, in file order.
+
+    Raw Scenario TFRecords are looked up by their id index (only the id field of the other
+    records is decoded); other files (and every file with ``skip_bad``) are read whole.
+    """
+    from tbsim_env.data import load_scenarios
+    from tbsim_env.data.loader import ScenarioFileFormat, detect_format
+    from tbsim_env.data.womd import ScenarioFile
+
+    out: list[Scenario] = []
+    for path in _files(sources):
+        if not skip_bad and detect_format(path) is ScenarioFileFormat.TFRECORD:
+            f = ScenarioFile(path)
+            out += [f[sid] for sid in f.ids() if sid in wanted]
+        else:
+            out += [s for s in load_scenarios(path, skip_bad=skip_bad) if s.scenario_id in wanted]
+    return out
+
+
 # ----------------------------------------------------------------------------- tasks
 @dataclass(frozen=True)
 class RolloutSettings:
@@ -240,7 +260,7 @@ class EvaluateTask:
 class ScoreTask:
     """Score one submission file (the shard's single item) against the logged scenarios.
 
-    Every task streams the data and keeps only the scenarios its file holds.
+    Every task reads from the data only the scenarios its file holds (``load_by_id``).
     """
 
     data: tuple[str, ...]
@@ -248,17 +268,12 @@ class ScoreTask:
     skip_bad: bool = False
 
     def __call__(self, shard: Shard) -> ShardOutput:
-        from tbsim_env.data import iter_scenarios
         from tbsim_env.metrics.wosac import read_submission, score_submission_file
 
         t0 = time.perf_counter()
         path = shard.items[0].path
         wanted = {r.scenario_id for r in read_submission(path).scenario_rollouts}
-        scenarios = [
-            sc
-            for sc in iter_scenarios(list(self.data), skip_bad=self.skip_bad)
-            if sc.scenario_id in wanted
-        ]
+        scenarios = load_by_id(self.data, wanted, self.skip_bad)
         scores = score_submission_file(scenarios, path, self.version)
         return ShardOutput(_scores_payload(scores), len(scores), time.perf_counter() - t0)
 

@@ -91,6 +91,15 @@ def test_plan_shards(data: list[str]) -> None:
         D.plan_shards(data, NAME, shard_size=0)
 
 
+def test_load_by_id(data: list[str]) -> None:
+    every = load_scenarios(data)
+    wanted = {every[0].scenario_id, every[-1].scenario_id}  # a JSON, the TFRecord's 2nd record
+    got = D.load_by_id(data, wanted)
+    assert [s.scenario_id for s in got] == [every[0].scenario_id, every[-1].scenario_id]
+    assert got[1].tracks.num_tracks == every[-1].tracks.num_tracks
+    assert D.load_by_id(data, wanted, skip_bad=True)[1].scenario_id == every[-1].scenario_id
+
+
 def test_local_run_merges_to_the_plain_export(data: list[str], tmp_path: Path) -> None:
     shards = D.plan_shards(data, NAME)
     task = D.ExportTask(SETTINGS)
