@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from tbsim_env import constants as C
+from tbsim_env.data.preprocess import spec as prep_spec
 
 
 @dataclass(frozen=True)
@@ -160,3 +161,57 @@ class TrafficBotsConfig:
         if unknown or missing:
             raise ValueError(f"config keys: unknown {unknown}, missing {missing}")
         return cls(**data)
+
+
+@dataclass(frozen=True)
+class InferenceConfig:
+    """Rules applied around the network at inference (eval mode), not saved with the weights.
+
+    Each one deviates from the spec and is justified by a measurement on the real validation
+    scenes (docs/MODEL_CARD.md, "Why it leaves real roads"; ``policies.trafficbots.rules``).
+    The defaults are what the shipped NPC runs; ``InferenceConfig.spec()`` is the spec.
+
+    Attributes:
+        hold_parked: hold vehicles parked by the spec's test (still over the history and no
+            aligned vehicle-lane node near) at rest with their heading.
+        still_displacement: metres over the history below which an agent is still (spec 1.6 c,
+            validation / test: 0.5).
+        parked_lane_radius: metres within which an aligned vehicle-lane node makes a still
+            vehicle queued rather than parked (spec 1.6 d: 3).
+        vehicle_max_curvature: 1/m, vehicle yaw rate at most this times the speed (plus the
+            slack); None (shipped) for the unicycle's plain limits. 0.25 (a 4 m turning radius,
+            tighter than a car's; logged vehicles above 3 m/s stay under 0.12 in 99% of steps)
+            changed no validation score beyond noise once parked vehicles are held.
+        vehicle_yaw_rate_slack: rad/s a vehicle may turn whatever its speed (logged standing
+            vehicles turn under 0.06 rad/s in 99% of steps).
+        dest_temperature: destination logits are divided by it before sampling (1: the spec).
+        clip_history_motion: the history's acceleration and yaw rate (finite differences of
+            the logged states, spec 1.4) enter the network clipped to the type's action limits.
+    """
+
+    hold_parked: bool = True
+    still_displacement: float = prep_spec.STILL_DISPLACEMENT_EVAL
+    parked_lane_radius: float = prep_spec.PARKED_LANE_DISTANCE
+    vehicle_max_curvature: float | None = None
+    vehicle_yaw_rate_slack: float = 0.05
+    dest_temperature: float = 1.0
+    clip_history_motion: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("still_displacement", "parked_lane_radius", "vehicle_yaw_rate_slack"):
+            if not getattr(self, name) >= 0.0:
+                raise ValueError(f"InferenceConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if self.vehicle_max_curvature is not None and not self.vehicle_max_curvature > 0.0:
+            raise ValueError("InferenceConfig.vehicle_max_curvature must be > 0 or None")
+        if not self.dest_temperature > 0.0:
+            raise ValueError("InferenceConfig.dest_temperature must be > 0")
+
+    @classmethod
+    def spec(cls) -> InferenceConfig:
+        """The spec's inference: no rule around the network."""
+        return cls(
+            hold_parked=False,
+            vehicle_max_curvature=None,
+            dest_temperature=1.0,
+            clip_history_motion=False,
+        )

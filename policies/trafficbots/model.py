@@ -19,7 +19,7 @@ from torch import nn
 from policies.trafficbots.action_head import ActionHead
 from policies.trafficbots.agent_encoder import AgentEncoder, agent_attributes
 from policies.trafficbots.batch import TokenBatch
-from policies.trafficbots.config import TrafficBotsConfig
+from policies.trafficbots.config import InferenceConfig, TrafficBotsConfig
 from policies.trafficbots.destination import (
     DestinationEncoder,
     DestinationPredictor,
@@ -27,6 +27,12 @@ from policies.trafficbots.destination import (
 )
 from policies.trafficbots.latent import AddNaviLatent, Posterior
 from policies.trafficbots.map_encoder import MapEncoder, MapTokens
+from policies.trafficbots.rules import (
+    clip_history_motion,
+    hold_action,
+    limit_vehicle_curvature,
+    parked_vehicles,
+)
 from policies.trafficbots.tl_encoder import TLContext, TLEncoder, TLStateHead, tl_context
 from tbsim_env import constants as C
 from tbsim_env.sim.dynamics import squash_action
@@ -69,6 +75,7 @@ class RolloutContext:
         post_mean: [B, N, Z] posterior mean, or None if the posterior was not computed.
         post_log_std: [B, N, Z] or None.
         post_valid: [B, N] bool or None.
+        hold: [B', N] bool agents held at rest (``InferenceConfig.hold_parked``), or None.
     """
 
     mp: MapTokens
@@ -85,6 +92,7 @@ class RolloutContext:
     post_mean: torch.Tensor | None = None
     post_log_std: torch.Tensor | None = None
     post_valid: torch.Tensor | None = None
+    hold: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -140,11 +148,14 @@ class TrafficBots(nn.Module):
 
     Args:
         cfg: network configuration.
+        inference: rules applied around the network in eval mode (default: the shipped ones;
+            ``InferenceConfig.spec()`` for none). Not part of the checkpoint.
     """
 
-    def __init__(self, cfg: TrafficBotsConfig) -> None:
+    def __init__(self, cfg: TrafficBotsConfig, inference: InferenceConfig | None = None) -> None:
         super().__init__()
         self.cfg = cfg
+        self.inference = inference or InferenceConfig()
         d = cfg.hidden_dim
         self.map_encoder = MapEncoder(cfg)
         self.tl_encoder = TLEncoder(cfg, cfg.n_history)
@@ -247,6 +258,8 @@ class TrafficBots(nn.Module):
         else:
             # Categorical sample by Gumbel-max (reproducible from the generator alone).
             logits = dest_logits.detach().repeat_interleave(n, 0)
+            if not self.training:
+                logits = logits / self.inference.dest_temperature
             u = rand((n_sc * n, n_ag_pad, n_mp_pad), generator, dev)[:, :n_ag, :n_mp]
             u = u.clamp(1e-12, 1.0 - 1e-7)
             dest_idx = (logits - torch.log(-torch.log(u))).argmax(-1)
@@ -266,7 +279,41 @@ class TrafficBots(nn.Module):
             post_mean=post_mean,
             post_log_std=post_log_std,
             post_valid=post_valid,
+            hold=self._hold_mask(batch, n),
         )
+
+    def _hold_mask(self, batch: TokenBatch, n: int) -> torch.Tensor | None:
+        """[B * n, N] agents held at rest in eval mode (``rules.parked_vehicles``), or None."""
+        rules, h = self.inference, self.cfg.n_history
+        if self.training or not rules.hold_parked:
+            return None
+        parked = parked_vehicles(
+            batch.ag_valid[..., :h],
+            batch.ag_pose[..., :h, :],
+            batch.ag_motion[..., :h, 0],
+            batch.ag_type,
+            (batch.mp_pose, batch.mp_valid, batch.mp_cls),
+            rules.still_displacement,
+            rules.parked_lane_radius,
+        )
+        return parked.repeat_interleave(n, 0)
+
+    def _apply_rules(
+        self, ctx: RolloutContext, action: torch.Tensor, speed: torch.Tensor
+    ) -> torch.Tensor:
+        """Eval-mode rules of ``InferenceConfig`` on physical actions [B', N, 2]."""
+        rules = self.inference
+        if rules.vehicle_max_curvature is not None:
+            action = limit_vehicle_curvature(
+                action,
+                speed,
+                ctx.ag_type,
+                rules.vehicle_max_curvature,
+                rules.vehicle_yaw_rate_slack,
+            )
+        if ctx.hold is not None:
+            action = torch.where(ctx.hold[..., None], hold_action(speed, ctx.ag_type), action)
+        return action
 
     def initial_state(self, ctx: RolloutContext) -> RolloutState:
         """Empty history windows for the rollouts of ``ctx``."""
@@ -361,10 +408,13 @@ class TrafficBots(nn.Module):
         vmask = ag_valid[..., None].to(ag_pose.dtype)
         tl_feat = self.tl_encoder(state.hist_tl_state, state.hist_tl_present, ctx.tl)
         tl_logits = self.tl_head(tl_feat)
+        motion = state.hist_motion
+        if not self.training and self.inference.clip_history_motion:
+            motion = clip_history_motion(motion, ctx.ag_type)
         feat, tok_pose, tok_valid = self.agent_encoder(
             state.hist_valid,
             state.hist_pose,
-            state.hist_motion,
+            motion,
             ctx.ag_attr,
             ctx.mp,
             tl_feat,
@@ -378,5 +428,8 @@ class TrafficBots(nn.Module):
         x = self.add_navi(feat, self.dest_encoder(tok_pose, ctx.dest, ctx.mp), navi_valid)
         x = self.add_latent(x, ctx.z, ctx.z_valid & tok_valid)
         raw = self.action_head(x, ctx.ag_type)
-        action = squash_action(raw, ctx.ag_type) * vmask
+        action = squash_action(raw, ctx.ag_type)
+        if not self.training:
+            action = self._apply_rules(ctx, action, ag_speed)
+        action = action * vmask
         return StepOutput(action, raw, tl_logits), state.replace(dest_reached=reached)

@@ -1,0 +1,184 @@
+"""Inference-side rules around the TrafficBots network, each a measured deviation from the spec.
+
+The shipped small model, trained mostly on generated scenes, moves vehicles that stand parked
+in real WOMD logs: it creeps them forward and turns them on the spot (docs/MODEL_CARD.md, "Why
+it leaves real roads"). Two rules, applied in eval mode only (``TrafficBots.training`` False),
+remove that without retraining (the first is shipped):
+
+* **Hold parked vehicles.** A vehicle that is *parked* by the spec's own test (spec 1.6,
+  filters c and d: still over the history, i.e. the speed summed over the valid history steps
+  times 0.1 s below 0.5 m, and no vehicle-lane node, classes 0-2, within 3 m whose direction
+  points along its heading) gets the action that stops it and keeps its heading. The spec
+  drops such vehicles from the simulation when a scene has more than 64 agents and then moves
+  them at constant velocity, which for a still vehicle is holding it; here the rule applies to
+  every scene, and the held vehicle stays a token the other agents see. Unlike the spec's
+  filter it also holds relevant vehicles (the held vehicle is scored as any other). A vehicle
+  queued in a lane is not parked by this test and stays driven by the network.
+* **No turning on the spot** (off in the shipped config: no measurable gain). A vehicle's yaw
+  rate is limited to ``vehicle_max_curvature`` times its speed over the step (plus
+  ``vehicle_yaw_rate_slack``): the unicycle (spec 4) lets a standing vehicle turn, which a car
+  cannot.
+* **History motion inside the action limits** (``clip_history_motion``).
+
+``InferenceConfig.spec()`` switches both off (the spec's behaviour, for comparison).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from tbsim_env import constants as C
+from tbsim_env.sim.dynamics import action_limits
+
+_VEHICLE_LANE_CLASSES = (
+    int(C.MapClass.FREEWAY),
+    int(C.MapClass.SURFACE_STREET),
+    int(C.MapClass.STOP_SIGN),
+)
+"""Map classes that count as a vehicle lane in the parked test (spec 1.6 d: classes 0-2)."""
+
+
+def still_agents(ag_valid: torch.Tensor, ag_speed: torch.Tensor, threshold: float) -> torch.Tensor:
+    """Agents still over the history: sum over valid steps of |speed| * DT below ``threshold``.
+
+    Args:
+        ag_valid: [B, N, H] bool history validity.
+        ag_speed: [B, N, H] signed speed m/s.
+        threshold: metres (spec 1.6 c at validation / test: 0.5 m).
+
+    Returns:
+        [B, N] bool, True only for agents valid at the last history step.
+    """
+    travelled = (ag_speed.abs() * ag_valid).sum(-1) * C.DT
+    return (travelled < threshold) & ag_valid[..., -1]
+
+
+def aligned_lane_nearby(
+    pose: torch.Tensor,
+    mp_pose: torch.Tensor,
+    mp_valid: torch.Tensor,
+    mp_cls: torch.Tensor,
+    radius: float,
+) -> torch.Tensor:
+    """Whether a vehicle-lane node lies within ``radius`` whose direction points along the pose.
+
+    Computed one scene at a time (the node distances of a scene are [N, M, P]).
+
+    Args:
+        pose: [B, N, 3] (x m, y m, yaw rad) at the current step.
+        mp_pose: [B, M, P, 3] map nodes (x m, y m, segment heading rad).
+        mp_valid: [B, M, P] bool.
+        mp_cls: [B, M] int64 ``MapClass``.
+        radius: metres (spec 1.6 d: 3 m).
+
+    Returns:
+        [B, N] bool.
+    """
+    lane = torch.zeros_like(mp_cls, dtype=torch.bool)
+    for c in _VEHICLE_LANE_CLASSES:
+        lane |= mp_cls == c
+    node_ok = (mp_valid & lane[..., None]).flatten(1)  # [B, M*P]
+    nodes = mp_pose.flatten(1, 2)  # [B, M*P, 3]
+    out = []
+    for b in range(pose.shape[0]):
+        pts = nodes[b][node_ok[b]]  # [K, 3]
+        d2 = ((pose[b, :, None, :2] - pts[None, :, :2]) ** 2).sum(-1)  # [N, K]
+        aligned = torch.cos(pts[None, :, 2] - pose[b, :, None, 2]) > 0.0
+        out.append(((d2 < radius**2) & aligned).any(-1))
+    return torch.stack(out)
+
+
+def parked_vehicles(
+    ag_valid: torch.Tensor,
+    ag_pose: torch.Tensor,
+    ag_speed: torch.Tensor,
+    ag_type: torch.Tensor,
+    map_nodes: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    still_threshold: float,
+    lane_radius: float,
+) -> torch.Tensor:
+    """Vehicles parked by the spec's test (spec 1.6 c + d) over the history window.
+
+    Args:
+        ag_valid: [B, N, H] bool history validity (H = the 11 history steps).
+        ag_pose: [B, N, H, 3] history poses.
+        ag_speed: [B, N, H] signed speeds m/s.
+        ag_type: [B, N] ``ObjectType``.
+        map_nodes: (mp_pose [B, M, P, 3], mp_valid [B, M, P], mp_cls [B, M]).
+        still_threshold: metres travelled over the history below which an agent is still.
+        lane_radius: metres; a still vehicle with an aligned lane node this near is queued.
+
+    Returns:
+        [B, N] bool.
+    """
+    still = still_agents(ag_valid, ag_speed, still_threshold)
+    vehicle = ag_type == int(C.ObjectType.VEHICLE)
+    candidate = still & vehicle
+    if not bool(candidate.any()):
+        return candidate
+    mp_pose, mp_valid, mp_cls = map_nodes
+    on_lane = aligned_lane_nearby(ag_pose[..., -1, :], mp_pose, mp_valid, mp_cls, lane_radius)
+    return candidate & ~on_lane
+
+
+def hold_action(speed: torch.Tensor, ag_type: torch.Tensor) -> torch.Tensor:
+    """The action that brings an agent to rest in one step and keeps its heading.
+
+    Args:
+        speed: [B, N] signed speed m/s.
+        ag_type: [B, N] ``ObjectType`` (acceleration limited to the type's maximum).
+
+    Returns:
+        [B, N, 2] (acceleration m/s^2, yaw rate 0 rad/s).
+    """
+    max_acc = action_limits(ag_type)[0].to(speed.dtype)
+    acc = torch.maximum(torch.minimum(-speed / C.DT, max_acc), -max_acc)
+    return torch.stack([acc, torch.zeros_like(acc)], dim=-1)
+
+
+def limit_vehicle_curvature(
+    action: torch.Tensor,
+    speed: torch.Tensor,
+    ag_type: torch.Tensor,
+    max_curvature: float,
+    slack: float,
+) -> torch.Tensor:
+    """Vehicle yaw rates limited to ``max_curvature`` * |mean speed over the step| + ``slack``.
+
+    The mean speed is the unicycle's midpoint speed, v + DT / 2 * acceleration (spec 4).
+
+    Args:
+        action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s).
+        speed: [B, N] signed speed m/s at the start of the step.
+        ag_type: [B, N] ``ObjectType``; other types are returned unchanged.
+        max_curvature: 1/m.
+        slack: rad/s allowed whatever the speed.
+
+    Returns:
+        [B, N, 2] the limited action.
+    """
+    mid = (speed + 0.5 * C.DT * action[..., 0]).abs()
+    cap = max_curvature * mid + slack
+    yaw = torch.maximum(torch.minimum(action[..., 1], cap), -cap)
+    vehicle = ag_type == int(C.ObjectType.VEHICLE)
+    return torch.stack([action[..., 0], torch.where(vehicle, yaw, action[..., 1])], dim=-1)
+
+
+def clip_history_motion(motion: torch.Tensor, ag_type: torch.Tensor) -> torch.Tensor:
+    """History (speed, acceleration, yaw rate) with the last two inside the type's action limits.
+
+    The history's acceleration and yaw rate are finite differences of the logged states
+    (spec 1.4); on real logs they exceed what the unicycle can do (|acc| > 5 m/s^2 in about 1%
+    of vehicle steps), which no closed-loop step of the policy ever produces.
+
+    Args:
+        motion: [B, N, W, 3] (speed m/s, acceleration m/s^2, yaw rate rad/s).
+        ag_type: [B, N] ``ObjectType``.
+
+    Returns:
+        [B, N, W, 3].
+    """
+    max_acc, max_yaw = (x.to(motion.dtype)[..., None] for x in action_limits(ag_type))
+    acc = torch.maximum(torch.minimum(motion[..., 1], max_acc), -max_acc)
+    yaw = torch.maximum(torch.minimum(motion[..., 2], max_yaw), -max_yaw)
+    return torch.stack([motion[..., 0], acc, yaw], dim=-1)

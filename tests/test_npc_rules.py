@@ -1,0 +1,234 @@
+"""Inference-side rules of the TrafficBots NPC (policies/trafficbots/rules.py, InferenceConfig).
+
+The shipped NPC holds parked vehicles; these tests pin that down so that it cannot be switched
+off silently (docs/MODEL_CARD.md, "Why it leaves real roads").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from policies.trafficbots import TrafficBotsConfig
+from policies.trafficbots.batch import TokenBatch
+from policies.trafficbots.config import InferenceConfig
+from policies.trafficbots.model import TrafficBots
+from policies.trafficbots.policy import TrafficBotsPolicy
+from policies.trafficbots.rules import (
+    clip_history_motion,
+    hold_action,
+    limit_vehicle_curvature,
+    parked_vehicles,
+    still_agents,
+)
+from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
+from tbsim_env import constants as C
+from tbsim_env.config import EnvConfig, TerminationConfig, TokenConfig
+from tbsim_env.data.generator import generate_scenario
+from tbsim_env.data.preprocess import preprocess_scenario
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.env import TrafficEnv
+from tbsim_env.sim.dynamics import unicycle_step
+
+pytestmark = pytest.mark.usefixtures("torch_one_thread")
+
+VEH, PED = int(C.ObjectType.VEHICLE), int(C.ObjectType.PEDESTRIAN)
+LANE, EDGE = int(C.MapClass.SURFACE_STREET), int(C.MapClass.ROAD_EDGE_BOUNDARY)
+
+
+def _map(cls: int, yaw: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One map piece along x from (0, 0) to (19, 0), nodes heading ``yaw``."""
+    xs = torch.arange(20.0)
+    pose = torch.stack([xs, torch.zeros(20), torch.full((20,), yaw)], -1)[None, None]
+    return pose, torch.ones(1, 1, 20, dtype=torch.bool), torch.tensor([[cls]])
+
+
+def _history(xy: list[tuple[float, float]], speed: float, agent_type: list[int]):
+    """Agents standing at ``xy`` (heading 0) over an 11-step history at ``speed``."""
+    n = len(xy)
+    pose = torch.zeros(1, n, 11, 3)
+    pose[0, :, :, :2] = torch.tensor(xy)[:, None]
+    valid = torch.ones(1, n, 11, dtype=torch.bool)
+    return valid, pose, torch.full((1, n, 11), speed), torch.tensor([agent_type])
+
+
+def test_still_agents_sums_speed_over_valid_history_steps():
+    valid = torch.ones(1, 3, 11, dtype=torch.bool)
+    speed = torch.tensor([[0.3, 0.6, -0.3]])[..., None].expand(1, 3, 11)  # 0.33 / 0.66 / 0.33 m
+    assert still_agents(valid, speed, 0.5).tolist() == [[True, False, True]]
+    valid[0, 0, -1] = False  # not valid now: not still (nothing to hold)
+    assert not bool(still_agents(valid, speed, 0.5)[0, 0])
+
+
+def test_parked_vehicle_is_still_vehicle_without_aligned_lane_nearby():
+    # Agents at y = 1 (on the lane), y = 6 (beside it), and a pedestrian at y = 6.
+    valid, pose, speed, typ = _history([(5.0, 1.0), (5.0, 6.0), (8.0, 6.0)], 0.0, [VEH, VEH, PED])
+    parked = parked_vehicles(valid, pose, speed, typ, _map(LANE, 0.0), 0.5, 3.0)
+    assert parked.tolist() == [[False, True, False]]
+    # A lane running the other way does not make the vehicle on it queued (spec 1.6 d).
+    parked = parked_vehicles(valid, pose, speed, typ, _map(LANE, np.pi), 0.5, 3.0)
+    assert parked.tolist() == [[True, True, False]]
+    # A road edge is not a vehicle lane; a moving vehicle is never parked.
+    assert parked_vehicles(valid, pose, speed, typ, _map(EDGE, 0.0), 0.5, 3.0)[0, 0]
+    moving = parked_vehicles(valid, pose, speed + 2.0, typ, _map(EDGE, 0.0), 0.5, 3.0)
+    assert not moving.any()
+
+
+def test_hold_action_stops_in_one_step_keeping_the_heading():
+    speed = torch.tensor([[0.3, -0.2, 9.0]])
+    typ = torch.tensor([[VEH, VEH, VEH]])
+    a = hold_action(speed, typ)
+    assert torch.allclose(a[0, :2, 0], torch.tensor([-3.0, 2.0]))
+    assert float(a[0, 2, 0]) == -5.0  # within the vehicle's limit
+    assert (a[..., 1] == 0).all()
+    pose = torch.tensor([[[1.0, 2.0, 0.7], [0.0, 0.0, -2.0], [0.0, 0.0, 0.0]]])
+    new_pose, new_speed = unicycle_step(pose, speed, a)
+    assert torch.allclose(new_speed[0, :2], torch.zeros(2), atol=1e-6)
+    assert torch.allclose(new_pose[..., 2], pose[..., 2], atol=1e-6)
+
+
+def test_curvature_limit_stops_vehicles_turning_on_the_spot_only():
+    action = torch.tensor([[[0.0, 1.0], [0.0, 1.0], [0.0, 1.0]]])
+    speed = torch.tensor([[0.0, 10.0, 0.0]])
+    typ = torch.tensor([[VEH, VEH, PED]])
+    out = limit_vehicle_curvature(action, speed, typ, max_curvature=0.25, slack=0.05)
+    assert torch.allclose(out[0, :, 1], torch.tensor([0.05, 1.0, 1.0]))
+    assert torch.equal(out[..., 0], action[..., 0])
+
+
+def test_clip_history_motion_keeps_speed_and_clips_to_type_limits():
+    motion = torch.tensor([[[[3.0, 12.0, -4.0]], [[1.0, -9.0, 6.0]]]])  # [1, 2, 1, 3]
+    out = clip_history_motion(motion, torch.tensor([[VEH, PED]]))
+    assert out[0, 0, 0].tolist() == [3.0, 5.0, -1.5]
+    assert out[0, 1, 0].tolist() == [1.0, -7.0, 6.0]
+
+
+def test_inference_config_defaults_are_the_shipped_rules_and_spec_turns_them_off():
+    shipped = InferenceConfig()
+    assert shipped.hold_parked and shipped.dest_temperature == 1.0
+    spec = InferenceConfig.spec()
+    assert not spec.hold_parked and spec.vehicle_max_curvature is None
+    assert not spec.clip_history_motion
+    with pytest.raises(ValueError):
+        InferenceConfig(dest_temperature=0.0)
+    with pytest.raises(ValueError):
+        InferenceConfig(vehicle_max_curvature=-1.0)
+
+
+def test_shipped_model_runs_the_shipped_rules():
+    """Guards the fix: the default NPC holds parked vehicles (no silent switch-off)."""
+    assert load_default_model().inference == InferenceConfig()
+    assert TrafficBots(TrafficBotsConfig.small()).inference == InferenceConfig()
+
+
+def test_rules_are_not_applied_in_training_mode():
+    model = TrafficBots(TrafficBotsConfig.small())
+    sc, _ = _with_parked_vehicle()
+    batch = TokenBatch.from_tokens(preprocess_scenario(sc, TokenConfig()))
+    gen = torch.Generator().manual_seed(0)
+    model.train()
+    assert model.prepare(batch, 1, gen).hold is None
+    model.eval()
+    hold = model.prepare(batch, 2, gen).hold
+    assert hold is not None and hold.shape == (2, batch.ag_type.shape[1])
+
+
+def _with_parked_vehicle() -> tuple[Scenario, int]:
+    """A generated merge scene whose last non-relevant track is now a vehicle parked 6-20 m from
+    any lane, inside the map's box; (scene, its track row)."""
+    sc = generate_scenario("merge", 10007)
+    t, rm = sc.tracks, sc.road_map
+    lanes = [p[:, :2] for p, f in zip(rm.polylines, rm.feature_type, strict=True) if f == 0]
+    nodes = np.concatenate(lanes)
+    everything = np.concatenate([p[:, :2] for p in rm.polylines])
+    lo, hi = everything.min(0) + 5.0, everything.max(0) - 5.0  # inside the map's box
+    grid = np.stack(np.meshgrid(*(np.arange(a, b, 1.0) for a, b in zip(lo, hi))), -1)
+    grid = grid.reshape(-1, 2)
+    gap = np.array([np.min(np.hypot(*(nodes - q).T)) for q in grid[::7]])
+    ok = np.flatnonzero((gap > 6.0) & (gap < 20.0))
+    assert ok.size, "no spot 6-20 m from the lanes inside the map"
+    spot = grid[::7][ok[0]]
+    relevant = {sc.sdc_index, *sc.tracks_to_predict.tolist()}
+    row = max(i for i in range(t.num_tracks) if i not in relevant)
+    xyz, valid = t.xyz.copy(), t.valid.copy()
+    heading, velocity = t.heading.copy(), t.velocity.copy()
+    object_type, size = t.object_type.copy(), t.size.copy()
+    xyz[row, :, :2], xyz[row, :, 2] = spot, xyz[sc.sdc_index, sc.current_index, 2]
+    valid[row], heading[row], velocity[row] = True, 0.3, 0.0
+    object_type[row], size[row] = VEH, (4.5, 1.9, 1.6)
+    tracks = dataclasses.replace(
+        t,
+        xyz=xyz,
+        valid=valid,
+        heading=heading,
+        velocity=velocity,
+        object_type=object_type,
+        size=size,
+        raw_heading=None,
+    )
+    return dataclasses.replace(sc, tracks=tracks), row
+
+
+class _EagerHead(torch.nn.Module):
+    """An action head that always wants to speed up and turn left (raw (1, 1))."""
+
+    def forward(self, x: torch.Tensor, ag_type: torch.Tensor) -> torch.Tensor:
+        return torch.ones(*x.shape[:-1], 2, dtype=x.dtype, device=x.device)
+
+
+def _eager_model(inference: InferenceConfig) -> TrafficBots:
+    """A small model whose every agent accelerates at 3.8 m/s^2 and turns at 1.1 rad/s."""
+    model = TrafficBots(TrafficBotsConfig.small(), inference)
+    model.action_head = _EagerHead()
+    return model.eval()
+
+
+def _moved(rollouts, sc: Scenario, row: int) -> tuple[float, float]:
+    """Largest distance (m) and |heading change| (rad) of track ``row`` over the rollouts."""
+    j = int(np.flatnonzero(rollouts.object_id.numpy() == sc.tracks.id[row])[0])
+    x0, y0 = sc.tracks.xyz[row, sc.current_index, :2]
+    dist = np.hypot(rollouts.x[:, j].numpy() - x0, rollouts.y[:, j].numpy() - y0)
+    turn = np.abs(rollouts.heading[:, j].numpy() - sc.tracks.heading[row, sc.current_index])
+    return float(dist.max()), float(turn.max())
+
+
+@pytest.mark.parametrize("model", ["shipped", "eager"])
+def test_parked_vehicle_stays_put_in_wosac_rollouts(model):
+    sc, row = _with_parked_vehicle()
+    net = load_default_model() if model == "shipped" else _eager_model(InferenceConfig())
+    r = trafficbots_rollouts(net, sc, num_rollouts=4, num_samples=4, seed=3)
+    dist, turn = _moved(r, sc, row)
+    assert dist < 0.01 and turn < 1e-5
+
+
+def test_without_the_rule_the_eager_model_moves_the_parked_vehicle():
+    """The tests above would pass vacuously if the vehicle were not driven at all."""
+    sc, row = _with_parked_vehicle()
+    r = trafficbots_rollouts(
+        _eager_model(InferenceConfig.spec()), sc, num_rollouts=2, num_samples=2, seed=3
+    )
+    dist, turn = _moved(r, sc, row)
+    assert dist > 5.0 and turn > 1.0
+
+
+def test_parked_vehicle_stays_put_in_the_env():
+    sc, row = _with_parked_vehicle()
+    never = EnvConfig(termination=TerminationConfig(collision=False, goal=False))
+    policy = TrafficBotsPolicy(_eager_model(InferenceConfig()), trim=True)
+    env = TrafficEnv([sc], npc_policy=policy, config=never)
+    env.reset(seed=0)
+    a = env.agents[0]
+    slot = int(np.flatnonzero(env.sim_state.agents.track_index[0].numpy() == row)[0])
+    start = env.sim_state.pose[0, slot].clone()
+    other = env.sim_state.pose[0].clone()
+    for _ in range(40):
+        env.step({a: env.expert_actions()[a]})
+    end = env.sim_state.pose[0, slot]
+    assert float(torch.hypot(*(end[:2] - start[:2]))) < 0.01
+    assert abs(float(end[2] - start[2])) < 1e-5
+    # ... while the eager network turns the agents it drives.
+    turned = (env.sim_state.pose[0, :, 2] - other[:, 2]).abs()
+    assert float(turned.max()) > 1.0
