@@ -4,28 +4,15 @@ Every token is described in its own local frame, and its relation to the observe
 relative pose (dx, dy, dyaw) in the observer's frame. Nothing is expressed in scenario
 coordinates, so observations do not change when a whole scenario is rotated and translated.
 
-For each observer agent:
-
-* ``ego_history`` [H, 5]: its last H poses in its current frame (x, y, cos yaw, sin yaw) and
-  speed; ``ego_history_mask`` [H]; ``ego_attributes`` [7] (length, width, 4-way type one-hot,
-  speed).
-* ``agents`` [Ka, H, 5]: the Ka nearest other agents, each history in that agent's own current
-  frame; ``agents_attributes`` [Ka, 7]; ``agents_pose`` [Ka, 3] relative pose;
-  ``agents_history_mask`` [Ka, H]; ``agents_mask`` [Ka].
-* ``map`` [Km, P, 4]: the Km nearest map pieces, nodes in the piece frame (x, y, cos, sin of
-  the segment direction); ``map_nodes_mask`` [Km, P]; ``map_class`` [Km, 11] one-hot;
-  ``map_pose`` [Km, 3]; ``map_mask`` [Km].
-* ``traffic_lights`` [Kt, 5] state one-hot; ``traffic_lights_pose`` [Kt, 3] (pose of the
-  controlled lane piece); ``traffic_lights_mask`` [Kt].
-
-Neighbours are the nearest by 2-D distance, within a radius, invalid slots zero with mask 0.
+The keys of an observer's observation, their shapes, bounds and meaning are declared once in
+``tbsim_env.observation_spec.OBS_KEYS``. Neighbours are the nearest by 2-D distance, within a
+radius; invalid slots are zero with mask 0.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import gymnasium as gym
 import numpy as np
 import torch
 
@@ -36,18 +23,16 @@ from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
+from tbsim_env.observation_spec import (
+    ATTRIBUTE_FEATURES,
+    HISTORY_FEATURES,
+    NODE_FEATURES,
+    observation_shapes,
+    observation_space,
+)
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange, const, gather_rows
-
-NUM_TYPE_FEATURES = 4
-"""Type one-hot over (vehicle, pedestrian, cyclist, other)."""
-HISTORY_FEATURES = 5
-"""Per history step: x, y, cos(yaw), sin(yaw), speed."""
-ATTRIBUTE_FEATURES = 2 + NUM_TYPE_FEATURES + 1
-"""length, width, type one-hot, speed."""
-NODE_FEATURES = 4
-"""Per map node: x, y, cos, sin of the segment direction, in the piece frame."""
 
 
 @dataclass(frozen=True)
@@ -520,41 +505,6 @@ _MAP_EYE = torch.eye(C.NUM_MAP_CLASSES)
 _TL_EYE = torch.eye(C.NUM_TL_STATES)
 
 
-def observation_shapes(cfg: ObsConfig) -> dict[str, tuple[int, ...]]:
-    """Per-agent shape of every observation key."""
-    h, ka, km, kt = cfg.history, cfg.num_agents, cfg.num_map, cfg.num_traffic_lights
-    p = cfg.tokens.piece_segments
-    return {
-        "ego_history": (h, HISTORY_FEATURES),
-        "ego_history_mask": (h,),
-        "ego_attributes": (ATTRIBUTE_FEATURES,),
-        "agents": (ka, h, HISTORY_FEATURES),
-        "agents_history_mask": (ka, h),
-        "agents_attributes": (ka, ATTRIBUTE_FEATURES),
-        "agents_pose": (ka, 3),
-        "agents_mask": (ka,),
-        "map": (km, p, NODE_FEATURES),
-        "map_nodes_mask": (km, p),
-        "map_class": (km, C.NUM_MAP_CLASSES),
-        "map_pose": (km, 3),
-        "map_mask": (km,),
-        "traffic_lights": (kt, C.NUM_TL_STATES),
-        "traffic_lights_pose": (kt, 3),
-        "traffic_lights_mask": (kt,),
-    }
-
-
-def observation_space(cfg: ObsConfig) -> gym.spaces.Dict:
-    """The fixed-shape ``Dict`` of ``Box`` es of one agent's observation."""
-    spaces = {}
-    for key, shape in observation_shapes(cfg).items():
-        if key.endswith("mask") or key in ("map_class", "traffic_lights"):
-            spaces[key] = gym.spaces.Box(0.0, 1.0, shape, np.float32)
-        else:
-            spaces[key] = gym.spaces.Box(-np.inf, np.inf, shape, np.float32)
-    return gym.spaces.Dict(spaces)
-
-
 __all__ = [
     "History",
     "IndexedObservation",
@@ -563,6 +513,7 @@ __all__ = [
     "build_map_context",
     "densify",
     "init_history",
+    "observation_shapes",
     "observation_space",
     "observe",
     "observe_indexed",

@@ -76,3 +76,21 @@ def test_dense_layout_is_a_gather_of_the_indexed_one():
     torch.testing.assert_close(
         dense["ego_history"][i, j].flatten(), obs.agent_tokens[i, j, : h * 5], rtol=0, atol=0
     )
+
+
+def test_the_observation_spec_builds_the_space_the_keys_and_the_readme_table():
+    from pathlib import Path
+
+    from tbsim_env.env import TrafficEnv
+    from tbsim_env.observation_spec import OBS_KEYS, observation_table
+
+    env = TrafficEnv(default_scenarios(1), controlled="all", npc_policy="log_replay")
+    obs, _ = env.reset(seed=0)
+    names = [k.name for k in OBS_KEYS]
+    space = env.observation_space(env.agents[0])
+    assert sorted(space.spaces) == sorted(names)  # gymnasium sorts a Dict's keys
+    for agent_obs in obs.values():
+        assert list(agent_obs) == names
+        assert space.contains(agent_obs)
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert observation_table() in readme, "README's observation table differs from OBS_KEYS"
