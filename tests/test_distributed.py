@@ -206,6 +206,14 @@ def test_cli_sharded_commands(data: list[str], tmp_path: Path, capsys) -> None:
     assert "--plot" in capsys.readouterr().err
 
 
+def test_cli_ray_missing(data: list[str], tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    args = ["--data", *data, "--policy", "constant_velocity", "--ray", "--out", f"{tmp_path}/"]
+    assert main(["export-wosac", *args]) == 2
+    assert "--ray needs the ray package" in capsys.readouterr().err
+    assert not list(tmp_path.iterdir())
+
+
 # ----------------------------------------------------------------------------- Ray
 @pytest.fixture(scope="module")
 def ray_local():
