@@ -144,7 +144,11 @@ def test_signals_and_map(scenario, data: dict) -> None:
 
 def test_embedding_escapes_script_end(scenario) -> None:
     html = viewer_html(build_viewer_data(scenario, [log_rollout(scenario)], "</script><b>x"))
-    assert html.count("</script>") == 1
+    assert html.count("</script>") == 1 and html.count("<script>") == 1
+    # Self-contained: nothing fetched (no src/href/url/import, no address).
+    page = html[: html.index("const TBSIM_DATA")] + html[html.index("(function () {") :]
+    for fetch in ("src=", "href=", "url(", "@import", "http:", "https:", "fetch(", "import("):
+        assert fetch not in page, fetch
     assert embedded_data(html)["title"] == "</script><b>x"
 
 
