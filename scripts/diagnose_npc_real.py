@@ -15,6 +15,10 @@ kept; seeds as ``tbsim evaluate``), with the shipped inference rules or the spec
 
     python scripts/diagnose_npc_real.py --split validation --rules spec --out /tmp/spec
         [--samples 16 --keep 16] [--data ../shared/data/womd]
+    python scripts/diagnose_npc_real.py --compare /tmp/spec /tmp/shipped
+
+``--compare A B`` prints the means over scenes of both runs' ``scores.json`` with 90% bootstrap
+intervals over scenes, and the paired difference B - A with its interval.
 """
 
 from __future__ import annotations
@@ -177,6 +181,45 @@ def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
     return scores, summary
 
 
+COMPARED = (
+    "realism_meta_metric",
+    "kinematic_metrics",
+    "interactive_metrics",
+    "map_based_metrics",
+    "min_average_displacement_error",
+    "simulated_collision_rate",
+    "simulated_offroad_rate",
+)
+BOOTSTRAP = 4000
+
+
+def interval(values: np.ndarray, rng: np.random.Generator) -> tuple[float, float]:
+    """90% bootstrap interval of the mean over scenes of ``values`` [S]."""
+    means = values[rng.integers(0, len(values), (BOOTSTRAP, len(values)))].mean(1)
+    return float(np.percentile(means, 5)), float(np.percentile(means, 95))
+
+
+def compare(first: Path, second: Path) -> None:
+    """Means with 90% intervals of two runs on the same scenes and their paired difference."""
+    runs = [
+        {s["scenario_id"]: s for s in json.loads(Path(d, "scores.json").read_text())}
+        for d in (first, second)
+    ]
+    ids = sorted(set(runs[0]) & set(runs[1]))
+    rng = np.random.default_rng(0)
+    print(f"{len(ids)} scenes: {first} -> {second}")
+    for key in COMPARED:
+        a, b = (np.array([r[i][key] for i in ids]) for r in runs)
+        text = [
+            f"{x.mean():.4f} [{lo:.3f}, {hi:.3f}]" for x in (a, b) for lo, hi in [interval(x, rng)]
+        ]
+        lo, hi = interval(b - a, rng)
+        print(
+            f"{key:32s} {text[0]:>24s} {text[1]:>24s}  "
+            f"diff {(b - a).mean():+.4f} [{lo:+.4f}, {hi:+.4f}]"
+        )
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--split", default="validation", choices=("validation", "held_out", "train"))
@@ -185,8 +228,14 @@ def main() -> None:
     p.add_argument("--keep", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
-    p.add_argument("--out", required=True)
+    p.add_argument("--out")
+    p.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two output folders")
     args = p.parse_args()
+    if args.compare:
+        compare(*map(Path, args.compare))
+        return
+    if not args.out:
+        p.error("--out is required unless --compare is given")
     torch.set_num_threads(1)
     scores, summary = run_split(args)
     Path(args.out, "scores.json").write_text(json.dumps(scores, indent=1))
