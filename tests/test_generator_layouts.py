@@ -26,7 +26,8 @@ from tbsim_env.data.generator import (
     generate_scenario,
     training_mix,
 )
-from tbsim_env.data.generator.crossings import walk_time_left
+from tbsim_env.data.generator.behaviour import CALIBRATED
+from tbsim_env.data.generator.crossings import PED_ACCEL, walk_time_left
 from tbsim_env.data.generator.driver import (
     DriverConfig,
     add_cyclists,
@@ -43,7 +44,7 @@ from tbsim_env.data.generator.roads import (
     signal_states,
 )
 from tbsim_env.data.generator.routes import build_routes
-from tbsim_env.data.generator.scenes import MAP_MARGIN_M
+from tbsim_env.data.generator.scenes import MAP_MARGIN_M, WALK_SPEED_LIMITS
 from tbsim_env.data.scenario import Scenario, wrap_angle_np
 from tests.test_generator import (
     SIGNALISED,
@@ -560,16 +561,19 @@ def test_pedestrians_cross_on_crosswalks_and_stay_off_the_road_elsewhere(layout:
         for a in pedestrians(sc):
             xy = t.xyz[a, t.valid[a], :2]
             path = shapely.LineString(xy) if len(xy) > 1 else shapely.Point(xy[0])
-            if any(path.intersects(p) for p in crosswalk_polygons(sc)):
-                crossing += 1
+            crosses = any(path.intersects(p) for p in crosswalk_polygons(sc))
+            crossing += crosses
             # On the road only on (or right beside, at the rounded kerb) a crosswalk.
             off_road = signed_edge_distance(xy, edges) > 0.0
             near_cw = on_crosswalk(sc, a, buffer=1.2).any(axis=1)[t.valid[a]]
             assert (off_road | near_cw).all(), (seed, a)
             speed = np.linalg.norm(t.velocity[a], axis=-1)
-            assert speed[t.valid[a]].max() <= 1.6 + 1e-3
+            if not crosses:  # sidewalk walkers: calibrated speed fluctuation (scenes.py)
+                assert speed[t.valid[a]].max() <= WALK_SPEED_LIMITS[1] + 0.1
+                continue
+            assert speed[t.valid[a]].max() <= CALIBRATED.crossing_speed[1] + 1e-3
             pair = t.valid[a, 1:] & t.valid[a, :-1]
-            assert (np.abs(np.diff(speed) / DT)[pair] <= 1.0 + 1e-3).all()  # no jumps
+            assert (np.abs(np.diff(speed) / DT)[pair] <= PED_ACCEL + 1e-3).all()  # no jumps
     assert crossing >= 6, crossing
 
 
@@ -715,13 +719,16 @@ def standing_at_green(sc: Scenario) -> int:
 def test_permissive_left_turns_hold_queues_at_a_green_light() -> None:
     """The layout's purpose: a queue standing behind a vehicle that waits at a green light
     (for a gap in oncoming traffic or for a crossing pedestrian), the situation the shipped
-    NPC mishandles (docs/MODEL_CARD.md). Over seeds 0-9: 278 such steps in 7 scenes, against
-    26 in 4 scenes of the split-phase intersection, where only pedestrians cause it."""
-    split = [standing_at_green(scene("intersection", s)) for s in SEEDS10]
-    permissive = [standing_at_green(scene("permissive_intersection", s)) for s in SEEDS10]
+    NPC mishandles (docs/MODEL_CARD.md). With the calibrated drivers (faster, shorter
+    headways), over seeds 0-19: 244 such steps in 8 scenes, against 30 in 11 scenes of the
+    split-phase intersection, where only pedestrians cause it (before the calibration, over
+    seeds 0-9: 278 steps in 7 scenes against 26 in 4)."""
+    seeds = range(20)
+    split = [standing_at_green(scene("intersection", s)) for s in seeds]
+    permissive = [standing_at_green(scene("permissive_intersection", s)) for s in seeds]
     assert sum(permissive) >= 5 * max(sum(split), 1), (permissive, split)
-    assert sum(c > 0 for c in permissive) >= 5, permissive
+    assert sum(c > 0 for c in permissive) >= 6, permissive
     # Not more: vehicles that their light holds take no part in the priority rules. When the
     # cross street's queue at its red light counted as approaching traffic, left turns
-    # waited for it through their green (711 steps on these seeds).
+    # waited for it through their green (711 steps on seeds 0-9, before the calibration).
     assert sum(permissive) <= 400, permissive

@@ -8,6 +8,8 @@ phasing), "merge" (freeway on-ramp), "stop_intersection" (all-way stop, first co
 served), "t_junction" (minor road with a stop sign yielding to the major road) and
 "permissive_intersection" (signalised, two phases: left turns wait on the green for gaps in
 oncoming traffic, with the queue behind them). ``training_mix(seed)`` cycles through them.
+Speeds, acceleration, headways and walking are set by a ``behaviour.Behaviour``, calibrated
+against the real training scenes (``calibration``, ``scripts/calibrate_generator.py``).
 """
 
 from __future__ import annotations

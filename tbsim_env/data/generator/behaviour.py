@@ -111,6 +111,22 @@ UNCALIBRATED = Behaviour(
 # docs/model_card/real_splits.json (see docs/model_card/generator_calibration.md); rerun the
 # script to refit, it rewrites this block.
 # BEGIN CALIBRATED
-CALIBRATED = UNCALIBRATED
+CALIBRATED = Behaviour(
+    speed_scale=1.35,
+    max_accel=(1.76, 3.84),
+    comfort_decel=(1.95, 3.9),
+    time_headway=(0.63, 1.54),
+    min_gap=(2.7, 5.25),
+    lateral_accel=3.0,
+    cyclist_speed=(4.0, 7.0),
+    cyclist_accel=(0.8, 1.5),
+    cyclist_decel=(1.5, 2.5),
+    ped_speed=(0.8, 1.28),
+    crossing_speed=(0.96, 1.28),
+    ped_standing_share=0.0,
+    ped_speed_sigma=0.2,
+    ped_sway_sigma=0.0,
+    ped_wander_tau=0.3,
+)
 # END CALIBRATED
 """The calibrated behaviour, the default of ``generate_scenario``."""

@@ -23,13 +23,17 @@ distance) between them, in the feature's unit: the integral of |CDF_a - CDF_b| o
 
 from __future__ import annotations
 
+import json
+import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from tbsim_env.constants import ObjectType
+from tbsim_env.data.loader import load_scenarios
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.config import (
     TTC_MAX_HEADING_DIFF,
@@ -245,3 +249,25 @@ def distances(a: Samples, b: Samples) -> Distances:
         }
         for name in AGENT_TYPES
     }
+
+
+def split_entries(splits_path: Path, split: str) -> list[dict]:
+    """Entries (``file``, ``scenario_id``, ...) of one split of a real_splits.json file
+    (``scripts/make_real_splits.py``), in file order."""
+    return list(json.loads(splits_path.read_text())[split])
+
+
+def load_entries(entries: Iterable[dict], womd_dir: Path) -> list[Scenario]:
+    """The real scenes of split entries, read from ``womd_dir`` (files relative to it)."""
+    out = []
+    cache: dict[str, list[Scenario]] = {}
+    for e in entries:
+        if e["file"] not in cache:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                cache[e["file"]] = load_scenarios(womd_dir / e["file"])
+        found = [s for s in cache[e["file"]] if s.scenario_id == e["scenario_id"]]
+        if not found:
+            raise ValueError(f"{e['file']}: no scenario {e['scenario_id']}")
+        out.append(found[0])
+    return out

@@ -1,11 +1,13 @@
 """Public API of the generator: seeded WOMD-like ``Scenario`` objects from the layouts.
 
 A scene holds the vehicles of the driver (``driver``: cars, vans, trucks and buses, and on
-urban layouts a per-scene share of cyclists), pedestrians walking along the sidewalks at
-constant speed and, on the junction layouts, pedestrians crossing on the crosswalks
-(``crossings``) whom the vehicles yield to. Cyclists and crossing pedestrians are drawn from
-a random stream of their own, so the freeway ``merge`` scenes, which have neither, are the
-same as before they were added."""
+urban layouts a per-scene share of cyclists), pedestrians on the sidewalks (walking along
+them with a fluctuating speed, or standing) and, on the junction layouts, pedestrians
+crossing on the crosswalks (``crossings``) whom the vehicles yield to. How they move
+(speeds, acceleration, headways, walking) is a ``behaviour.Behaviour``, by default the one
+calibrated against real scenes (``behaviour.CALIBRATED``). Cyclists and crossing
+pedestrians are drawn from a random stream of their own, so the freeway ``merge`` scenes,
+which have neither, were the same as before they were added."""
 
 from __future__ import annotations
 
