@@ -93,7 +93,10 @@ class DriverConfig:
         cyclist_decel: comfortable deceleration range of cyclists, m/s^2.
 
     All ranges are (timid end, aggressive end) ordered low to high; a vehicle's value is
-    placed in its range by its personality (70 %) and independent noise (30 %).
+    placed in its range by its personality (70 %) and independent noise (30 %). The defaults
+    are the hand-set values; ``generate_scenario`` replaces the desired speeds, acceleration,
+    braking, headway, gap, bend and cyclist parameters by those of its ``Behaviour``
+    (``behaviour.CALIBRATED`` by default, fitted to real scenes).
     """
 
     desired_speed: tuple[float, float]
