@@ -202,6 +202,16 @@ KNN_BUCKET_OFFSET = 0.3819660112501051
 ratio): bucket edges fall between round distances (a lane width of 3.5 m, a node 10 m away),
 which generated maps have exactly and rounding would put on either side of an edge."""
 
+MAP_KNN_CLUSTER_SIZE = 16
+"""Map pieces per cluster at most (``tbsim_env.map_knn``: observers search nearby clusters)."""
+MAP_KNN_CLUSTERS = 16
+"""Clusters searched per observer for its nearest map pieces (256 candidates at most)."""
+MAP_KNN_MARGIN = 0.05
+"""m: the clustered search holds when its k-th distance is this far below the bound on every
+piece left out (5 buckets of ``KNN_DISTANCE_RESOLUTION``, far above float32 rounding)."""
+MAP_KNN_RADIUS_PAD = 0.01
+"""m added to a cluster's radius (float32 rounding of its centre and members)."""
+
 # --------------------------------------------------------------------------- compute
 # Elements (float32) of the largest per-call intermediate of KNARPE attention on a CPU; larger
 # batches run in chunks of rows so that the working set stays in the caches (2 MiB).

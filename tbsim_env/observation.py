@@ -23,6 +23,7 @@ from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
+from tbsim_env.map_knn import PieceClusters, build_piece_clusters, candidate_pieces, search_holds
 from tbsim_env.observation_spec import (
     ATTRIBUTE_FEATURES,
     HISTORY_FEATURES,
@@ -87,6 +88,10 @@ class MapContext:
         tl_invalid: [B, T, 1, L] bool, derived: not ``tl_valid``, step-major.
         knn_xy: [B, 1, M + L, 2] float32, derived: the positions the nearest-token searches
             measure to (piece starts, +inf for padding pieces, then light poses).
+        piece_xy: [B, M + 1, 2] float32, derived: piece starts, +inf for padding pieces and
+            for the sentinel index M.
+        clusters: derived: the valid pieces grouped for the clustered nearest-piece search
+            (``tbsim_env.map_knn``).
     """
 
     pose: torch.Tensor
@@ -102,6 +107,8 @@ class MapContext:
     tl_tokens: torch.Tensor
     tl_invalid: torch.Tensor
     knn_xy: torch.Tensor
+    piece_xy: torch.Tensor
+    clusters: PieceClusters
 
 
 @dataclass(frozen=True)
@@ -209,6 +216,7 @@ def build_map_context(
     tl_pose = t["tl_pose"][:, :, None].expand(-1, -1, n_t, -1)
     tl_tokens = torch.cat([_TL_EYE.to(dev)[t["tl_state"]], tl_pose], dim=-1)
     map_xy = t["pose"][..., :2].masked_fill(~t["valid"][..., None], float("inf"))
+    sentinel = torch.full((b, 1, 2), float("inf"), device=dev)
     return MapContext(
         **t,
         tokens=tokens,
@@ -216,6 +224,8 @@ def build_map_context(
         tl_tokens=_dense(tl_tokens.transpose(1, 2)),
         tl_invalid=_dense(~t["tl_valid"].transpose(1, 2)[:, :, None]),
         knn_xy=_dense(torch.cat([map_xy, t["tl_pose"][..., :2]], 1)[:, None]),
+        piece_xy=torch.cat([map_xy, sentinel], 1),
+        clusters=build_piece_clusters(t["pose"][..., :2], t["valid"]),
     )
 
 
@@ -279,7 +289,7 @@ def agent_static_features(state: SimState) -> torch.Tensor:
 
 
 def _nearest(
-    dist: torch.Tensor, invalid: torch.Tensor | None, k: int
+    dist: torch.Tensor, invalid: torch.Tensor | None, k: int, ids: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k].
 
@@ -291,9 +301,12 @@ def _nearest(
     Args:
         dist: [B, Q, M] distances (>= 0 or +inf); invalid: [B, Q, M] bool (broadcastable),
             targets to skip (None: none, e.g. distances already +inf where invalid).
+        ids: optional [B, Q, M] int64 target index of each column (a subset of the targets,
+            e.g. ``map_knn`` candidates; ties go to the lower id); the column by default.
 
     Returns:
-        (indices, distances: +inf where there is no valid target).
+        (indices, distances: +inf where there is no valid target; the index of such an
+        entry is arbitrary).
     """
     m = dist.shape[-1]
     d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
@@ -304,12 +317,56 @@ def _nearest(
         d = torch.nn.functional.pad(d, (0, pad), value=float("inf"))
     scaled = d * const(1.0 / C.KNN_DISTANCE_RESOLUTION, d) + const(C.KNN_BUCKET_OFFSET, d)
     bucket = torch.floor(scaled).clamp(max=2.0**30).to(torch.int64)
-    key = (bucket << 32) | cached_arange(d.shape[-1], d.device)
-    idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
-    top = torch.gather(d, -1, idx)
-    if pad:
+    if ids is None:
+        col = cached_arange(d.shape[-1], d.device)
+    else:
+        col = torch.nn.functional.pad(ids, (0, pad), value=0) if pad else ids
+    pos = torch.topk((bucket << 32) | col, k, dim=-1, largest=False, sorted=True).indices
+    top = torch.gather(d, -1, pos)
+    idx = pos if ids is None else col.gather(-1, pos)
+    if pad and ids is None:
         idx = idx.clamp(max=m - 1)
     return idx, top
+
+
+def _nearest_pieces(
+    ctx: MapContext, me_xy: torch.Tensor, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The k nearest map pieces of each observer ``me_xy`` [B, Q, 2]: (indices, distances)
+    [B, Q, k], equal to ``_nearest`` over every piece.
+
+    Eagerly, maps with more pieces than the clustered search measures use it (``map_knn``),
+    and the observers it does not hold for (~1% on the real samples) are searched in full. A
+    compiled graph cannot size tensors by that; it searches every piece (fused, that costs
+    less there than the gathers of the clustered search).
+    """
+    searched, size = C.MAP_KNN_CLUSTERS, ctx.clusters.members.shape[-1]
+    m = ctx.pose.shape[1]
+    clustered = ctx.clusters.num_clusters > searched and m > 2 * searched * size
+    if not clustered or torch.compiler.is_compiling():
+        return _all_pieces(ctx.knn_xy[:, :, :m], me_xy, k)
+    cand, bound = candidate_pieces(ctx.clusters, me_xy, searched)
+    xy = gather_rows(ctx.piece_xy, cand)  # [B, Q, C, 2]
+    dx = xy[..., 0] - me_xy[..., 0:1]
+    dy = xy[..., 1] - me_xy[..., 1:2]
+    idx, top = _nearest(torch.sqrt(dx * dx + dy * dy), None, k, ids=cand)
+    rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
+    if len(rows):  # the few observers it does not hold for: every piece
+        full_idx, full_top = _all_pieces(ctx.knn_xy[rows, :, :m], me_xy[rows, cols, None], k)
+        idx = idx.index_put((rows, cols), full_idx[:, 0])
+        top = top.index_put((rows, cols), full_top[:, 0])
+    return idx, top
+
+
+def _all_pieces(
+    pieces_xy: torch.Tensor, me_xy: torch.Tensor, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_nearest`` over every piece ``pieces_xy`` [R, 1, M, 2] (+inf for padding) of the
+    observers ``me_xy`` [R, Q, 2]: (indices, distances) [R, Q, k]."""
+    # x and y apart (no [R, Q, M, 2] difference): the same values, a third of the time.
+    dx = pieces_xy[..., 0] - me_xy[..., 0:1]
+    dy = pieces_xy[..., 1] - me_xy[..., 1:2]
+    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k)
 
 
 @dataclass(frozen=True)
@@ -334,7 +391,7 @@ class IndexedObservation:
         pose: [B, Q, Ka + Km + Kt, 3] float32, their poses (dx m, dy m, dyaw rad) in the
             observer's frame, zero where masked.
         mask: [B, Q, Ka + Km + Kt] float32, 1 where a token is seen (0 for padding and tokens
-            beyond the radius).
+            beyond the radius); ``index`` is 0 where it is 0.
         sizes: (Ka, Km, Kt).
     """
 
@@ -389,15 +446,13 @@ def observe_indexed(
     itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
     not_other = state.valid.unsqueeze(1) <= itself
     a_idx, a_top = _nearest(dist, not_other, cfg.num_agents)
-    # x and y apart (no [B, Q, M + L, 2] difference): the same values, a third of the time.
-    dx = ctx.knn_xy[..., 0] - me_xy[..., 0]  # [B, Q, M + L] (+inf for padding pieces)
-    dy = ctx.knn_xy[..., 1] - me_xy[..., 1]
-    m_dist, t_dist = torch.sqrt(dx * dx + dy * dy).split_with_sizes(
-        [ctx.pose.shape[1], ctx.tl_pose.shape[1]], -1
-    )  # [B, Q, M], [B, Q, L]
-    m_idx, m_top = _nearest(m_dist, None, cfg.num_map)
+    m_idx, m_top = _nearest_pieces(ctx, me[..., :2], cfg.num_map)
+    # x and y apart (no [B, Q, L, 2] difference): the same values, a third of the time.
+    light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
+    dx = light_xy[..., 0] - me_xy[..., 0]  # [B, Q, L]
+    dy = light_xy[..., 1] - me_xy[..., 1]
     tl_invalid, tl_tokens = _lights_at(ctx, state.step)  # [B, 1, L], [B, L, F]
-    t_idx, t_top = _nearest(t_dist, tl_invalid, cfg.num_traffic_lights)
+    t_idx, t_top = _nearest(torch.sqrt(dx * dx + dy * dy), tl_invalid, cfg.num_traffic_lights)
 
     # Poses of all selected tokens relative to the observer, zero where masked.
     sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
@@ -411,12 +466,13 @@ def observe_indexed(
         gather_rows(tl_tokens[..., C.NUM_TL_STATES :], t_idx),
     ]
     rel = relative_pose(me[:, :, None], torch.cat(poses, 2))
+    index = torch.cat([a_idx, m_idx, t_idx], -1)
     return IndexedObservation(
         agent_tokens=tokens,
         map_tokens=ctx.tokens[..., :-3],
         light_tokens=tl_tokens[..., : C.NUM_TL_STATES],
         ego=observers,
-        index=torch.cat([a_idx, m_idx, t_idx], -1),
+        index=torch.where(mask > 0, index, torch.zeros_like(index)),
         pose=rel * mask[..., None],
         mask=mask,
         sizes=sizes,

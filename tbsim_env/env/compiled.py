@@ -5,12 +5,13 @@ per-operation overhead (Python, the dispatcher, allocation). One compiled graph 
 kernels removes most of it (``bench/env_step.py`` and ``bench/vector_env.py --compile`` print
 both). The NPC policy acts before the step, outside the graph (``episode.npc_actions``).
 
-A compiled graph cannot branch on data, so the eager shortcuts are not taken inside it (each
-checks ``torch.compiler.is_compiling()``): a batch of one reading its step as a Python number,
-collision tests that stop early when nobody is near, and off-road corners the road-edge grid
-cannot vouch for recomputed over every segment. The graph recomputes a bounded number of such
-corners and reports the rest in ``StepMetrics.offroad_stale``; ``StepFunction`` then redoes the
-step eagerly (rare: a corner far from the map, or in a cell crowded with edges).
+A compiled graph cannot branch on data or size tensors by it, so the eager shortcuts are not
+taken inside it (each checks ``torch.compiler.is_compiling()``): a batch of one reading its
+step as a Python number, box tests of the near pairs only (the graph tests every pair), the
+clustered nearest-map-piece search (the graph searches every piece), and off-road corners the
+road-edge grid cannot vouch for recomputed over every segment. The graph recomputes a bounded
+number of such corners and reports the rest in ``StepOutput.stale``; ``StepFunction`` then
+redoes the step eagerly (rare: a corner far from the map, or in a cell crowded with edges).
 
 Compiled results equal the eager ones up to float rounding (inductor fuses and reorders
 arithmetic: observations differ by ~1e-7). Compiling takes ~15 s on the first step (and again,
@@ -35,8 +36,8 @@ class StepFunction:
         compile: trace ``step`` into one ``torch.compile`` graph (``fullgraph=True``).
 
     Attributes:
-        eager_redos: compiled steps redone eagerly because the road-edge grid could not
-            vouch for more box corners than the graph recomputes.
+        eager_redos: compiled steps redone eagerly because a bounded search of the graph
+            could not vouch for its result (``StepOutput.stale``).
     """
 
     def __init__(self, config: StepConfig, compile: bool = False) -> None:
@@ -57,7 +58,7 @@ class StepFunction:
         # The policy's state is not the graph's business (any structure, never read by step).
         body = dataclasses.replace(state, policy_state=None)
         nxt, out = self._fn(body, actions, npc_action, self.config)
-        if bool(out.metrics.offroad_stale.any()):
+        if bool(out.stale.any()):
             self.eager_redos += 1
             nxt, out = step(body, actions, npc_action, self.config)
         return dataclasses.replace(nxt, policy_state=state.policy_state), out

@@ -167,6 +167,9 @@ class StepOutput:
         active: bool, agents that acted this step (``alive`` before it).
         metrics: ``step_metrics`` of the new state (before removals).
         done: [B] bool, no agent of the row is alive any more.
+        stale: [B] bool, set only under ``torch.compile``: rows where the graph's bounded
+            off-road search could not vouch for its result; the caller must redo the step
+            eagerly (``env.compiled``). Eagerly None.
     """
 
     obs: Any
@@ -177,6 +180,7 @@ class StepOutput:
     active: torch.Tensor
     metrics: StepMetrics
     done: torch.Tensor
+    stale: torch.Tensor | None = None
 
 
 # ---------------------------------------------------------------------- building
@@ -348,6 +352,9 @@ def step(
     obs = observe_indexed(
         sim, history, setup.ctx, setup.query, config.obs, setup.static, metrics.agent_distance
     )
+    stale = None
+    if torch.compiler.is_compiling():
+        stale = metrics.offroad_stale.any(-1)
     if config.dense:
         obs = densify(obs, config.obs.tokens.piece_segments)
     reward = outcome.reward * active
@@ -373,6 +380,7 @@ def step(
         active=active,
         metrics=metrics,
         done=~alive.any(-1),
+        stale=stale,
     )
     return nxt, out
 

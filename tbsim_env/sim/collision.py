@@ -180,16 +180,34 @@ def collided_with_others(
     if gap is None:
         gap = agent_distances(pose_q, pose)
     near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
-    # The early exits skip work in eager mode; a compiled graph cannot branch on data.
-    eager = not torch.compiler.is_compiling()
-    if eager and not bool(near.any()):
-        return torch.zeros_like(query, dtype=torch.bool)
+    if not torch.compiler.is_compiling():
+        # Eagerly, only the near pairs (a few per agent) get the box test. A compiled graph
+        # cannot size tensors by data: it tests every pair (fused into few kernels).
+        return _near_pairs_overlap(near, pose_q, size_q, pose, size)
     # ``pairwise_overlap & near``, b's axes only tested when a's leave a near pair unseparated.
     pairs, yaw_q = _box_pairs(pose_q, size_q, pose, size)
     near = near & ~_separated_on_axes_of_a(pairs, *(cos_sin_q or cos_sin(yaw_q)))
-    if eager and not bool(near.any()):
-        return torch.zeros_like(query, dtype=torch.bool)
     return (near & ~_separated_on_axes_of_b(pairs)).any(-1)
+
+
+def _near_pairs_overlap(
+    near: torch.Tensor,
+    pose_q: torch.Tensor,
+    size_q: torch.Tensor,
+    pose: torch.Tensor,
+    size: torch.Tensor,
+) -> torch.Tensor:
+    """[B, K] bool: some pair flagged in ``near`` [B, K, N] overlaps (``pairwise_overlap`` of
+    the gathered pairs; arguments as ``collided_with_others``)."""
+    out = torch.zeros(near.shape[:2], dtype=torch.bool, device=near.device)
+    b, k, n = near.nonzero(as_tuple=True)
+    if not len(b):
+        return out
+    hit = pairwise_overlap(
+        pose_q[b, k].unsqueeze(-2), size_q[b, k].unsqueeze(-2), pose[b, n].unsqueeze(-2),
+        size[b, n].unsqueeze(-2),
+    )[:, 0, 0]  # fmt: skip
+    return out.index_put_((b[hit], k[hit]), torch.ones_like(b[hit], dtype=torch.bool))
 
 
 def collided(

@@ -1,0 +1,138 @@
+"""The nearest map pieces of many observers, without measuring every piece.
+
+A real WOMD scene keeps up to 1,024 map pieces and an observer sees its 64 nearest, so the plain
+search (``observation._nearest`` over every piece) measures and ranks ~15x more pieces than it
+keeps; at all agents controlled it was the largest part of an env step. Here the pieces of a
+scene are grouped once into compact clusters (a k-d split of their anchor points into leaves
+of at most ``MAP_KNN_CLUSTER_SIZE``); per observer, the ``MAP_KNN_CLUSTERS`` clusters with the
+smallest lower bound on their pieces' distance are searched exactly.
+
+The result is the plain search's, exactly: no piece outside the searched clusters is nearer
+than the bound of the next cluster, and the search checks that its k-th distance stays below
+that bound (by ``MAP_KNN_MARGIN``, far more than float rounding, so ranking buckets cannot tie
+across it). For an observer where it does not hold (a sparse map beyond the clusters, or an
+observer far from every piece) the caller searches every piece (``observation``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from tbsim_env import constants as C
+from tbsim_env.torch_utils import gather_rows
+
+
+@dataclass(frozen=True)
+class PieceClusters:
+    """Clusters of the valid map pieces of each row (padding: no member, +inf centre).
+
+    Attributes:
+        members: [B, G, S] int64 piece indices, ``M`` (one past the last piece: the
+            sentinel of ``MapContext.knn_xy``-style arrays) for empty member slots.
+        center: [B, G, 2] float32 m, the mean of the members' anchor points (+inf: padding).
+        radius: [B, G] float32 m, the largest member distance from the centre, rounded up.
+    """
+
+    members: torch.Tensor
+    center: torch.Tensor
+    radius: torch.Tensor
+
+    @property
+    def num_clusters(self) -> int:
+        return int(self.members.shape[1])
+
+
+def _kd_leaves(xy: np.ndarray, ids: np.ndarray, size: int) -> list[np.ndarray]:
+    """Indices ``ids`` split at the median of the wider axis until leaves hold <= ``size``."""
+    if len(ids) <= size:
+        return [ids]
+    pts = xy[ids]
+    axis = int(np.argmax(pts.max(0) - pts.min(0)))
+    order = ids[np.argsort(pts[:, axis], kind="stable")]
+    half = len(order) // 2
+    return _kd_leaves(xy, order[:half], size) + _kd_leaves(xy, order[half:], size)
+
+
+def scene_clusters(xy: np.ndarray, valid: np.ndarray, size: int) -> list[np.ndarray]:
+    """Clusters of one scene's valid pieces: lists of piece indices (at most ``size`` each).
+
+    Args:
+        xy: [M, 2] float32 piece anchor points (as the search measures them).
+        valid: [M] bool.
+        size: members per cluster at most.
+    """
+    ids = np.flatnonzero(valid)
+    return _kd_leaves(xy.astype(np.float64), ids, size) if len(ids) else []
+
+
+def build_piece_clusters(
+    xy: torch.Tensor, valid: torch.Tensor, size: int = C.MAP_KNN_CLUSTER_SIZE
+) -> PieceClusters:
+    """``PieceClusters`` of a batch of maps.
+
+    Args:
+        xy: [B, M, 2] float32 piece anchor points.
+        valid: [B, M] bool.
+        size: members per cluster at most.
+    """
+    xy_np, valid_np = xy.detach().cpu().numpy(), valid.detach().cpu().numpy()
+    b, m = valid_np.shape
+    scenes = [scene_clusters(xy_np[i], valid_np[i], size) for i in range(b)]
+    g = max(max((len(s) for s in scenes), default=0), 1)
+    members = np.full((b, g, size), m, np.int64)
+    center = np.full((b, g, 2), np.inf, np.float32)
+    radius = np.zeros((b, g), np.float32)
+    for i, leaves in enumerate(scenes):
+        for j, ids in enumerate(leaves):
+            pts = xy_np[i, ids].astype(np.float64)
+            mid = pts.mean(0).astype(np.float32)
+            far = np.sqrt(((pts - mid.astype(np.float64)) ** 2).sum(-1)).max()
+            members[i, j, : len(ids)] = ids
+            center[i, j] = mid
+            radius[i, j] = np.float32(far) + np.float32(C.MAP_KNN_RADIUS_PAD)
+    dev = xy.device
+    return PieceClusters(
+        members=torch.from_numpy(members).to(dev),
+        center=torch.from_numpy(center).to(dev),
+        radius=torch.from_numpy(radius).to(dev),
+    )
+
+
+def candidate_pieces(
+    clusters: PieceClusters, me_xy: torch.Tensor, searched: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pieces of the ``searched`` clusters nearest (by lower bound) to each observer.
+
+    Args:
+        clusters: the batch's clusters (more than ``searched`` of them).
+        me_xy: [B, Q, 2] observer positions.
+        searched: clusters searched per observer.
+
+    Returns:
+        (candidates [B, Q, searched * S] int64 piece indices (``M`` for empty slots),
+        bound [B, Q] m: no piece outside the candidates is nearer; +inf when none is left).
+    """
+    d = torch.linalg.vector_norm(clusters.center[:, None] - me_xy[:, :, None], dim=-1)
+    lower = (d - clusters.radius[:, None]).clamp_min(0.0)  # [B, Q, G], +inf for padding
+    lower, order = torch.topk(lower, searched + 1, dim=-1, largest=False, sorted=True)
+    members = gather_rows(clusters.members, order[..., :searched])  # [B, Q, searched, S]
+    return members.flatten(-2), lower[..., searched]
+
+
+def search_holds(kth: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
+    """[B, Q] bool: the candidates' k-th distance ``kth`` stays ``MAP_KNN_MARGIN`` below the
+    ``bound`` on every other piece (or no other piece is left), so the candidates' k nearest
+    are the k nearest of all pieces."""
+    return torch.isinf(bound) | (kth + C.MAP_KNN_MARGIN <= bound)
+
+
+__all__ = [
+    "PieceClusters",
+    "build_piece_clusters",
+    "candidate_pieces",
+    "scene_clusters",
+    "search_holds",
+]

@@ -1,0 +1,104 @@
+"""The clustered nearest-map-piece search (``tbsim_env.map_knn``) equals the full search."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tbsim_env import constants as C
+from tbsim_env.data import load_scenarios
+from tbsim_env.data.generator import default_scenarios
+from tbsim_env.map_knn import candidate_pieces, scene_clusters, search_holds
+from tbsim_env.observation import ObsConfig, _nearest, _nearest_pieces, build_map_context
+from tbsim_env.sim.build import build_sim_state
+
+
+@pytest.fixture(scope="module")
+def contexts(womd_dir):
+    wod = womd_dir / "waymo-open-dataset"
+    real = [
+        *load_scenarios(wod / "motion_data_one_scenario.tfrecord"),
+        *load_scenarios(wod / "womd_scenario_input.tfrecord"),
+    ]
+    out = {}
+    for name, scenes in (("real", real), ("generated", default_scenarios(3))):
+        state = build_sim_state(scenes)
+        out[name] = build_map_context(scenes, state.origin, ObsConfig())
+    return out
+
+
+def _observers(ctx, gen: torch.Generator, q: int = 300) -> torch.Tensor:
+    """[B, q, 2]: points near random valid pieces (up to 60 m off), and a few 1-3 km away."""
+    rows = []
+    for b in range(ctx.valid.shape[0]):
+        xy = ctx.pose[b, ctx.valid[b], :2]
+        pick = torch.randint(len(xy), (q,), generator=gen)
+        pts = xy[pick] + (torch.rand(q, 2, generator=gen) - 0.5) * 120.0
+        pts[:5] = xy.mean(0) + torch.tensor([1000.0, -3000.0]) * torch.rand(5, 1, generator=gen)
+        rows.append(pts)
+    return torch.stack(rows)
+
+
+def _full(ctx, me_xy: torch.Tensor, k: int):
+    """The plain search over every piece (distances as the observation computes them)."""
+    m = ctx.pose.shape[1]
+    dx = ctx.knn_xy[:, :, :m, 0] - me_xy[..., 0:1]
+    dy = ctx.knn_xy[:, :, :m, 1] - me_xy[..., 1:2]
+    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k)
+
+
+@pytest.mark.parametrize("name", ["real", "generated"])
+def test_clustered_search_equals_the_full_search(contexts, name):
+    ctx = contexts[name]
+    gen = torch.Generator().manual_seed(0)
+    me = _observers(ctx, gen)
+    k = ObsConfig().num_map
+    idx, top = _nearest_pieces(ctx, me, k)
+    ref_idx, ref_top = _full(ctx, me, k)
+    assert torch.equal(top, ref_top)
+    finite = torch.isfinite(ref_top)
+    assert torch.equal(idx[finite], ref_idx[finite])
+
+
+def test_the_clustered_search_holds_near_the_map_and_not_far_away(contexts):
+    ctx = contexts["real"]
+    assert ctx.clusters.num_clusters > C.MAP_KNN_CLUSTERS, "the real maps use the clustered path"
+    gen = torch.Generator().manual_seed(1)
+    me = _observers(ctx, gen)
+    cand, bound = candidate_pieces(ctx.clusters, me, C.MAP_KNN_CLUSTERS)
+    xy = torch.stack([ctx.piece_xy[b, cand[b]] for b in range(len(cand))])
+    dx, dy = xy[..., 0] - me[..., 0:1], xy[..., 1] - me[..., 1:2]
+    d = torch.sqrt(dx * dx + dy * dy)
+    _, top = _nearest(d, None, ObsConfig().num_map, ids=cand)
+    holds = search_holds(top[..., -1], bound)
+    assert holds[:, 5:].float().mean() > 0.95  # near the map: the clusters suffice
+    # Where it holds, the candidates' k nearest are the true ones.
+    ref_idx, ref_top = _full(ctx, me, ObsConfig().num_map)
+    assert torch.equal(top[holds], ref_top[holds])
+
+
+def test_a_search_of_too_few_clusters_falls_back_to_the_full_search(contexts, monkeypatch):
+    ctx = contexts["real"]
+    monkeypatch.setattr(C, "MAP_KNN_CLUSTERS", 2)  # 32 candidates cannot hold 64 nearest
+    me = _observers(ctx, torch.Generator().manual_seed(2), q=50)
+    idx, top = _nearest_pieces(ctx, me, ObsConfig().num_map)
+    ref_idx, ref_top = _full(ctx, me, ObsConfig().num_map)
+    assert torch.equal(top, ref_top) and torch.equal(idx, ref_idx)
+
+
+def test_clusters_are_compact_and_cover_every_valid_piece(contexts):
+    ctx = contexts["real"]
+    for b in range(ctx.valid.shape[0]):
+        valid = ctx.valid[b].numpy()
+        leaves = scene_clusters(ctx.pose[b, :, :2].numpy(), valid, C.MAP_KNN_CLUSTER_SIZE)
+        ids = sorted(i for leaf in leaves for i in leaf.tolist())
+        assert ids == sorted(valid.nonzero()[0].tolist())
+        assert all(len(leaf) <= C.MAP_KNN_CLUSTER_SIZE for leaf in leaves)
+    members, center, radius = ctx.clusters.members, ctx.clusters.center, ctx.clusters.radius
+    m = ctx.pose.shape[1]
+    real = members < m
+    xy = ctx.piece_xy.gather(1, members.flatten(1)[..., None].expand(-1, -1, 2)).view(
+        *members.shape, 2
+    )
+    gap = torch.linalg.vector_norm(xy - center[:, :, None], dim=-1)
+    assert (gap[real] <= radius[:, :, None].expand_as(gap)[real]).all()
