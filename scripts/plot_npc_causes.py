@@ -95,7 +95,8 @@ def column(r: Rollouts, sc: Scenario, track_id: int) -> int:
 
 
 def parked_rows(sc: Scenario) -> list[int]:
-    """Track rows of the vehicles the spec's parked test marks in ``sc``."""
+    """Track rows of the vehicles the spec's parked test marks in ``sc`` (valid at the current
+    step, so that the rollouts hold them)."""
     tok = preprocess_scenario(wosac_scenario(sc), TokenConfig())
     b = TokenBatch.from_tokens(tok)
     rules = InferenceConfig()
@@ -108,7 +109,8 @@ def parked_rows(sc: Scenario) -> list[int]:
         rules.still_displacement,
         rules.parked_lane_radius,
     )[0]
-    return [int(tok.agent_track_index[n]) for n in np.flatnonzero(parked.numpy())]
+    rows = [int(tok.agent_track_index[n]) for n in np.flatnonzero(parked.numpy())]
+    return [row for row in rows if sc.tracks.valid[row, sc.current_index]]
 
 
 def parked_motion(models: dict[str, TrafficBots], sc: Scenario) -> dict[str, np.ndarray]:
