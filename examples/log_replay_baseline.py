@@ -20,8 +20,9 @@ import os
 import time
 from pathlib import Path
 
+from policies import policy_names
 from tbsim_env.data import load_scenarios
-from tbsim_env.evaluation import WOSAC_POLICIES, evaluate_policy
+from tbsim_env.evaluation import evaluate_policy
 from tbsim_env.metrics.wosac.scoring import aggregate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -55,7 +56,7 @@ def main() -> None:
         "--policies",
         nargs="+",
         default=["log_replay", "constant_velocity", "linear_extrapolation", "trafficbots"],
-        choices=WOSAC_POLICIES,
+        choices=policy_names(),
     )
     p.add_argument("--num-rollouts", type=int, default=32, help="rollouts per scenario (32)")
     p.add_argument("--version", default="wosac2025", choices=["wosac2025", "wosac2024"])
@@ -87,7 +88,7 @@ def main() -> None:
                 num_rollouts=args.num_rollouts,
                 seed=args.seed,
                 version=args.version,
-                checkpoint=args.checkpoint,
+                checkpoint=args.checkpoint if policy == "trafficbots" else None,
             )
         except (ImportError, FileNotFoundError, ValueError, TypeError) as e:
             skipped.append(f"{policy}: skipped ({type(e).__name__}: {e})")

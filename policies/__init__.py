@@ -1,12 +1,20 @@
-"""Policies that drive agents: log replay, constant velocity and TrafficBots V1.5."""
+"""Policies that drive agents: log replay, constant velocity and TrafficBots V1.5, and the
+one registry of policy names (``policies.registry``) that every part of tbsim reads."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
-from policies.base import Policy, PolicyState
 from policies.constant_velocity import ConstantVelocityPolicy
 from policies.log_replay import LogReplayPolicy
+from policies.registry import (
+    PolicyEntry,
+    make_policy,
+    make_rollout_fn,
+    policy_entry,
+    policy_names,
+    register_policy,
+)
+from tbsim_env.sim.policy import Policy, PolicyState
+from tbsim_env.sim.rollout import linear_extrapolation_rollouts
 
 
 def _trafficbots(checkpoint: str | None = None, device: str = "cpu", **kwargs) -> Policy:
@@ -23,44 +31,54 @@ def _trafficbots(checkpoint: str | None = None, device: str = "cpu", **kwargs) -
     return TrafficBotsPolicy(model, **kwargs)
 
 
-_REGISTRY: dict[str, Callable[..., Policy]] = {
-    "log_replay": LogReplayPolicy,
-    "constant_velocity": ConstantVelocityPolicy,
-    "trafficbots": _trafficbots,
-}
+def _trafficbots_rollouts(
+    checkpoint: str | None = None,
+    device: str = "cpu",
+    num_samples: int = 128,
+    road_edge_weight: float = 0.0,
+):
+    """TrafficBots' WOSAC sampling: ``num_samples`` rollouts, the 32 least colliding kept."""
+    from policies.trafficbots.wosac import trafficbots_rollout_fn
+
+    return trafficbots_rollout_fn(
+        checkpoint=checkpoint,
+        device=device,
+        num_samples=num_samples,
+        road_edge_weight=road_edge_weight,
+    )
 
 
-def register_policy(name: str, factory: Callable[..., Policy]) -> None:
-    """Add a policy factory under ``name`` (raises if the name is taken)."""
-    if name in _REGISTRY:
-        raise ValueError(f"policy {name!r} is already registered")
-    _REGISTRY[name] = factory
+def _linear_extrapolation_rollouts(checkpoint: None = None, device: str = "cpu"):
+    """The official WOSAC tutorial baseline (no step-by-step policy)."""
+    del checkpoint, device  # nothing to load, numpy on the CPU
+    return lambda sc, n, seed: linear_extrapolation_rollouts(sc, num_rollouts=n, seed=seed)
 
 
-def policy_names() -> tuple[str, ...]:
-    return tuple(sorted(_REGISTRY))
-
-
-def make_policy(policy: str | Policy, **kwargs) -> Policy:
-    """A policy from its registered name, or the object itself if it already is one."""
-    if isinstance(policy, str):
-        if policy not in _REGISTRY:
-            raise ValueError(f"unknown policy {policy!r}; known: {', '.join(policy_names())}")
-        return _REGISTRY[policy](**kwargs)
-    if not isinstance(policy, Policy):
-        raise TypeError(
-            f"{policy!r} is not a policy: it needs a 'name', 'initial_state' and 'act' "
-            "(see policies.base.Policy)"
-        )
-    return policy
-
+register_policy("log_replay", LogReplayPolicy, summary="the logged trajectories, exactly")
+register_policy(
+    "constant_velocity", ConstantVelocityPolicy, summary="keep speed and heading (baseline)"
+)
+register_policy(
+    "linear_extrapolation",
+    rollouts=_linear_extrapolation_rollouts,
+    summary="WOSAC tutorial baseline: last displacement plus noise (WOSAC rollouts only)",
+)
+register_policy(
+    "trafficbots",
+    _trafficbots,
+    rollouts=_trafficbots_rollouts,
+    summary="the shipped TrafficBots V1.5 (docs/MODEL_CARD.md)",
+)
 
 __all__ = [
     "ConstantVelocityPolicy",
     "LogReplayPolicy",
     "Policy",
+    "PolicyEntry",
     "PolicyState",
     "make_policy",
+    "make_rollout_fn",
+    "policy_entry",
     "policy_names",
     "register_policy",
 ]

@@ -429,7 +429,10 @@ def _view_parser(sub, policies: tuple[str, ...]) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from policies import policy_names
     from tbsim_env.data.generator.scenes import LAYOUTS
+
+    drivers = policy_names(agents=True)
 
     p = argparse.ArgumentParser(prog="tbsim", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -437,7 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="simulate the embedded generated scenes and write a video")
     d.add_argument("--out", default="tbsim_demo.mp4", help="video path (.mp4 or .gif)")
     d.add_argument("--scenarios", type=int, default=1, help="how many default scenes to render")
-    d.add_argument("--npc-policy", default="trafficbots", help="NPC policy name")
+    d.add_argument(
+        "--npc-policy", default="trafficbots", choices=drivers, help="policy of the NPCs"
+    )
     d.add_argument("--steps", type=int, default=None, help="steps to simulate (default: all)")
     d.add_argument("--fps", type=int, default=10, help="video frames per second")
     d.set_defaults(func=_cmd_demo)
@@ -452,11 +457,14 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--scenario", default=None, help="scenario id (default: the first)")
     r.add_argument("--out", required=True, help="video path (.mp4 or .gif)")
     r.add_argument(
-        "--npc-policy", default="log_replay", help="policy of every agent (default: log_replay)"
+        "--npc-policy",
+        default="log_replay",
+        choices=drivers,
+        help="policy of every agent (default: log_replay)",
     )
     r.add_argument("--fps", type=int, default=10, help="video frames per second")
     r.set_defaults(func=_cmd_render)
-    policies = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
+    policies = policy_names()  # the one registry: user-registered policies included
 
     def wosac_common(sp: argparse.ArgumentParser) -> None:
         sp.add_argument("--data", nargs="+", required=True, help="scenario files / globs / folders")

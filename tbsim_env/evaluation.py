@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from policies.registry import make_rollout_fn as registry_rollout_fn
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac import (
     Rollouts,
@@ -30,10 +31,6 @@ from tbsim_env.metrics.wosac import (
     write_submission,
 )
 from tbsim_env.sim.horizon import wosac_end_step
-from tbsim_env.sim.rollout import linear_extrapolation_rollouts, simulate_rollouts
-
-WOSAC_POLICIES = ("log_replay", "constant_velocity", "linear_extrapolation", "trafficbots")
-"""Policy names the evaluation commands accept."""
 
 
 def scenario_seed(seed: int, scenario_id: str) -> int:
@@ -62,27 +59,14 @@ def make_rollout_fn(
     device: str = "cpu",
     road_edge_weight: float = 0.0,
 ) -> Callable[[Scenario, int, int], Rollouts]:
-    """A function ``(scenario, num_rollouts, seed) -> Rollouts`` for a policy name.
+    """A function ``(scenario, num_rollouts, seed) -> Rollouts`` for a registered policy name
+    (``policies.registry``: any policy a user registered works here too).
 
     ``road_edge_weight`` (TrafficBots only): weight of off-road agents, beside collided ones,
     when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``, 0 there).
     """
-    if road_edge_weight and policy != "trafficbots":
-        raise ValueError(f"road_edge_weight applies to trafficbots only, not {policy!r}")
-    if policy == "linear_extrapolation":
-        return lambda sc, n, seed: linear_extrapolation_rollouts(sc, num_rollouts=n, seed=seed)
-    if policy == "trafficbots":
-        from policies.trafficbots.wosac import trafficbots_rollout_fn
-
-        return trafficbots_rollout_fn(
-            checkpoint=checkpoint, device=device, road_edge_weight=road_edge_weight
-        )
-    if policy not in WOSAC_POLICIES:
-        raise ValueError(f"unknown policy {policy!r}; choose from {', '.join(WOSAC_POLICIES)}")
-    from policies import make_policy
-
-    pol = make_policy(policy)
-    return lambda sc, n, seed: simulate_rollouts(sc, pol, num_rollouts=n, seed=seed, device=device)
+    options = {"road_edge_weight": road_edge_weight} if road_edge_weight else {}
+    return registry_rollout_fn(policy, checkpoint=checkpoint, device=device, **options)
 
 
 def iter_rollouts(
@@ -276,7 +260,6 @@ def plot_histograms(
 
 __all__ = [
     "HISTOGRAM_FEATURES",
-    "WOSAC_POLICIES",
     "check_logged_future",
     "evaluate_policy",
     "export_submission",

@@ -17,12 +17,12 @@ import dataclasses
 import numpy as np
 import torch
 
-from policies.base import Policy
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.rollouts import Rollouts, log_replay_rollouts
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.horizon import wosac_end_step, wosac_scenario
+from tbsim_env.sim.policy import Policy
 from tbsim_env.sim.state import SimState
 
 
