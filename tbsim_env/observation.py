@@ -79,12 +79,12 @@ class MapContext:
         tl_pose: [B, L, 3] pose of the controlled lane piece.
         tl_state: [B, L, T] int64 ``TLState`` from the log.
         tl_valid: [B, L, T] bool.
-        tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES + 3] float32, derived: what an
-            observation shows of a piece, concatenated (``nodes``, ``nodes_valid``, the
-            ``map_class`` one-hot, ``pose``), so that a step gathers it in one operation.
+        tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, derived: what an observation
+            shows of a piece in its own frame, concatenated (``nodes``, ``nodes_valid``, the
+            ``map_class`` one-hot), so that a step gathers it in one operation.
         invalid: [B, 1, M] bool, derived: not ``valid`` (padding pieces).
-        tl_tokens: [B, T, L, NUM_TL_STATES + 3] float32, derived: one-hot of ``tl_state`` and
-            ``tl_pose``, concatenated (step-major, so that a step's lights are one view).
+        tl_tokens: [B, T, L, NUM_TL_STATES] float32, derived: one-hot of ``tl_state``
+            (step-major, so that a step's lights are one view).
         tl_invalid: [B, T, 1, L] bool, derived: not ``tl_valid``, step-major.
         knn_xy: [B, 1, M + L, 2] float32, derived: the positions the nearest-token searches
             measure to (piece starts, +inf for padding pieces, then light poses).
@@ -209,12 +209,10 @@ def build_map_context(
             t["nodes"].flatten(-2),
             t["nodes_valid"].float(),
             _MAP_EYE.to(dev)[t["map_class"]],
-            t["pose"],
         ],
         dim=-1,
     )
-    tl_pose = t["tl_pose"][:, :, None].expand(-1, -1, n_t, -1)
-    tl_tokens = torch.cat([_TL_EYE.to(dev)[t["tl_state"]], tl_pose], dim=-1)
+    tl_tokens = _TL_EYE.to(dev)[t["tl_state"]]  # [B, L, T, NUM_TL_STATES]
     map_xy = t["pose"][..., :2].masked_fill(~t["valid"][..., None], float("inf"))
     sentinel = torch.full((b, 1, 2), float("inf"), device=dev)
     return MapContext(
@@ -463,14 +461,14 @@ def observe_indexed(
     poses = [
         gather_rows(state.pose, a_idx),
         gather_rows(ctx.pose, m_idx),
-        gather_rows(tl_tokens[..., C.NUM_TL_STATES :], t_idx),
+        gather_rows(ctx.tl_pose, t_idx),
     ]
     rel = relative_pose(me[:, :, None], torch.cat(poses, 2))
     index = torch.cat([a_idx, m_idx, t_idx], -1)
     return IndexedObservation(
         agent_tokens=tokens,
-        map_tokens=ctx.tokens[..., :-3],
-        light_tokens=tl_tokens[..., : C.NUM_TL_STATES],
+        map_tokens=ctx.tokens,
+        light_tokens=tl_tokens,
         ego=observers,
         index=torch.where(mask > 0, index, torch.zeros_like(index)),
         pose=rel * mask[..., None],

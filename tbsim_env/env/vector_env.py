@@ -492,7 +492,7 @@ class BatchedTrafficEnv:
         """[S, M, P * 4 + P + NUM_MAP_CLASSES] float32 map-piece tokens of every scenario of
         the env (row = ``obs["scene"]``), fixed for the env's life: what the ``"index"``
         entries of map pieces refer to in an indexed observation. Read-only."""
-        return self.bank.setup.ctx.tokens[..., :-3]
+        return self.bank.setup.ctx.tokens
 
     def _infos(self, state: EpisodeState, metrics: StepMetrics) -> dict[str, Any]:
         # Tensors of the state are cloned: a caller writing into an info must not change it.
