@@ -52,7 +52,7 @@ def test_version_parsing():
 
 def test_bin_edges_are_the_float32_tf_values():
     # The 11-bin edges are TF's float32 linspace values, not a float64 linspace rounded to
-    # float32 (docs/wosac.md 5.1); note the asymmetry around 0.
+    # float32 (docs/metrics.md, "Histograms"); note the asymmetry around 0.
     edges = HISTOGRAMS.linear_acceleration.edges
     assert edges[6] == float(np.float32("1.09091")) != -edges[5]
     assert edges[6] != float(np.float32(np.linspace(-12.0, 12.0, 12)[6]))

@@ -146,7 +146,7 @@ def test_rectangle_signed_distance_hand_cases():
 
 
 def test_overlapping_rounded_boxes_collide_and_apart_ones_do_not():
-    # L=4, W=2: corner radius 0.7, cores 2.6 x 0.6 (docs/wosac.md 4.1).
+    # L=4, W=2: corner radius 0.7, cores 2.6 x 0.6 (docs/metrics.md, "Object shape").
     x = [[0.0], [3.0], [100.0]]
     traj = make_traj(x, np.zeros((3, 1)), num_eval=2)
     dist = distance_to_nearest_object(traj)

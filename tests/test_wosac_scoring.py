@@ -24,7 +24,7 @@ from tbsim_env.metrics.wosac.submission import SubmissionError
 from tbsim_env.metrics.wosac.synthetic import noisy_rollouts, synthetic_scenario
 
 # Official per-scenario values for test_submission.binproto on 637f20cafde22ff8
-# (docs/wosac.md, "Reference values from the official code").
+# (docs/metrics.md, "Parity with Waymo's official code").
 REFERENCE = {
     "wosac2024": {
         "realism_meta_metric": 0.2313,
@@ -122,7 +122,8 @@ def test_log_replay_beats_submission(real_scores, log_scores, version):
 
 
 def test_official_ttc_difference_between_versions(log_scores):
-    # docs/wosac.md section 12: 0.8607 (all evaluated) vs 0.8362 (vehicles only).
+    # docs/metrics.md, "Parity with Waymo's official code": 0.8607 (all evaluated) vs 0.8362
+    # (vehicles only).
     assert log_scores["wosac2024"].time_to_collision_likelihood == pytest.approx(0.8607, abs=1e-3)
     assert log_scores["wosac2025"].time_to_collision_likelihood == pytest.approx(0.8362, abs=1e-3)
 

@@ -2,7 +2,7 @@
 
 Road edges are oriented with the road on their left. For a query point the closest segment over
 all road edges is found; the sign is that of ``cross(q - a, b - a)`` (positive on the right),
-corrected at polyline joints by the convexity rule of the WOSAC reference (docs/wosac.md 4.4).
+corrected at polyline joints by the convexity rule of the WOSAC reference (docs/metrics.md).
 This is the environment's fast 2-D check (over road edges simplified to within
 ``EDGE_SIMPLIFY_TOLERANCE``, looked up in the scenario's ``EdgeGrid``);
 ``tbsim_env.metrics`` carries the exact WOSAC feature.

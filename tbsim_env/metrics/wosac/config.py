@@ -1,9 +1,10 @@
 """WOSAC metric configurations (2024 and 2025 sim-agents challenges) as frozen dataclasses.
 
-All numbers restate docs/wosac.md: histogram ranges and bins (section 5.1, identical in 2024 and
-2025), pseudocounts (5.1, 5.2), feature weights (6.1) and the bucket groups (6). The bin edges are
-the exact float32 values the official TensorFlow code computes with ``tf.linspace``; for the
-11-bin features they differ from a numpy float32 linspace by a few ulps, so they are written out.
+All numbers are those of docs/metrics.md: histogram ranges and bins ("Histograms", the same in
+2024 and 2025), pseudocounts ("Estimators"), feature weights and bucket groups ("Meta-metric and
+buckets"). The bin edges are the exact float32 values the official TensorFlow code computes with
+``tf.linspace``; for the 11-bin features they differ from a numpy float32 linspace by a few ulps,
+so they are written out.
 """
 
 from __future__ import annotations
@@ -34,7 +35,8 @@ DEFAULT_VERSION = MetricVersion.WOSAC2025
 NUM_ROLLOUTS = 32
 """Joint rollouts per scenario in a submission."""
 
-# Geometry literals of the official feature code (docs/wosac.md sections 4.1-4.6).
+# Geometry literals of the official feature code (docs/metrics.md, "Interactive features" and
+# "Map-based features").
 BOX_ROUNDING_FACTOR = 0.7
 """Corner radius of the rounded boxes is ``0.7 * min(length, width) / 2``."""
 CYCLIC_POLYLINE_MAX_GAP_SQ = 1.0
@@ -111,7 +113,7 @@ def _even_edges(lo: float, hi: float, num_bins: int) -> tuple[str, ...]:
 
 @dataclass(frozen=True)
 class HistogramSpecs:
-    """The seven histogram features (docs/wosac.md section 5.1); units m/s, m/s^2, rad/s, ..."""
+    """The seven histogram features (docs/metrics.md, "Histograms"); units m/s, m/s^2, rad/s, ..."""
 
     linear_speed: HistogramSpec
     linear_acceleration: HistogramSpec
@@ -144,7 +146,7 @@ HISTOGRAMS = HistogramSpecs(
 
 @dataclass(frozen=True)
 class FeatureWeights:
-    """Meta-metric weight of every likelihood (docs/wosac.md section 6.1)."""
+    """Meta-metric weight of every likelihood (docs/metrics.md, "Meta-metric and buckets")."""
 
     linear_speed: float
     linear_acceleration: float

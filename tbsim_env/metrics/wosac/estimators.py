@@ -1,4 +1,4 @@
-"""Likelihood estimators of WOSAC: per-object histograms and Bernoulli (docs/wosac.md section 5).
+"""Likelihood estimators of WOSAC: per-object histograms and Bernoulli (docs/metrics.md).
 
 Pure torch functions, device-agnostic. Shapes: R rollouts, E evaluated objects, T future steps.
 """

@@ -1,7 +1,7 @@
 """All WOSAC per-step features of a set of trajectories, sliced to the future steps.
 
 One function serves the log (R = 1, logged validity) and the simulations (R rollouts) alike, as
-the official ``compute_metric_features`` does (docs/wosac.md section 2).
+the official ``compute_metric_features`` does (docs/metrics.md, "Trajectories").
 """
 
 from __future__ import annotations

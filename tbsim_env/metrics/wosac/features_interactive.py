@@ -1,4 +1,4 @@
-"""Interactive WOSAC features (docs/wosac.md sections 4.1-4.3 and 4.6).
+"""Interactive WOSAC features (docs/metrics.md, "Interactive features").
 
 * distance to the nearest object between rounded rectangles (2-D), and collision (< 0),
 * time to collision with the object followed in front.

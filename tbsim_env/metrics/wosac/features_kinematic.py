@@ -1,4 +1,4 @@
-"""Kinematic WOSAC features: linear/angular speed and acceleration (docs/wosac.md section 3).
+"""Kinematic WOSAC features: linear/angular speed and acceleration (docs/metrics.md).
 
 Central differences over the step axis (the last one), NaN-padded at both ends, so that speeds
 are NaN at the first and last step and accelerations at the first two and last two steps.

@@ -1,4 +1,4 @@
-"""Map-based WOSAC features (docs/wosac.md sections 4.4, 4.5 and 4.7).
+"""Map-based WOSAC features (docs/metrics.md, "Map-based features").
 
 * signed distance of a box to the road edge (positive = some corner off-road), and off-road,
 * traffic-light (red light) violation.
@@ -71,7 +71,7 @@ def road_edge_segments(scenario: Scenario, device: torch.device | str = "cpu") -
 
     A polyline is cyclic if its first and last points are less than 1 m apart; only cyclic
     polylines with as many points as the longest road edge wrap around (the official padding
-    quirk, docs/wosac.md 4.4).
+    quirk, docs/metrics.md, "Distance to road edge").
 
     Raises:
         MapFeatureError: if the scenario has no usable road edge.
@@ -168,7 +168,7 @@ def signed_distance_to_road_edge_points(
 
     The segment is chosen by the 3-D distance with z stretched by 3; the magnitude is the 2-D
     distance to it and the sign comes from the side (right of the polyline is off-road), with
-    the convex/concave junction rules at segment ends (docs/wosac.md 4.4).
+    the convex/concave junction rules at segment ends (docs/metrics.md, "Distance to road edge").
 
     Args:
         points: [G, M, 3] query points (m), grouped by proximity.

@@ -1,4 +1,4 @@
-"""Per-scenario WOSAC scores and dataset means (docs/wosac.md sections 5 and 6).
+"""Per-scenario WOSAC scores and dataset means (docs/metrics.md, "Estimators" and "Scores").
 
 ``score_scenario`` turns a logged ``Scenario`` and its simulated ``Rollouts`` into a frozen
 ``ScenarioScores``: the ten likelihoods, the realism meta-metric, the kinematic / interactive /

@@ -2,7 +2,7 @@
 
 Files are raw serialized ``SimAgentsChallengeSubmission`` protos (no TFRecord framing), as the
 challenge server expects. ``validate_scenario_rollouts`` does the server's checks
-(docs/wosac.md section 1): scenario id present, 32 joint scenes, 80 steps in each of x, y, z and
+(docs/metrics.md): scenario id present, 32 joint scenes, 80 steps in each of x, y, z and
 heading, and exactly the sim agents (tracks valid at the current step) in every joint scene;
 and it refuses what no real rollout holds: a non-finite coordinate or heading, a coordinate
 beyond ``MAX_ABS_COORDINATE``, a heading beyond ``MAX_ABS_HEADING`` (constants.py), naming the

@@ -1,4 +1,4 @@
-"""Trajectories the WOSAC features are computed on (docs/wosac.md section 2).
+"""Trajectories the WOSAC features are computed on (docs/metrics.md, "Trajectories").
 
 Sim agents are the tracks valid at the current step; evaluated agents are the SDC plus the
 tracks to predict (those that are sim agents), sorted by id. The object axis is ordered
