@@ -1,20 +1,18 @@
 """Measure the shipped TrafficBots NPC against the baselines for docs/MODEL_CARD.md.
 
-Held-out sets (never in the training cache, see scripts/train_default_npc.sh):
-  * real WOMD: 637f20cafde22ff8 (motion_data_one_scenario.tfrecord) and db4edc9bd0c9d18c
-    (gpudrive/tfrecord-00000-of-01000_4.json);
-  * generated: seeds 10000-10007, two of each layout (the shipped weights trained on seeds
-    0-1759).
-A third set, ``validation`` (generated seeds 20000-20023, six of each layout, also never
-trained on), is for choosing between checkpoints, so that the held-out sets stay untouched by
-that choice. (Until session 6 it was seeds 20000-20007: eight scenes, about 40 scored agents,
-which could not separate checkpoints a few points apart.)
-``more`` (generated seeds 10008-10039, eight of each layout, added in session 12 when sampling
-became ~4x faster) extends the held-out generated set: no training run and no choice of
-weights has seen it, unlike the first eight, on which the shipped weights were chosen.
-A fourth, ``permissive`` (seeds 30000-30007 of the permissive intersection, a layout added
-after the shipped weights were trained), probes the failure the model card describes: queues
-behind a vehicle that waits at a green light.
+Sets (``--sets``), none of them in the training cache (see scripts/train_default_npc.sh; the
+shipped weights trained on generated seeds 0-1759):
+  * ``real``, held out: 637f20cafde22ff8 (motion_data_one_scenario.tfrecord) and
+    db4edc9bd0c9d18c (gpudrive/tfrecord-00000-of-01000_4.json);
+  * ``generated``, held out: seeds 10000-10007, two of each layout; the shipped weights were
+    chosen among candidates on this set and ``real``;
+  * ``more``, held out: seeds 10008-10039, eight of each layout, on which no training run and
+    no choice of weights was made;
+  * ``validation``: seeds 20000-20023, six of each layout, for choosing between checkpoints, so
+    that the held-out sets stay untouched by that choice;
+  * ``permissive``: seeds 30000-30007 of the permissive intersection, a layout the shipped
+    weights never trained on; it probes the failure the model card describes (queues behind a
+    vehicle that waits at a green light).
 
 Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a JSON of every
 per-scenario field, plus a rollout picture.
@@ -51,8 +49,8 @@ HELD_OUT_REAL = (
     "gpudrive/tfrecord-00000-of-01000_4.json",
 )
 EVAL_LAYOUTS = ("intersection", "merge", "stop_intersection", "t_junction")
-"""The layouts of the held-out and validation sets, fixed when the sets were drawn (layouts
-added to the generator later are not in them)."""
+"""The layouts of the held-out and validation sets (the permissive intersection has its own
+probe set)."""
 HELD_OUT_GENERATED = tuple((EVAL_LAYOUTS[s % len(EVAL_LAYOUTS)], 10000 + s) for s in range(8))
 VALIDATION_GENERATED = tuple((EVAL_LAYOUTS[s % len(EVAL_LAYOUTS)], 20000 + s) for s in range(24))
 MORE_HELD_OUT_GENERATED = tuple(

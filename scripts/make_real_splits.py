@@ -1,10 +1,10 @@
 """Assign every real WOMD scene the project has to train / validation / held_out / history_only.
 
-The rule was fixed before any result on these scenes was looked at (issue 25):
+The rule was fixed before any result on these scenes was looked at:
 
-* kept as before: held out 637f20cafde22ff8 and db4edc9bd0c9d18c (the model card's held-out real
-  scenes); train ee519cf571686d19, 1c365f15b70ebdbf and ef3a8f65142f41ac (the shipped weights
-  trained on them);
+* held out: 637f20cafde22ff8 and db4edc9bd0c9d18c (the model card's held-out real scenes);
+  train: ee519cf571686d19, 1c365f15b70ebdbf and ef3a8f65142f41ac (the real scenes the shipped
+  weights trained on);
 * the WOSAC test-split scenes, which log only the 11 history steps (``Scenario.has_future``
   False), go to ``history_only``: no future, so usable only for export;
 * every other scene by its scenario id ``sid``:

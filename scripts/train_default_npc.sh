@@ -2,27 +2,26 @@
 # Reproduce the shipped TrafficBots NPC (policies/trafficbots/weights/trafficbots_small.*).
 # See docs/MODEL_CARD.md for data, held-out sets and results.
 #
-# Three stages, as they were run:
+# Three stages:
 #   1. CPU (2 cores, 1 torch thread): steps 1-700, batch 2, 4 s closed-loop rollouts (51 steps),
 #      on 400 generated scenes (intersection/merge) plus the 3 real training scenes.
 #   2. One H100 GPU: steps 701-1030, batch 32, full 91-step rollouts, on 480 generated scenes of
-#      all four layouts plus the 3 real training scenes drawn 24 times as often. It was run as
-#      three resumed segments that ended when the session's GPU time ran out (step 820, 960,
-#      1030) with --seed 2024, 2025 and 2026; `--steps 1100 --stop-at 1030` keeps that schedule.
-#      The command below runs it in one go with one seed, so its batches differ from ours.
-#   3. CPU again (2 cores, 1 torch thread, a new session without a GPU): a fine-tune of the
-#      stage-2 weights (`--init`, fresh AdamW, lr 2e-4, batch 4, full 91-step rollouts, no
-#      teacher forcing) on scenes of the current generator, whose roads run 60 m past the
-#      observed area and whose urban layouts have cyclists and crossing pedestrians. Steps
-#      1-70 drew from 640 scenes of the generator before the cyclists (seeds 480-1119, commit
-#      424e315) and the real scenes x40; from step 71 on, also 640 scenes with cyclists and
-#      crossing pedestrians (seeds 1120-1759) drawn twice as often, and the real scenes x70.
-#      It stopped at step 250 when that session's time ran out; the next session resumed it
-#      (weights and AdamW state) for steps 251-400 with the scenes with cyclists and crossing
-#      pedestrians drawn three times as often and the real scenes x90, seed 2029.
+#      all four layouts plus the 3 real training scenes drawn 24 times as often. The shipped
+#      weights come from three resumed segments of it (to steps 820, 960 and 1030, with --seed
+#      2024, 2025 and 2026); `--steps 1100 --stop-at 1030` keeps their learning-rate schedule.
+#      The command below runs it in one go with one seed, so its batches differ.
+#   3. CPU (2 cores, 1 torch thread): a fine-tune of the stage-2 weights (`--init`, fresh AdamW,
+#      lr 2e-4, batch 4, full 91-step rollouts, no teacher forcing) on generated scenes whose
+#      roads run 60 m past the observed area and whose urban layouts have cyclists and crossing
+#      pedestrians. Steps 1-70 draw from seeds 480-1119 (640 scenes) and the real scenes x40;
+#      steps 71-250 also from seeds 1120-1759 (640 scenes) drawn twice as often, and the real
+#      scenes x70; steps 251-400 resume (weights and AdamW state) with seeds 1120-1759 drawn
+#      three times as often, the real scenes x90, seed 2029. For the shipped weights, seeds
+#      480-1119 came from the generator of commit 424e315, without cyclists or crossing
+#      pedestrians; this generator gives them both.
 #   The shipped weights are the mean of the step-250 and step-400 weights (`tbsim average`,
-#   stochastic weight averaging). Of the five candidates evaluated on the held-out sets (listed
-#   in docs/MODEL_CARD.md) it had the fewest collisions on both.
+#   stochastic weight averaging): of the five candidate checkpoints evaluated on the held-out
+#   sets, the one with the fewest collisions on both.
 #
 #   bash scripts/train_default_npc.sh [OUT_DIR] [STAGE]     # STAGE: all (default), 1, 2 or 3
 set -euo pipefail
@@ -60,8 +59,8 @@ if [[ $STAGE == all || $STAGE == 2 ]]; then
 fi
 
 if [[ $STAGE == all || $STAGE == 3 ]]; then
-  # Seeds 480-1119 were generated before the cyclists (commit 424e315); the generator of this
-  # commit gives them cyclists and crossing pedestrians too, so both caches below hold those.
+  # This generator gives seeds 480-1119 cyclists and crossing pedestrians too (the shipped
+  # run's came from commit 424e315, without them), so both caches below hold those.
   tbsim preprocess generated:intersection,merge,stop_intersection,t_junction:480-1119 \
     --out "$OUT/cache_gen_v3" --workers 2 --shard-size 64
   tbsim preprocess generated:intersection,merge,stop_intersection,t_junction:1120-1759 \
