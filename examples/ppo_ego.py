@@ -16,9 +16,7 @@ observation.
 
 from __future__ import annotations
 
-import argparse
 import csv
-import dataclasses
 import random
 import time
 from dataclasses import dataclass, field
@@ -29,53 +27,76 @@ import torch
 import torch.nn as nn
 from torch.distributions.normal import Normal
 
+from policies import policy_names
 from tbsim_env.config import EnvConfig
+from tbsim_env.config_cli import config_parser, option, parse_config
 from tbsim_env.env.vector_env import ROUTE_KEY, BatchedTrafficEnv
 
 
-@dataclass
+@dataclass(frozen=True)
 class Args:
-    seed: int = field(default=1, metadata={"help": "seed of the env, torch and numpy"})
-    num_scenes: int = field(default=8, metadata={"help": "embedded generated scenes (1..8)"})
+    """PPO of the SDC on the batched env (CleanRL style).
+
+    Attributes:
+        seed: seed of the env, torch and numpy.
+        num_scenes: embedded generated scenes (1..8).
+        npc_policy: policy of the NPCs.
+        npc_checkpoint: TrafficBots checkpoint.
+        total_timesteps: agent steps to train.
+        time_limit: stop after this many s (0: none).
+        learning_rate: Adam learning rate.
+        num_envs: scenes stepped in parallel.
+        num_steps: steps per env per rollout.
+        anneal_lr: linearly anneal the learning rate.
+        gamma: discount.
+        gae_lambda: GAE lambda.
+        num_minibatches: minibatches per epoch.
+        update_epochs: epochs per rollout.
+        clip_coef: PPO clip coefficient.
+        ent_coef: entropy coefficient.
+        vf_coef: value loss coefficient.
+        max_grad_norm: gradient clip norm.
+        route_points: route points in the observation.
+        num_neighbours: nearest agents observed.
+        torch_threads: torch threads (env and net).
+        csv: write per-iteration stats to this CSV.
+        plot: save the learning curve PNG here.
+        tensorboard: TensorBoard log dir (optional).
+        save_model: save the agent state_dict here.
+    """
+
+    seed: int = 1
+    num_scenes: int = 8
     npc_policy: str = field(
-        default="constant_velocity",
-        metadata={"help": "NPC policy: constant_velocity | log_replay | trafficbots"},
+        default="constant_velocity", metadata=option(choices=lambda: policy_names(agents=True))
     )
-    npc_checkpoint: str = field(default="", metadata={"help": "TrafficBots checkpoint"})
-    total_timesteps: int = field(default=600_000, metadata={"help": "agent steps to train"})
-    time_limit: float = field(default=0.0, metadata={"help": "stop after this many s (0: none)"})
-    learning_rate: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
-    num_envs: int = field(default=32, metadata={"help": "scenes stepped in parallel"})
-    num_steps: int = field(default=128, metadata={"help": "steps per env per rollout"})
-    anneal_lr: bool = field(default=True, metadata={"help": "linearly anneal the learning rate"})
-    gamma: float = field(default=0.99, metadata={"help": "discount"})
-    gae_lambda: float = field(default=0.95, metadata={"help": "GAE lambda"})
-    num_minibatches: int = field(default=8, metadata={"help": "minibatches per epoch"})
-    update_epochs: int = field(default=4, metadata={"help": "epochs per rollout"})
-    clip_coef: float = field(default=0.2, metadata={"help": "PPO clip coefficient"})
-    ent_coef: float = field(default=0.0, metadata={"help": "entropy coefficient"})
-    vf_coef: float = field(default=0.5, metadata={"help": "value loss coefficient"})
-    max_grad_norm: float = field(default=0.5, metadata={"help": "gradient clip norm"})
-    route_points: int = field(default=8, metadata={"help": "route points in the observation"})
-    num_neighbours: int = field(default=8, metadata={"help": "nearest agents observed"})
-    torch_threads: int = field(default=1, metadata={"help": "torch threads (env and net)"})
-    csv: str = field(default="", metadata={"help": "write per-iteration stats to this CSV"})
-    plot: str = field(default="", metadata={"help": "save the learning curve PNG here"})
-    tensorboard: str = field(default="", metadata={"help": "TensorBoard log dir (optional)"})
-    save_model: str = field(default="", metadata={"help": "save the agent state_dict here"})
+    npc_checkpoint: str = ""
+    total_timesteps: int = 600_000
+    time_limit: float = 0.0
+    learning_rate: float = 3e-4
+    num_envs: int = 32
+    num_steps: int = 128
+    anneal_lr: bool = True
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    num_minibatches: int = 8
+    update_epochs: int = 4
+    clip_coef: float = 0.2
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    route_points: int = 8
+    num_neighbours: int = 8
+    torch_threads: int = 1
+    csv: str = ""
+    plot: str = ""
+    tensorboard: str = ""
+    save_model: str = ""
 
 
 def parse_args() -> Args:
-    """``Args`` from the command line (one ``--flag`` per field)."""
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    for f in dataclasses.fields(Args):
-        flag = "--" + f.name.replace("_", "-")
-        if f.type in ("bool", bool):
-            p.add_argument(flag, action=argparse.BooleanOptionalAction, default=f.default)
-        else:
-            kind = {"int": int, "float": float, "str": str}[str(f.type)]
-            p.add_argument(flag, type=kind, default=f.default, help=f.metadata["help"])
-    return Args(**vars(p.parse_args()))
+    """``Args`` from the command line (one ``--flag`` per field, help from the docstring)."""
+    return parse_config(Args, config_parser(Args).parse_args())
 
 
 def features(obs: dict[str, torch.Tensor], k: int) -> torch.Tensor:

@@ -19,11 +19,14 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from tbsim_env import cli_configs as cfg
 from tbsim_env import constants as C
+from tbsim_env.cli_configs import COMMANDS
+from tbsim_env.config_cli import add_config_arguments, parse_config, summary
 from tbsim_env.errors import TbsimError
 
 
-def _cmd_info(args: argparse.Namespace) -> int:
+def _cmd_info(args: cfg.Info) -> int:
     from tbsim_env.data import iter_scenarios
 
     head = ("scenario_id", "tracks", "veh/ped/cyc", "map", "signals", "sdc_id", "steps", "future")
@@ -62,7 +65,7 @@ def _episode_video(env, out: Path, fps: int, steps: int | None, desc: str) -> in
     return write_video(frames, out, fps=fps)
 
 
-def _cmd_demo(args: argparse.Namespace) -> int:
+def _cmd_demo(args: cfg.Demo) -> int:
     from tbsim_env.env import TrafficEnv
 
     env = TrafficEnv(
@@ -86,7 +89,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_render(args: argparse.Namespace) -> int:
+def _cmd_render(args: cfg.Render) -> int:
     from tbsim_env.data import load_scenarios
     from tbsim_env.env import TrafficEnv
 
@@ -110,12 +113,12 @@ def _load(files: Sequence[str], skip_bad: bool = False):
     return load_scenarios(list(files), skip_bad=skip_bad)
 
 
-def _sharded(args: argparse.Namespace) -> bool:
+def _sharded(args: cfg.ShardOptions) -> bool:
     """Whether to run as resumable shards (``--ray`` or ``--work-dir``)."""
     return args.ray is not None or args.work_dir is not None
 
 
-def _executor(args: argparse.Namespace):
+def _executor(args: cfg.ShardOptions):
     from tbsim_env.distributed import LocalExecutor, RayExecutor
 
     if args.ray is None:
@@ -127,7 +130,7 @@ def _executor(args: argparse.Namespace):
     return RayExecutor(address=args.ray, num_workers=args.ray_workers)
 
 
-def _settings(args: argparse.Namespace):
+def _settings(args: cfg.RolloutOptions):
     from tbsim_env.distributed import RolloutSettings
 
     return RolloutSettings(
@@ -144,7 +147,7 @@ def _print_run(report, work: Path) -> None:
     )
 
 
-def _export_sharded(args: argparse.Namespace) -> int:
+def _export_sharded(args: cfg.ExportWosac) -> int:
     from tbsim_env import distributed as D
 
     out = Path(args.out)
@@ -167,7 +170,7 @@ def _export_sharded(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_export_wosac(args: argparse.Namespace) -> int:
+def _cmd_export_wosac(args: cfg.ExportWosac) -> int:
     from tbsim_env.evaluation import check_logged_future, export_submission
 
     if _sharded(args):
@@ -233,7 +236,7 @@ def _report_dataset(scores, json_path: str | None) -> None:
         print(f"wrote {json_path}")
 
 
-def _score_sharded(args: argparse.Namespace, paths: list[Path]) -> int:
+def _score_sharded(args: cfg.WosacScore, paths: list[Path]) -> int:
     from tbsim_env import distributed as D
 
     shards = [
@@ -250,7 +253,7 @@ def _score_sharded(args: argparse.Namespace, paths: list[Path]) -> int:
     return 0
 
 
-def _cmd_wosac_score(args: argparse.Namespace) -> int:
+def _cmd_wosac_score(args: cfg.WosacScore) -> int:
     from tbsim_env.metrics.wosac import score_submission_file
 
     paths = (
@@ -268,7 +271,7 @@ def _cmd_wosac_score(args: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluate_sharded(args: argparse.Namespace) -> int:
+def _evaluate_sharded(args: cfg.Evaluate) -> int:
     from tbsim_env import distributed as D
 
     if args.plot:
@@ -283,7 +286,7 @@ def _evaluate_sharded(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_evaluate(args: argparse.Namespace) -> int:
+def _cmd_evaluate(args: cfg.Evaluate) -> int:
     from tbsim_env.evaluation import evaluate_policy, feature_samples, plot_histograms
 
     if _sharded(args):
@@ -320,7 +323,7 @@ def _pick_scenario(scenarios: list, scenario_id: str | None, where: str):
     raise ValueError(f"no scenario {scenario_id!r} in {where}")
 
 
-def _cmd_view(args: argparse.Namespace) -> int:
+def _cmd_view(args: cfg.View) -> int:
     from tbsim_env.rendering import viewer
 
     scenarios = _load([args.scenario])
@@ -345,7 +348,7 @@ def _cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_preprocess(args: argparse.Namespace) -> int:
+def _cmd_preprocess(args: cfg.Preprocess) -> int:
     from tbsim_env.config import TokenConfig
     from tbsim_env.data.cache import build_cache
 
@@ -370,13 +373,7 @@ def _cmd_preprocess(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_train(args: argparse.Namespace) -> int:
-    from policies.trafficbots.train import main as train_main
-
-    return train_main(args.args)
-
-
-def _cmd_average(args: argparse.Namespace) -> int:
+def _cmd_average(args: cfg.Average) -> int:
     from policies.trafficbots.checkpoint import average_checkpoints
 
     w_path, _ = average_checkpoints(args.checkpoints, args.out)
@@ -384,173 +381,32 @@ def _cmd_average(args: argparse.Namespace) -> int:
     return 0
 
 
-def _shard_args(sp: argparse.ArgumentParser, sizes: bool = True) -> None:
-    """--ray, --ray-workers, --work-dir (and --shard-size): run as resumable shards."""
-    sp.add_argument(
-        "--ray",
-        nargs="?",
-        const="local",
-        default=None,
-        metavar="ADDRESS",
-        help="run the shards as Ray tasks: a local Ray instance, or the cluster at ADDRESS",
-    )
-    sp.add_argument(
-        "--ray-workers", type=int, default=None, help="CPUs of a local Ray instance (all)"
-    )
-    sp.add_argument(
-        "--work-dir",
-        default=None,
-        help="folder of finished shards, each written once; a rerun computes only the "
-        "missing ones. Without --ray the shards run here, one by one. Default with --ray: "
-        "--out DIR/ itself, OUT.shards, tbsim-evaluate-POLICY.shards or SUBMISSION.scores",
-    )
-    if sizes:
-        sp.add_argument(
-            "--shard-size",
-            type=int,
-            default=None,
-            help="scenarios per shard (default: one shard per input file)",
-        )
-
-
-def _view_parser(sub, policies: tuple[str, ...]) -> None:
-    """The ``tbsim view`` subcommand."""
-    vw = sub.add_parser("view", help="write a self-contained HTML viewer of a scenario's rollouts")
-    vw.add_argument("scenario", help="a scenario file (TFRecord, pickle, JSON), glob or folder")
-    vw.add_argument("--scenario-id", default=None, help="which scenario (default: the first)")
-    shown = vw.add_mutually_exclusive_group()
-    shown.add_argument("--submission", default=None, help="show the rollouts of this .binproto")
-    shown.add_argument("--policy", default=None, choices=policies, help="simulate this policy")
-    vw.add_argument("--rollouts", type=int, default=8, help="--policy: rollouts to simulate")
-    vw.add_argument("--seed", type=int, default=0, help="--policy: seed (as export-wosac)")
-    vw.add_argument("--checkpoint", default=None, help="--policy trafficbots: checkpoint path")
-    vw.add_argument("--out", required=True, help="HTML file to write")
-    vw.set_defaults(func=_cmd_view)
+_HANDLERS = {
+    "demo": _cmd_demo,
+    "info": _cmd_info,
+    "render": _cmd_render,
+    "export-wosac": _cmd_export_wosac,
+    "wosac-score": _cmd_wosac_score,
+    "evaluate": _cmd_evaluate,
+    "view": _cmd_view,
+    "preprocess": _cmd_preprocess,
+    "average": _cmd_average,
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from policies import policy_names
-    from tbsim_env.data.generator.scenes import LAYOUTS
-
-    drivers = policy_names(agents=True)
-
+    """The ``tbsim`` parser: one subcommand per config of ``cli_configs.COMMANDS`` (their
+    fields are the options, their docstrings the help)."""
     p = argparse.ArgumentParser(prog="tbsim", description=__doc__.split("\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
-
-    d = sub.add_parser("demo", help="simulate the embedded generated scenes and write a video")
-    d.add_argument("--out", default="tbsim_demo.mp4", help="video path (.mp4 or .gif)")
-    d.add_argument("--scenarios", type=int, default=1, help="how many default scenes to render")
-    d.add_argument(
-        "--npc-policy", default="trafficbots", choices=drivers, help="policy of the NPCs"
-    )
-    d.add_argument("--steps", type=int, default=None, help="steps to simulate (default: all)")
-    d.add_argument("--fps", type=int, default=10, help="video frames per second")
-    d.set_defaults(func=_cmd_demo)
-
-    i = sub.add_parser("info", help="one line per scenario of TFRecord / GPUDrive JSON files")
-    i.add_argument("files", nargs="+", help="TFRecord / GPUDrive JSON files, globs or folders")
-    i.add_argument("--skip-bad", action="store_true", help="warn and skip corrupt records")
-    i.set_defaults(func=_cmd_info)
-
-    r = sub.add_parser("render", help="simulate one scenario and write a video")
-    r.add_argument("file", help="a TFRecord or GPUDrive JSON file")
-    r.add_argument("--scenario", default=None, help="scenario id (default: the first)")
-    r.add_argument("--out", required=True, help="video path (.mp4 or .gif)")
-    r.add_argument(
-        "--npc-policy",
-        default="log_replay",
-        choices=drivers,
-        help="policy of every agent (default: log_replay)",
-    )
-    r.add_argument("--fps", type=int, default=10, help="video frames per second")
-    r.set_defaults(func=_cmd_render)
-    policies = policy_names()  # the one registry: user-registered policies included
-
-    def wosac_common(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--data", nargs="+", required=True, help="scenario files / globs / folders")
-        sp.add_argument("--skip-bad", action="store_true", help="warn and skip corrupt records")
-
-    def rollout_args(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--policy", required=True, choices=policies, help="policy of every agent")
-        sp.add_argument("--checkpoint", default=None, help="TrafficBots checkpoint path")
-        sp.add_argument(
-            "--rollouts", type=int, default=32, help="rollouts per scenario (WOSAC: 32)"
-        )
-        sp.add_argument("--seed", type=int, default=0, help="seed of the sampled rollouts")
-        sp.add_argument(
-            "--road-edge-weight",
-            type=float,
-            default=0.0,
-            help="trafficbots: rank sampled rollouts by collided + this x off-road agents "
-            "(spec: 0, collisions only)",
-        )
-
-    e = sub.add_parser("export-wosac", help="write a WOSAC SimAgentsChallengeSubmission")
-    wosac_common(e)
-    rollout_args(e)
-    _shard_args(e)
-    e.add_argument("--out", required=True, help="OUT.binproto, or DIR/ for one file per input")
-    e.set_defaults(func=_cmd_export_wosac)
-
-    w = sub.add_parser("wosac-score", help="score a submission against the logged scenarios")
-    wosac_common(w)
-    w.add_argument("--submission", required=True, help="a .binproto file or a folder of shards")
-    w.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
-    w.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
-    _shard_args(w, sizes=False)
-    w.set_defaults(func=_cmd_wosac_score)
-
-    v = sub.add_parser("evaluate", help="roll out a policy and score it (no proto written)")
-    wosac_common(v)
-    rollout_args(v)
-    v.add_argument("--version", default="wosac2025", choices=("wosac2024", "wosac2025"))
-    v.add_argument("--json", default=None, help="write every per-scenario field to this JSON")
-    v.add_argument("--plot", default=None, help="PNG of log vs simulated feature histograms")
-    _shard_args(v)
-    v.set_defaults(func=_cmd_evaluate)
-
-    _view_parser(sub, policies)
-
-    pp = sub.add_parser("preprocess", help="build a sharded token cache for training")
-    pp.add_argument(
-        "sources",
-        nargs="+",
-        help="files / globs / folders, or generated:LAYOUTS:A-B, e.g. "
-        f"generated:intersection,merge:0-99 (layouts: {', '.join(LAYOUTS)})",
-    )
-    pp.add_argument("--out", required=True, help="cache folder (shards + manifest.json)")
-    pp.add_argument("--workers", type=int, default=2, help="preprocessing processes")
-    pp.add_argument("--shard-size", type=int, default=64, help="scenes per shard file")
-    limits = "per scene (default: %(default)s; those farthest from the relevant agents go first)"
-    pp.add_argument(
-        "--max-map-pieces", type=int, default=C.DEFAULT_MAX_MAP_PIECES, help=f"map pieces {limits}"
-    )
-    pp.add_argument(
-        "--max-traffic-lights",
-        type=int,
-        default=C.DEFAULT_MAX_TRAFFIC_LIGHTS,
-        help=f"traffic-light tokens {limits}",
-    )
-    pp.add_argument("--max-agents", type=int, default=C.DEFAULT_MAX_AGENTS, help=f"agents {limits}")
-    pp.add_argument("--eval-split", action="store_true", help="validation/test agent filters")
-    pp.add_argument("--exclude", nargs="*", help="scenario ids to hold out")
-    pp.set_defaults(func=_cmd_preprocess)
-
-    t = sub.add_parser(
+    for name, cls in COMMANDS.items():
+        sp = sub.add_parser(name, help=summary(cls), description=summary(cls))
+        add_config_arguments(sp, cls)
+    sub.add_parser(
         "train",
-        help="train TrafficBots V1.5 on a token cache (see policies.trafficbots.train)",
+        help="train TrafficBots V1.5 on a token cache (tbsim train --help)",
         add_help=False,
     )
-    t.add_argument("args", nargs=argparse.REMAINDER)
-    t.set_defaults(func=_cmd_train)
-
-    a = sub.add_parser(
-        "average",
-        help="average the weights of TrafficBots checkpoints of one run (one config)",
-    )
-    a.add_argument("checkpoints", nargs="+", help="checkpoint base paths (2 or more)")
-    a.add_argument("--out", required=True, help="base path of the averaged checkpoint")
-    a.set_defaults(func=_cmd_average)
     return p
 
 
@@ -560,18 +416,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         from policies.trafficbots.train import main as train_main
 
         return train_main(argv[1:])
-    args = build_parser().parse_args(argv)
+    ns = build_parser().parse_args(argv)
     np.set_printoptions(precision=3)
-    if args.command != "train":
-        # Small tensor work: extra intra-op threads only add wake-up latency.
-        import torch
+    # Small tensor work: extra intra-op threads only add wake-up latency.
+    import torch
 
-        torch.set_num_threads(1)
+    torch.set_num_threads(1)
     try:
-        return int(args.func(args) or 0)
+        config = parse_config(COMMANDS[ns.command], ns)
+        return int(_HANDLERS[ns.command](config) or 0)
     except (TbsimError, FileNotFoundError, ValueError) as err:
         message = " ".join(str(err).split())  # one line, whatever the message holds
-        print(f"tbsim {args.command}: error: {message}", file=sys.stderr)
+        print(f"tbsim {ns.command}: error: {message}", file=sys.stderr)
         return 2
 
 

@@ -18,6 +18,7 @@ TOP_MODULES = (
     "tbsim_env.env",
     "tbsim_env.evaluation",
     "tbsim_env.cli",
+    "tbsim_env.cli_configs",
     "tbsim_env.distributed",
     "tbsim_env.rendering",
     "tbsim_env.integrations",

@@ -72,8 +72,9 @@ def test_a_folder_of_mixed_formats_loads_in_one_call(womd_dir: Path, tmp_path: P
 
 
 def test_a_refused_pickle_in_a_folder(tmp_path: Path) -> None:
-    (tmp_path / "evil.pkl").write_bytes(pickle.dumps(print))
-    with pytest.raises(ScenarioFormatError, match=r"builtins\.print.*refused"):
+    # exec, not print: an imported Ray replaces builtins.print with its own function.
+    (tmp_path / "evil.pkl").write_bytes(pickle.dumps(exec))
+    with pytest.raises(ScenarioFormatError, match=r"builtins\.exec.*refused"):
         _load(tmp_path)
     with pytest.warns(UserWarning, match="refused"), pytest.raises(ScenarioFormatError):
         load_scenarios(tmp_path, skip_bad=True)  # nothing loadable left

@@ -11,6 +11,7 @@ import torch
 from policies import make_policy
 from policies.trafficbots import TrafficBots, TrafficBotsConfig, save_checkpoint
 from policies.trafficbots.train import TrainConfig, build_parser, train
+from tbsim_env.config_cli import parse_config
 from tbsim_env.config import EnvConfig, TerminationConfig
 from tbsim_env.data.cache import build_cache
 from tbsim_env.env import TrafficEnv
@@ -43,7 +44,7 @@ def test_train_help_documents_every_option(capsys):
     assert all(len(h.replace(" (default: %(default)s)", "")) > 10 for h in helps.values())
     assert "exponential moving average of the weights" in text and "(default: 2000)" in text
     args = build_parser().parse_args(["--data", "c", "--out", "o", "--ema-decay", "0.99"])
-    assert TrainConfig(**vars(args)).ema_decay == 0.99
+    assert parse_config(TrainConfig, args).ema_decay == 0.99
 
 
 def test_train_writes_checkpoints_and_resumes(tmp_path):

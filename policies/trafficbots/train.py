@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import inspect
 import json
 import math
 import os
@@ -41,6 +40,7 @@ from policies.trafficbots.checkpoint import load_state_into, save_checkpoint
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.losses import training_step
 from policies.trafficbots.model import TrafficBots
+from tbsim_env.config_cli import config_parser, parse_config
 from tbsim_env.data.cache import open_training_data
 from tbsim_env.errors import CheckpointError
 
@@ -388,57 +388,20 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
     return scalars
 
 
-def attribute_help(cls: type) -> dict[str, str]:
-    """``{field: text}`` from the ``Attributes:`` section of a dataclass's docstring (one
-    source for the documentation and the command line's ``--help``)."""
-    out: dict[str, str] = {}
-    doc = inspect.getdoc(cls) or ""
-    if "Attributes:" not in doc:
-        return out
-    name = None
-    for line in doc.split("Attributes:", 1)[1].splitlines():
-        head, sep, text = line.strip().partition(": ")
-        if line.startswith("    ") and not line.startswith("     ") and sep and head.isidentifier():
-            name, out[head] = head, text
-        elif name and line.startswith("     "):
-            out[name] += " " + line.strip()
-        elif line.strip():
-            name = None
-    return out
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="tbsim train",
-        description="Train TrafficBots V1.5 on a token cache (``tbsim preprocess``); resumes "
-        "when --out already holds a run.",
+    """``tbsim train``'s parser: one option per ``TrainConfig`` field, its help from the
+    docstring (``tbsim_env.config_cli``)."""
+    p = config_parser(TrainConfig, prog="tbsim train")
+    p.description = (
+        "Train TrafficBots V1.5 on a token cache (``tbsim preprocess``); resumes when --out "
+        "already holds a run."
     )
-    docs = attribute_help(TrainConfig)
-    for f in dataclasses.fields(TrainConfig):
-        name = "--" + f.name.replace("_", "-")
-        text = docs.get(f.name, "").replace("%", "%%")
-        if f.default is not dataclasses.MISSING:
-            text += " (default: %(default)s)"
-        kw = {"help": text}
-        if f.type in ("str", str) and f.default is dataclasses.MISSING:
-            p.add_argument(name, required=True, **kw)
-        elif f.type in ("bool", bool):
-            p.add_argument(name, action=argparse.BooleanOptionalAction, default=f.default, **kw)
-        elif f.type in ("int | None",):
-            p.add_argument(name, type=int, default=f.default, **kw)
-        elif f.type in ("float | None",):
-            p.add_argument(name, type=float, default=f.default, **kw)
-        elif f.type in ("str | None",):
-            p.add_argument(name, type=str, default=f.default, **kw)
-        else:
-            typ = {"int": int, "float": float, "str": str}[str(f.type)]
-            p.add_argument(name, type=typ, default=f.default, **kw)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    train(TrainConfig(**vars(args)))
+    train(parse_config(TrainConfig, args))
     return 0
 
 
