@@ -211,25 +211,19 @@ def _cmd_export_wosac(args: cfg.ExportWosac) -> int:
     return 0
 
 
-def _report(scores, json_path: str | None) -> None:
+def _report(scores, json_path: str | None, dataset: bool = False) -> None:
+    """Print the score table (per scenario, or the dataset means of a sharded run) and write
+    every per-scenario field to ``json_path`` when given."""
     import json
 
     from tbsim_env.metrics.wosac import scores_table, scores_to_json
 
-    print(scores_table(scores))
-    if json_path:
-        Path(json_path).parent.mkdir(parents=True, exist_ok=True)
-        Path(json_path).write_text(json.dumps(scores_to_json(scores), indent=1))
-        print(f"wrote {json_path}")
+    if dataset:
+        from tbsim_env.distributed import dataset_table
 
-
-def _report_dataset(scores, json_path: str | None) -> None:
-    import json
-
-    from tbsim_env.distributed import dataset_table
-    from tbsim_env.metrics.wosac import scores_to_json
-
-    print(dataset_table(scores))
+        print(dataset_table(scores))
+    else:
+        print(scores_table(scores))
     if json_path:
         Path(json_path).parent.mkdir(parents=True, exist_ok=True)
         Path(json_path).write_text(json.dumps(scores_to_json(scores), indent=1))
@@ -249,7 +243,7 @@ def _score_sharded(args: cfg.WosacScore, paths: list[Path]) -> int:
     report = D.run_shards(task, shards, work, _executor(args))
     _print_run(report, work)
     D.require_complete(report, work)
-    _report_dataset(D.merge_scores(work, shards), args.json)
+    _report(D.merge_scores(work, shards), args.json, dataset=True)
     return 0
 
 
@@ -282,7 +276,7 @@ def _evaluate_sharded(args: cfg.Evaluate) -> int:
     report = D.run_shards(task, shards, work, _executor(args))
     _print_run(report, work)
     D.require_complete(report, work)
-    _report_dataset(D.merge_scores(work, shards), args.json)
+    _report(D.merge_scores(work, shards), args.json, dataset=True)
     return 0
 
 

@@ -116,6 +116,8 @@ def test_a_registered_term_drives_both_envs_alike(speeding):
         assert rew[a] == pytest.approx(want, abs=1e-5)
         assert float(vrew[0, 0]) == rew[a]
         assert float(vinfo["reward_terms"][speeding][0, 0]) == pytest.approx(max(speed - 10, 0))
+        assert info[a]["reward_terms"][speeding] == pytest.approx(max(speed - 10, 0), abs=1e-5)
+        assert set(info[a]["reward_terms"]) == {"collision", "offroad", speeding}
         penalised += speed > 10.0
         if not env.agents:
             break

@@ -322,7 +322,16 @@ class TrafficEnv(ParallelEnv, EzPickle):
         return torch.from_numpy(out).to(self.device)
 
     def step(self, actions: dict[str, Any]):
-        """Advance one step (0.1 s). See the module docstring for the action format."""
+        """Advance one step (0.1 s). See the module docstring for the action format.
+
+        Returns:
+            (observations, rewards, terminations, truncations, infos), dicts by agent name
+            of the agents alive before the step. An agent's info holds its metrics
+            (``collision``, ``offroad``, ``offroad_distance``, ``progress``,
+            ``goal_distance``, ``goal_reached``, ``log_divergence``, ``speed``), the
+            ``scenario_id``, its ``track_id``, the ``step``, and ``reward_terms`` ({term:
+            unweighted value} of every weighted reward term, ``env.rewards``).
+        """
         with torch_threads(self.torch_threads), torch.inference_mode():
             return self._step(actions)
 
@@ -343,12 +352,15 @@ class TrafficEnv(ParallelEnv, EzPickle):
         columns, reward_l, flags = self._info_columns(state, out.metrics, out)
         term_l, trunc_l = flags
         rewards, terms, truncs, infos = {}, {}, {}, {}
+        names = list(out.terms)
+        values = torch.stack([t.float() for t in out.terms.values()]).tolist() if names else []
         for name in live_before:
             j = self._slot_of[name]
             rewards[name] = reward_l[j]
             terms[name] = term_l[j]
             truncs[name] = trunc_l[j]
             infos[name] = {k: v[j] for k, v in columns.items()}
+            infos[name]["reward_terms"] = {t: values[i][0][j] for i, t in enumerate(names)}
         obs = self._per_agent(live_before, out.obs, self._slot_of)
         self.agents = [a for a in live_before if not (terms[a] or truncs[a])]
         return obs, rewards, terms, truncs, infos
