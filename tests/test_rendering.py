@@ -22,7 +22,9 @@ from tbsim_env.rendering import (
     GROUP_COLORS,
     TL_COLORS,
     AgentGroup,
+    AgentLayer,
     MapLayer,
+    SignalLayer,
     View,
     follow,
     log_groups,
@@ -149,13 +151,24 @@ def near(img: np.ndarray, rc: tuple[int, int], rgb: tuple[int, ...]) -> bool:
 
 
 def one_agent(layer: MapLayer, xy, yaw=0.0, size=(4.5, 2.0), group=AgentGroup.POLICY, **kw):
+    agents = AgentLayer(
+        xy=np.asarray([xy], float) + ORIGIN,
+        yaw=np.array([yaw]),
+        size=np.array([size]),
+        valid=np.array([kw.pop("valid", True)]),
+        group=np.array([int(group)]),
+        type=kw.pop("agent_type", None),
+        trails=kw.pop("trails", None),
+        trail_valid=kw.pop("trail_valid", None),
+    )
+    signals = None
+    if "signal_xy" in kw:
+        state, valid = kw.pop("signal_state"), kw.pop("signal_valid", None)
+        signals = SignalLayer(kw.pop("signal_xy"), state, valid)
     return render_frame(
         layer,
-        agent_xy=np.asarray([xy], float) + ORIGIN,
-        agent_yaw=np.array([yaw]),
-        agent_size=np.array([size]),
-        agent_valid=np.array([kw.pop("valid", True)]),
-        agent_group=np.array([int(group)]),
+        agents,
+        signals,
         legend=False,
         **kw,
     )
@@ -312,11 +325,13 @@ def test_input_checks(layer: MapLayer) -> None:
     with pytest.raises(ValueError, match="agent_yaw"):
         render_frame(
             layer,
-            agent_xy=np.zeros((2, 2)),
-            agent_yaw=np.zeros(3),
-            agent_size=np.ones((2, 2)),
-            agent_valid=np.ones(2, bool),
-            agent_group=np.zeros(2, int),
+            AgentLayer(
+                xy=np.zeros((2, 2)),
+                yaw=np.zeros(3),
+                size=np.ones((2, 2)),
+                valid=np.ones(2, bool),
+                group=np.zeros(2, int),
+            ),
         )
     with pytest.raises(ValueError, match="signal_state"):
         one_agent(layer, (0.0, 0.0), signal_xy=np.zeros((1, 2)), signal_state=np.array([9]))
@@ -340,15 +355,15 @@ def test_title_and_legend_change_corners(layer: MapLayer) -> None:
     titled = one_agent(layer, (0.0, 0.0), title="t = 3.4 s")
     assert (titled[:20, :60] != plain[:20, :60]).any()
     np.testing.assert_array_equal(titled[60:, :], plain[60:, :])
-    kw = dict(
-        agent_xy=np.array([ORIGIN]),
-        agent_yaw=np.zeros(1),
-        agent_size=np.ones((1, 2)),
-        agent_valid=np.ones(1, bool),
-        agent_group=np.array([int(AgentGroup.SDC)]),
+    agents = AgentLayer(
+        xy=np.array([ORIGIN]),
+        yaw=np.zeros(1),
+        size=np.ones((1, 2)),
+        valid=np.ones(1, bool),
+        group=np.array([int(AgentGroup.SDC)]),
     )
-    legend = render_frame(layer, legend=True, **kw)
-    assert (legend[-30:, :60] != render_frame(layer, legend=False, **kw)[-30:, :60]).any()
+    legend = render_frame(layer, agents, legend=True)
+    assert (legend[-30:, :60] != render_frame(layer, agents, legend=False)[-30:, :60]).any()
 
 
 # --------------------------------------------------------------------------- SimState

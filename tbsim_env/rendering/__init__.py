@@ -4,12 +4,14 @@ Typical use::
 
     view = view_for(scenario, size=(600, 600))
     layer = MapLayer.build(scenario, view)
-    frame = render_frame(layer, agent_xy=..., agent_yaw=..., agent_size=..., agent_valid=...,
-                         agent_group=...)          # np.uint8 [600, 600, 3], north up
+    frame = render_frame(layer, AgentLayer(xy=..., yaw=..., size=..., valid=..., group=...))
+    # np.uint8 [600, 600, 3], north up
     write_video(frames, "out.mp4", fps=10)
 """
 
 from tbsim_env.rendering.frame import (
+    AgentLayer,
+    SignalLayer,
     agent_corners,
     default_groups,
     log_groups,
@@ -23,6 +25,8 @@ from tbsim_env.rendering.video import render_log_video, write_video
 from tbsim_env.rendering.view import View, follow, view_for
 
 __all__ = [
+    "AgentLayer",
+    "SignalLayer",
     "GROUP_COLORS",
     "GROUP_LABELS",
     "TL_COLORS",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -106,20 +107,78 @@ def _valid_runs(valid: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
 
 
+@dataclass(frozen=True)
+class AgentLayer:
+    """The agents of one frame (numpy, scenario frame).
+
+    Attributes:
+        xy: [N, 2] box centres, metres.
+        yaw: [N] headings, radians CCW from +x.
+        size: [N, 2] (length, width) metres.
+        valid: [N] bool; invalid agents (and their trails) are not drawn.
+        group: [N] int ``AgentGroup`` values.
+        type: [N] int ``ObjectType`` values (optional; pedestrians are drawn as discs).
+        trails: [N, K, 2] past positions, metres, oldest first (non-finite points skipped).
+        trail_valid: [N, K] bool mask for ``trails`` (default: all finite points).
+    """
+
+    xy: np.ndarray
+    yaw: np.ndarray
+    size: np.ndarray
+    valid: np.ndarray
+    group: np.ndarray
+    type: np.ndarray | None = None
+    trails: np.ndarray | None = None
+    trail_valid: np.ndarray | None = None
+
+    def checked(self) -> AgentLayer:
+        """The same layer as arrays of checked shapes and dtypes; ``valid`` also False where
+        a value is not finite.
+
+        Raises:
+            ValueError: a wrong shape, or a group outside ``AgentGroup``.
+        """
+        n = np.asarray(self.xy).shape[0]
+        xy = _as("agent_xy", self.xy, (n, 2), np.float64)
+        yaw = _as("agent_yaw", self.yaw, (n,), np.float64)
+        size = _as("agent_size", self.size, (n, 2), np.float64)
+        group = _as("agent_group", self.group, (n,), np.int64)
+        if ((group < 0) | (group >= _NUM_GROUPS)).any():
+            raise ValueError(f"agent_group values must be AgentGroup 0..{_NUM_GROUPS - 1}")
+        otype = np.zeros(n, np.int64) if self.type is None else self.type
+        valid = _as("agent_valid", self.valid, (n,), bool)
+        valid = valid & np.isfinite(xy).all(1) & np.isfinite(yaw) & np.isfinite(size).all(1)
+        trails, trail_valid = None, None
+        if self.trails is not None:
+            k = np.asarray(self.trails).shape[1] if np.ndim(self.trails) == 3 else -1
+            trails = _as("trails", self.trails, (n, k, 2), np.float64)
+            trail_valid = np.isfinite(trails).all(axis=-1)
+            if self.trail_valid is not None:
+                trail_valid &= _as("trail_valid", self.trail_valid, (n, k), bool)
+        otype = _as("agent_type", otype, (n,), np.int64)
+        return AgentLayer(xy, yaw, size, valid, group, otype, trails, trail_valid)
+
+
+@dataclass(frozen=True)
+class SignalLayer:
+    """The traffic signals of one frame, drawn at their stop points.
+
+    Attributes:
+        xy: [S, 2] stop points, metres, scenario frame.
+        state: [S] int ``TLState`` values 0..4.
+        valid: [S] bool (default: all valid).
+    """
+
+    xy: np.ndarray
+    state: np.ndarray
+    valid: np.ndarray | None = None
+
+
 def render_frame(
     map_layer: MapLayer,
+    agents: AgentLayer,
+    signals: SignalLayer | None = None,
     *,
-    agent_xy: np.ndarray,
-    agent_yaw: np.ndarray,
-    agent_size: np.ndarray,
-    agent_valid: np.ndarray,
-    agent_group: np.ndarray,
-    agent_type: np.ndarray | None = None,
-    signal_xy: np.ndarray | None = None,
-    signal_state: np.ndarray | None = None,
-    signal_valid: np.ndarray | None = None,
-    trails: np.ndarray | None = None,
-    trail_valid: np.ndarray | None = None,
     title: str | None = None,
     legend: bool | Sequence[AgentGroup] = True,
     view: View | None = None,
@@ -132,17 +191,8 @@ def render_frame(
 
     Args:
         map_layer: the scenario's map raster.
-        agent_xy: [N, 2] box centres, metres, scenario frame.
-        agent_yaw: [N] headings, radians CCW from +x.
-        agent_size: [N, 2] (length, width) metres.
-        agent_valid: [N] bool; invalid agents (and their trails) are not drawn.
-        agent_group: [N] int ``AgentGroup`` values.
-        agent_type: [N] int ``ObjectType`` values (optional; pedestrians are drawn as discs).
-        signal_xy: [S, 2] stop points, metres, scenario frame.
-        signal_state: [S] int ``TLState`` values 0..4.
-        signal_valid: [S] bool (default: all valid).
-        trails: [N, K, 2] past positions, metres, oldest first (non-finite points are skipped).
-        trail_valid: [N, K] bool mask for ``trails`` (default: all finite points).
+        agents: the agents (and their trails).
+        signals: the traffic signals (optional).
         title: text drawn at the top left (may hold newlines).
         legend: True for a legend of the groups of the drawn agents, a sequence of groups for a
             fixed legend, False for none.
@@ -151,90 +201,84 @@ def render_frame(
 
     Returns:
         [H, W, 3] uint8 RGB image, north up.
+
+    Raises:
+        ValueError: arrays of the wrong shape, or group / signal state values out of range.
     """
     view = map_layer.view if view is None else view
-    n = np.asarray(agent_xy).shape[0]
-    xy = _as("agent_xy", agent_xy, (n, 2), np.float64)
-    yaw = _as("agent_yaw", agent_yaw, (n,), np.float64)
-    size = _as("agent_size", agent_size, (n, 2), np.float64)
-    valid = _as("agent_valid", agent_valid, (n,), bool)
-    group = _as("agent_group", agent_group, (n,), np.int64)
-    if ((group < 0) | (group >= _NUM_GROUPS)).any():
-        raise ValueError(f"agent_group values must be AgentGroup 0..{_NUM_GROUPS - 1}")
-    otype = (
-        np.zeros(n, np.int64)
-        if agent_type is None
-        else _as("agent_type", agent_type, (n,), np.int64)
-    )
-    valid = valid & np.isfinite(xy).all(axis=1) & np.isfinite(yaw) & np.isfinite(size).all(axis=1)
-
+    agents = agents.checked()
     img = Image.fromarray(map_layer.background(view))
     draw = ImageDraw.Draw(img, "RGBA")
-    mpp = view.meters_per_pixel
+    if agents.trails is not None:  # under everything else dynamic
+        _draw_trails(draw, view, agents)
+    if signals is not None:
+        _draw_signals(draw, view, signals)
+    _draw_agents(draw, view, agents)
+    if title:
+        _draw_text_box(draw, (4, 4), title)
+    if legend is True:
+        present = sorted({int(g) for g in agents.group[agents.valid]})
+        _draw_legend(draw, [AgentGroup(g) for g in present], view.size[0])
+    elif legend:
+        _draw_legend(draw, [AgentGroup(g) for g in legend], view.size[0])
+    return np.asarray(img).copy()
+
+
+def _draw_trails(draw: ImageDraw.ImageDraw, view: View, agents: AgentLayer) -> None:
+    """Each valid agent's trail as lines of its group's trail colour (runs of valid points)."""
+    tv, k = agents.trail_valid, agents.trails.shape[1]
+    tuv = view.to_pixels(np.where(tv[..., None], agents.trails, 0.0)) - 0.5
+    width = max(P.TRAIL_MIN_PX, int(round(P.TRAIL_WIDTH_M / view.meters_per_pixel)))
+    whole = tv.all(axis=1)  # the common case: one run over the whole trail
+    for i in np.flatnonzero(agents.valid & tv.any(axis=1)):
+        color = tuple(_TRAIL_RGB[agents.group[i]].tolist())
+        for a, b in [(0, k)] if whole[i] else _valid_runs(tv[i]):
+            if b - a >= 2:
+                draw.line(tuv[i, a:b].reshape(-1).tolist(), fill=color, width=width)
+
+
+def _draw_signals(draw: ImageDraw.ImageDraw, view: View, signals: SignalLayer) -> None:
+    """Discs at the valid signals' stop points, coloured by state."""
+    s = np.asarray(signals.xy).shape[0]
+    sxy = _as("signal_xy", signals.xy, (s, 2), np.float64)
+    sst = _as("signal_state", signals.state, (s,), np.int64)
+    valid = np.ones(s, bool) if signals.valid is None else signals.valid
+    valid = _as("signal_valid", valid, (s,), bool)
+    if ((sst[valid] < 0) | (sst[valid] >= NUM_TL_STATES)).any():
+        raise ValueError(f"signal_state values must be TLState 0..{NUM_TL_STATES - 1}")
+    r = max(P.SIGNAL_MIN_PX, P.SIGNAL_RADIUS_M / view.meters_per_pixel)
+    suv = view.to_pixels(sxy) - 0.5
+    for j in np.flatnonzero(valid & np.isfinite(sxy).all(axis=1)):
+        u, v = suv[j]
+        fill = tuple(_TL_RGB[sst[j]].tolist())
+        draw.ellipse((u - r, v - r, u + r, v + r), fill=fill, outline=P.SIGNAL_OUTLINE)
+
+
+def _on_image(view: View, agents: AgentLayer, uv: np.ndarray) -> np.ndarray:
+    """[N] bool: the agent's box may reach into the image (centres ``uv`` in pixels)."""
     h, w = view.size
-
-    # Cull agents far outside the image.
-    uv_c = view.to_pixels(np.where(valid[:, None], xy, 0.0))
-    reach = 0.5 * np.hypot(size[:, 0], size[:, 1]) / mpp + P.AGENT_MIN_PX + 2
-    on_img = (
-        (uv_c[:, 0] > -reach) & (uv_c[:, 0] < w + reach)
-        & (uv_c[:, 1] > -reach) & (uv_c[:, 1] < h + reach)
+    reach = 0.5 * np.hypot(agents.size[:, 0], agents.size[:, 1]) / view.meters_per_pixel
+    reach = reach + P.AGENT_MIN_PX + 2
+    return (
+        (uv[:, 0] > -reach) & (uv[:, 0] < w + reach)
+        & (uv[:, 1] > -reach) & (uv[:, 1] < h + reach)
     )  # fmt: skip
-    draw_mask = valid & on_img
 
-    # Trails (under everything else dynamic).
-    if trails is not None:
-        k = np.asarray(trails).shape[1] if np.ndim(trails) == 3 else -1
-        tr = _as("trails", trails, (n, k, 2), np.float64)
-        tv = np.isfinite(tr).all(axis=-1)
-        if trail_valid is not None:
-            tv &= _as("trail_valid", trail_valid, (n, k), bool)
-        tuv = view.to_pixels(np.where(tv[..., None], tr, 0.0)) - 0.5
-        width = max(P.TRAIL_MIN_PX, int(round(P.TRAIL_WIDTH_M / mpp)))
-        whole = tv.all(axis=1)  # the common case: one run over the whole trail
-        for i in np.flatnonzero(valid & tv.any(axis=1)):
-            color = tuple(_TRAIL_RGB[group[i]].tolist())
-            runs = [(0, k)] if whole[i] else _valid_runs(tv[i])
-            for a, b in runs:
-                if b - a >= 2:
-                    draw.line(tuv[i, a:b].reshape(-1).tolist(), fill=color, width=width)
 
-    # Traffic signals at their stop points.
-    if signal_xy is not None:
-        s = np.asarray(signal_xy).shape[0]
-        sxy = _as("signal_xy", signal_xy, (s, 2), np.float64)
-        if signal_state is None:
-            raise ValueError("signal_state is required with signal_xy")
-        sst = _as("signal_state", signal_state, (s,), np.int64)
-        svalid = (
-            np.ones(s, bool)
-            if signal_valid is None
-            else _as("signal_valid", signal_valid, (s,), bool)
-        )
-        if ((sst[svalid] < 0) | (sst[svalid] >= NUM_TL_STATES)).any():
-            raise ValueError(f"signal_state values must be TLState 0..{NUM_TL_STATES - 1}")
-        r = max(P.SIGNAL_MIN_PX, P.SIGNAL_RADIUS_M / mpp)
-        suv = view.to_pixels(sxy) - 0.5
-        for j in np.flatnonzero(svalid & np.isfinite(sxy).all(axis=1)):
-            u, v = suv[j]
-            draw.ellipse(
-                (u - r, v - r, u + r, v + r),
-                fill=tuple(_TL_RGB[sst[j]].tolist()),
-                outline=P.SIGNAL_OUTLINE,
-            )
-
-    # Agents, lowest group first so that highlighted ones end on top.
-    min_m = P.AGENT_MIN_PX * mpp
-    size_d = np.maximum(size, min_m)
+def _draw_agents(draw: ImageDraw.ImageDraw, view: View, agents: AgentLayer) -> None:
+    """Boxes (pedestrians: discs) and heading ticks, lowest group first (highlights on top)."""
+    mpp = view.meters_per_pixel
+    xy, yaw, size, group = agents.xy, agents.yaw, agents.size, agents.group
+    uv = view.to_pixels(np.where(agents.valid[:, None], xy, 0.0))
+    size_d = np.maximum(size, P.AGENT_MIN_PX * mpp)
     corners = view.to_pixels(agent_corners(xy, yaw, size_d)) - 0.5
     front = view.to_pixels(xy + 0.5 * size_d[:, :1] * np.stack([np.cos(yaw), np.sin(yaw)], 1))
     front -= 0.5
-    centre = uv_c - 0.5
+    centre = uv - 0.5
     tick_w = max(P.HEADING_TICK_MIN_PX, int(round(P.HEADING_TICK_WIDTH_M / mpp)))
-    is_ped = otype == int(ObjectType.PEDESTRIAN)
-    order = np.flatnonzero(draw_mask)
-    order = order[np.argsort(group[order], kind="stable")]
-    for i in order:
+    is_ped = agents.type == int(ObjectType.PEDESTRIAN)
+    order = np.flatnonzero(agents.valid & _on_image(view, agents, uv))
+    for i in order[np.argsort(group[order], kind="stable")]:
         fill = tuple(_GROUP_RGB[group[i]].tolist())
         if is_ped[i]:
             r = max(P.PEDESTRIAN_MIN_RADIUS_M, 0.5 * max(size[i, 0], size[i, 1])) / mpp
@@ -248,15 +292,6 @@ def render_frame(
             fill=P.HEADING_TICK,
             width=tick_w if size_d[i, 1] >= 3 * tick_w * mpp else 1,
         )
-
-    if title:
-        _draw_text_box(draw, (4, 4), title)
-    if legend is True:
-        present = sorted({int(g) for g in group[valid]})
-        _draw_legend(draw, [AgentGroup(g) for g in present], h)
-    elif legend:
-        _draw_legend(draw, [AgentGroup(g) for g in legend], h)
-    return np.asarray(img).copy()
 
 
 def _np(t: torch.Tensor) -> np.ndarray:
@@ -309,23 +344,22 @@ def render_state(
     sig = state.signals
     if title is None:
         title = f"{map_layer.scenario_id}  t = {int(state.step[b]) * DT:.1f} s"
-    return render_frame(
-        map_layer,
-        agent_xy=pose[:, :2] + origin,
-        agent_yaw=pose[:, 2],
-        agent_size=_np(state.agents.size[b, :, :2]),
-        agent_valid=_np(state.valid[b] & state.agents.mask[b]),
-        agent_group=groups,
-        agent_type=_np(state.agents.object_type[b]),
-        signal_xy=_np(sig.stop_point[b]).astype(np.float64) + origin,
-        signal_state=_np(tl[b]),
-        signal_valid=_np(tl_valid[b] & (sig.lane_id[b] >= 0)),
+    agents = AgentLayer(
+        xy=pose[:, :2] + origin,
+        yaw=pose[:, 2],
+        size=_np(state.agents.size[b, :, :2]),
+        valid=_np(state.valid[b] & state.agents.mask[b]),
+        group=groups,
+        type=_np(state.agents.object_type[b]),
         trails=trails,
         trail_valid=trail_valid,
-        title=title,
-        legend=legend,
-        view=view,
     )
+    signals = SignalLayer(
+        xy=_np(sig.stop_point[b]).astype(np.float64) + origin,
+        state=_np(tl[b]),
+        valid=_np(tl_valid[b] & (sig.lane_id[b] >= 0)),
+    )
+    return render_frame(map_layer, agents, signals, title=title, legend=legend, view=view)
 
 
 def log_groups(scenario: Scenario) -> np.ndarray:
@@ -373,20 +407,19 @@ def render_log_frame(
     if title is None:
         time_s = float(scenario.timestamps[step] - scenario.timestamps[0])
         title = f"{scenario.scenario_id}  t = {time_s:.1f} s"
-    return render_frame(
-        map_layer,
-        agent_xy=t.xyz[:, step, :2],
-        agent_yaw=t.heading[:, step],
-        agent_size=t.size[:, step, :2],
-        agent_valid=t.valid[:, step],
-        agent_group=log_groups(scenario) if groups is None else groups,
-        agent_type=t.object_type,
-        signal_xy=sig.stop_point[:, :2],
-        signal_state=_SIGNAL_TO_TL[sig.state[:, step].astype(np.int64)],
-        signal_valid=sig.valid[:, step],
+    agents = AgentLayer(
+        xy=t.xyz[:, step, :2],
+        yaw=t.heading[:, step],
+        size=t.size[:, step, :2],
+        valid=t.valid[:, step],
+        group=log_groups(scenario) if groups is None else groups,
+        type=t.object_type,
         trails=trails,
         trail_valid=trail_valid,
-        title=title,
-        legend=legend,
-        view=view,
     )
+    signals = SignalLayer(
+        xy=sig.stop_point[:, :2],
+        state=_SIGNAL_TO_TL[sig.state[:, step].astype(np.int64)],
+        valid=sig.valid[:, step],
+    )
+    return render_frame(map_layer, agents, signals, title=title, legend=legend, view=view)
