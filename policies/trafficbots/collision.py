@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 
 from tbsim_env.sim.collision import box_corners
+from tbsim_env.sim.geometry import segment_projection
 
 CORNER_ROUNDING_FACTOR = 0.7
 COLLISION_SIZE_SCALE = 1.1
@@ -19,10 +20,7 @@ COLLISION_SIZE_SCALE = 1.1
 
 def _point_segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """|p - closest point of segment ab| for broadcastable [..., 2] inputs."""
-    ab = b - a
-    t = ((p - a) * ab).sum(-1) / ab.square().sum(-1).clamp_min(1e-12)
-    closest = a + t.clamp(0.0, 1.0)[..., None] * ab
-    return torch.linalg.vector_norm(p - closest, dim=-1)
+    return segment_projection(p, a, b - a)[1]
 
 
 def _boxes_overlap(ca: torch.Tensor, cb: torch.Tensor) -> torch.Tensor:

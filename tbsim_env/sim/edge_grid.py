@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from tbsim_env import constants as C
+from tbsim_env.sim.geometry import segment_projection
 from tbsim_env.sim.state import EdgeGrid, RoadEdges
 from tbsim_env.torch_utils import gather_rows
 
@@ -149,12 +150,7 @@ def grid_signed_distance(
     cand = gather_rows(grid.cells, cell)  # [B, K, Cc]
     a = gather_rows(edges.start, cand)  # [B, K, Cc, 2]
     ab = gather_rows(edges.end, cand) - a
-    q = points.unsqueeze(-2)
-    len2 = (ab * ab).sum(-1)
-    t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
-    t = torch.where(len2 > 0, t, torch.zeros_like(t))
-    off = q - (a + t.clamp(0.0, 1.0).unsqueeze(-1) * ab)
-    dist = torch.hypot(off[..., 0], off[..., 1])
+    t, dist = segment_projection(points.unsqueeze(-2), a, ab)
     local = dist.argmin(-1, keepdim=True)
     d = dist.gather(-1, local)[..., 0]
     t_best = t.gather(-1, local)[..., 0]

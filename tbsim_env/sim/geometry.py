@@ -1,4 +1,6 @@
-"""Planar geometry helpers, batched and pure: angle wrapping and frame changes."""
+"""Planar geometry helpers, batched and pure: angle wrapping, frame changes, point-segment
+projection (the simulator's off-road test, the road-edge grid and TrafficBots' collision check
+share it)."""
 
 from __future__ import annotations
 
@@ -77,3 +79,24 @@ def relative_pose(query: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     x, y, yaw = target.unbind(-1)
     dx, dy = to_local_xy(x, y, query)
     return torch.stack([dx, dy, wrap_angle(yaw - query[..., 2])], dim=-1)
+
+
+def segment_projection(
+    q: torch.Tensor, a: torch.Tensor, ab: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Projection of points on segments: (t, distance), broadcast over [..., 2] inputs.
+
+    Args:
+        q: [..., 2] points.
+        a: [..., 2] segment starts.
+        ab: [..., 2] segment vectors (end - start).
+
+    Returns:
+        (t [...]: the projection parameter along ab, not clamped, 0 for a zero-length
+        segment; distance [...] m from q to the nearest point of the segment).
+    """
+    len2 = (ab * ab).sum(-1)
+    t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
+    t = torch.where(len2 > 0, t, torch.zeros_like(t))
+    offset = q - (a + t.clamp(0.0, 1.0).unsqueeze(-1) * ab)
+    return t, torch.hypot(offset[..., 0], offset[..., 1])

@@ -14,6 +14,7 @@ import torch
 
 from tbsim_env import constants as C
 from tbsim_env.sim.edge_grid import grid_signed_distance, joint_sign
+from tbsim_env.sim.geometry import segment_projection
 from tbsim_env.sim.state import RoadEdges
 from tbsim_env.torch_utils import gather_rows
 
@@ -40,14 +41,7 @@ def point_segment_distance(
         a = gather_rows(edges.start, segment_index)
         b = gather_rows(edges.end, segment_index)
         valid = gather_rows(edges.valid, segment_index)
-    ab = b - a
-    q = points[:, :, None]
-    len2 = (ab * ab).sum(-1)
-    t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
-    t = torch.where(len2 > 0, t, torch.zeros_like(t))
-    closest = a + t.clamp(0.0, 1.0)[..., None] * ab
-    offset = q - closest
-    dist = torch.hypot(offset[..., 0], offset[..., 1])
+    t, dist = segment_projection(points[:, :, None], a, b - a)
     return torch.where(valid, dist, torch.full_like(dist, float("inf"))), t
 
 
