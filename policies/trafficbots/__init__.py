@@ -7,13 +7,14 @@ from policies.trafficbots.checkpoint import (
     load_state_into,
     save_checkpoint,
 )
-from policies.trafficbots.config import TrafficBotsConfig
+from policies.trafficbots.config import InferenceConfig, TrafficBotsConfig
 from policies.trafficbots.inference import RolloutSamples, sample_rollouts
 from policies.trafficbots.losses import LossConfig, training_step
 from policies.trafficbots.model import RolloutContext, RolloutState, StepOutput, TrafficBots
 from policies.trafficbots.rollout import Trajectory, rollout
 
 __all__ = [
+    "InferenceConfig",
     "LossConfig",
     "RolloutContext",
     "RolloutSamples",
