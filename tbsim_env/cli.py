@@ -131,10 +131,14 @@ def _executor(args: cfg.ShardOptions):
 
 
 def _settings(args: cfg.RolloutOptions):
-    from tbsim_env.distributed import RolloutSettings
+    from tbsim_env.evaluation import RolloutSettings
 
     return RolloutSettings(
-        args.policy, args.rollouts, args.seed, args.checkpoint, args.road_edge_weight
+        policy=args.policy,
+        num_rollouts=args.rollouts,
+        seed=args.seed,
+        checkpoint=args.checkpoint,
+        road_edge_weight=args.road_edge_weight,
     )
 
 
@@ -187,26 +191,10 @@ def _cmd_export_wosac(args: cfg.ExportWosac) -> int:
             by_source.setdefault(sc.source.split("#")[0], []).append(sc)
         for k, (src, group) in enumerate(sorted(by_source.items())):
             name = f"submission.binproto-{k:05d}-of-{len(by_source):05d}"
-            n = export_submission(
-                group,
-                args.policy,
-                out / name,
-                num_rollouts=args.rollouts,
-                seed=args.seed,
-                checkpoint=args.checkpoint,
-                road_edge_weight=args.road_edge_weight,
-            )
+            n = export_submission(group, _settings(args), out / name)
             print(f"wrote {out / name}: {n} scenarios from {src}")
         return 0
-    n = export_submission(
-        scenarios,
-        args.policy,
-        out,
-        num_rollouts=args.rollouts,
-        seed=args.seed,
-        checkpoint=args.checkpoint,
-        road_edge_weight=args.road_edge_weight,
-    )
+    n = export_submission(scenarios, _settings(args), out)
     print(f"wrote {out}: {n} scenarios, {args.rollouts} rollouts each, policy {args.policy}")
     return 0
 
@@ -287,14 +275,7 @@ def _cmd_evaluate(args: cfg.Evaluate) -> int:
         return _evaluate_sharded(args)
     scenarios = _load(args.data, args.skip_bad)
     scores, rollouts = evaluate_policy(
-        scenarios,
-        args.policy,
-        num_rollouts=args.rollouts,
-        seed=args.seed,
-        version=args.version,
-        checkpoint=args.checkpoint,
-        keep_rollouts=bool(args.plot),
-        road_edge_weight=args.road_edge_weight,
+        scenarios, _settings(args), version=args.version, keep_rollouts=bool(args.plot)
     )
     _report(scores, args.json)
     if args.plot:

@@ -29,6 +29,7 @@ from tqdm import tqdm
 
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.errors import TbsimError
+from tbsim_env.evaluation import RolloutSettings
 
 MANIFEST = "tbsim-run.json"
 """The work folder's record of the job (settings and shard plan)."""
@@ -177,30 +178,11 @@ def load_by_id(sources: Sequence[str], wanted: set[str], skip_bad: bool = False)
 
 
 # ----------------------------------------------------------------------------- tasks
-@dataclass(frozen=True)
-class RolloutSettings:
-    """How rollouts are made (``tbsim_env.evaluation.make_rollout_fn`` and its seeds)."""
-
-    policy: str
-    num_rollouts: int = 32
-    seed: int = 0
-    checkpoint: str | None = None
-    road_edge_weight: float = 0.0
-
-
 def _rollouts(scenarios: Sequence[Scenario], settings: RolloutSettings):
     """(scenario, Rollouts) pairs, no progress bar (the driver shows one over shards)."""
     from tbsim_env.evaluation import iter_rollouts
 
-    return iter_rollouts(
-        scenarios,
-        settings.policy,
-        num_rollouts=settings.num_rollouts,
-        seed=settings.seed,
-        checkpoint=settings.checkpoint,
-        progress=False,
-        road_edge_weight=settings.road_edge_weight,
-    )
+    return iter_rollouts(scenarios, settings, progress=False)
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import zlib
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from tqdm import tqdm
@@ -69,26 +71,60 @@ def make_rollout_fn(
     return registry_rollout_fn(policy, checkpoint=checkpoint, device=device, **options)
 
 
+@dataclass(frozen=True)
+class RolloutSettings:
+    """How the rollouts of an evaluation are made.
+
+    Attributes:
+        policy: a registered policy name (``policies.registry``).
+        num_rollouts: joint futures per scenario (WOSAC: 32).
+        seed: seed of the rollouts (each scenario's from it and its id: ``scenario_seed``).
+        checkpoint: weights of the policy (for the policies that take one).
+        device: torch device of the rollouts.
+        road_edge_weight: TrafficBots only: weight of off-road agents, beside collided ones,
+            when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``).
+    """
+
+    policy: str
+    num_rollouts: int = 32
+    seed: int = 0
+    checkpoint: str | None = None
+    device: str = "cpu"
+    road_edge_weight: float = 0.0
+
+
+def rollout_settings(policy: str | RolloutSettings, **options: Any) -> RolloutSettings:
+    """``policy`` as ``RolloutSettings``: given ones as they are (then no ``options``), or a
+    policy name with the ``RolloutSettings`` fields in ``options``.
+
+    Raises:
+        TypeError: an option that is not a ``RolloutSettings`` field, or options beside
+            given settings.
+    """
+    if isinstance(policy, RolloutSettings):
+        if options:
+            raise TypeError(f"options {sorted(options)} beside RolloutSettings: set them there")
+        return policy
+    return RolloutSettings(policy, **options)
+
+
 def iter_rollouts(
     scenarios: Iterable[Scenario],
-    policy: str,
+    settings: RolloutSettings,
     *,
-    num_rollouts: int = 32,
-    seed: int = 0,
-    checkpoint: str | None = None,
-    device: str = "cpu",
     progress: bool = True,
     total: int | None = None,
-    road_edge_weight: float = 0.0,
 ):
     """Yield ``(scenario, rollouts)`` for every scenario, with a progress bar."""
     fn = make_rollout_fn(
-        policy, checkpoint=checkpoint, device=device, road_edge_weight=road_edge_weight
+        settings.policy,
+        checkpoint=settings.checkpoint,
+        device=settings.device,
+        road_edge_weight=settings.road_edge_weight,
     )
-    for sc in tqdm(
-        scenarios, desc=f"rollouts {policy}", unit="scenario", disable=not progress, total=total
-    ):
-        yield sc, fn(sc, num_rollouts, scenario_seed(seed, sc.scenario_id))
+    desc = f"rollouts {settings.policy}"
+    for sc in tqdm(scenarios, desc=desc, unit="scenario", disable=not progress, total=total):
+        yield sc, fn(sc, settings.num_rollouts, scenario_seed(settings.seed, sc.scenario_id))
 
 
 def submission_metadata(policy: str) -> SubmissionMetadata:
@@ -104,42 +140,38 @@ def submission_metadata(policy: str) -> SubmissionMetadata:
 
 def export_submission(
     scenarios: Sequence[Scenario],
-    policy: str,
+    policy: str | RolloutSettings,
     out: str | Path,
     *,
-    num_rollouts: int = 32,
-    seed: int = 0,
-    checkpoint: str | None = None,
     metadata: SubmissionMetadata | None = None,
-    device: str = "cpu",
-    road_edge_weight: float = 0.0,
+    **options: Any,
 ) -> int:
     """Write a ``SimAgentsChallengeSubmission`` of the scenarios' rollouts; returns their count.
 
     Every scenario's rollouts pass ``validate_scenario_rollouts`` (with ``num_rollouts`` joint
     scenes) before anything is written: a failing check raises and leaves no file.
 
+    Args:
+        scenarios: the scenarios.
+        policy: a policy name (with the other ``RolloutSettings`` fields as ``options``:
+            ``num_rollouts``, ``seed``, ``checkpoint``, ``device``, ``road_edge_weight``), or
+            ``RolloutSettings``.
+        out: the submission file.
+        metadata: the method description (default: ``submission_metadata``).
+
     Raises:
         MissingFutureError: ``policy="log_replay"`` on a scene without its logged future.
         SubmissionError: rollouts that break the challenge format (wrong step count, missing
             agent, non-finite or impossible coordinate).
     """
-    if policy == "log_replay":
+    settings = rollout_settings(policy, **options)
+    if settings.policy == "log_replay":
         check_logged_future(scenarios, "log replay")
-    metadata = metadata or submission_metadata(policy)
+    metadata = metadata or submission_metadata(settings.policy)
     protos = []
-    for sc, r in iter_rollouts(
-        scenarios,
-        policy,
-        num_rollouts=num_rollouts,
-        seed=seed,
-        checkpoint=checkpoint,
-        device=device,
-        total=len(scenarios),
-        road_edge_weight=road_edge_weight,
-    ):
+    for sc, r in iter_rollouts(scenarios, settings, total=len(scenarios)):
         protos.append(rollouts_to_proto(r))
-        validate_scenario_rollouts(protos[-1], sc, num_rollouts=num_rollouts)
+        validate_scenario_rollouts(protos[-1], sc, num_rollouts=settings.num_rollouts)
     Path(out).parent.mkdir(parents=True, exist_ok=True)
     write_submission(out, build_submission(protos, metadata))
     return len(protos)
@@ -147,34 +179,29 @@ def export_submission(
 
 def evaluate_policy(
     scenarios: Sequence[Scenario],
-    policy: str,
+    policy: str | RolloutSettings,
     *,
-    num_rollouts: int = 32,
-    seed: int = 0,
     version: str = "wosac2025",
-    checkpoint: str | None = None,
-    device: str = "cpu",
     keep_rollouts: bool = False,
-    road_edge_weight: float = 0.0,
+    **options: Any,
 ) -> tuple[list[ScenarioScores], list[Rollouts]]:
     """Roll out and score every scenario (no proto written).
+
+    Args:
+        scenarios: the scenarios (with their logged future).
+        policy: a policy name (with the other ``RolloutSettings`` fields as ``options``), or
+            ``RolloutSettings``.
+        version: the metric configuration (``"wosac2024"`` or ``"wosac2025"``).
+        keep_rollouts: also return the rollouts (else an empty list).
 
     Raises:
         MissingFutureError: a scenario without its logged future (scoring compares with it),
             before any rollout.
     """
+    settings = rollout_settings(policy, **options)
     check_logged_future(scenarios, "WOSAC scoring")
     scores, kept = [], []
-    for sc, r in iter_rollouts(
-        scenarios,
-        policy,
-        num_rollouts=num_rollouts,
-        seed=seed,
-        checkpoint=checkpoint,
-        device=device,
-        total=len(scenarios),
-        road_edge_weight=road_edge_weight,
-    ):
+    for sc, r in iter_rollouts(scenarios, settings, total=len(scenarios)):
         scores.append(score_scenario(sc, r, version))
         if keep_rollouts:
             kept.append(r)
@@ -260,6 +287,7 @@ def plot_histograms(
 
 __all__ = [
     "HISTOGRAM_FEATURES",
+    "RolloutSettings",
     "check_logged_future",
     "evaluate_policy",
     "export_submission",
@@ -267,6 +295,7 @@ __all__ = [
     "iter_rollouts",
     "make_rollout_fn",
     "plot_histograms",
+    "rollout_settings",
     "scenario_seed",
     "submission_metadata",
 ]
