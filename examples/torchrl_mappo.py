@@ -32,8 +32,11 @@ class Args:
     seed: int = field(default=1, metadata={"help": "seed of the env and torch"})
     num_scenes: int = field(default=8, metadata={"help": "embedded generated scenes (1..8)"})
     npc_policy: str = field(default="constant_velocity", metadata={"help": "NPC policy"})
+    offroad_ends: int = field(
+        default=1, metadata={"help": "1: leaving the road ends an agent (one -1, as a collision)"}
+    )
     num_envs: int = field(default=8, metadata={"help": "scene slots stepped at once (B)"})
-    num_steps: int = field(default=40, metadata={"help": "steps per slot per iteration"})
+    num_steps: int = field(default=80, metadata={"help": "steps per slot per iteration"})
     iterations: int = field(default=200, metadata={"help": "PPO iterations at most"})
     time_limit: float = field(default=0.0, metadata={"help": "stop after this many s (0: none)"})
     learning_rate: float = field(default=3e-4, metadata={"help": "Adam learning rate"})
@@ -83,6 +86,16 @@ def features(obs, k: int) -> torch.Tensor:
     return torch.cat([p.reshape(*lead, -1) for p in parts], dim=-1)
 
 
+def type_limits(obs) -> torch.Tensor:
+    """[..., Q, 2] each agent's action limits (m/s^2, rad/s) from its type one-hot, so that
+    normalised actions in [-1, 1] span every type's full range."""
+    from tbsim_env.sim.dynamics import action_limits
+
+    one_hot = obs["ego_attributes"][..., 2:6]  # vehicle, pedestrian, cyclist, other
+    acc, yaw = action_limits(one_hot.argmax(-1) + 1)  # ObjectType: VEHICLE = 1, ...
+    return torch.stack([acc, yaw], dim=-1)
+
+
 class Agents(nn.Module):
     """Shared Gaussian actor and critic over per-agent features [..., Q, F]."""
 
@@ -111,14 +124,15 @@ class Agents(nn.Module):
 
 # ---------------------------------------------------------------------- rollout
 class Tracker:
-    """Per-agent running episode returns; records each agent's return, goal and collision
-    when its episode ends."""
+    """Per-agent running episode returns; records each agent's return, goal, collision and
+    off-road flags when its episode ends."""
 
     def __init__(self, b: int, q: int) -> None:
         self.running = torch.zeros(b, q)
         self.returns: list[float] = []
         self.goals: list[float] = []
         self.collisions: list[float] = []
+        self.offroads: list[float] = []
 
     def update(self, acted: torch.Tensor, nxt) -> None:
         """acted [B, Q] bool; nxt: the step's ("next") TensorDict."""
@@ -128,6 +142,7 @@ class Tracker:
         self.returns += self.running[ended].tolist()
         self.goals += info["goal_reached"][ended].tolist()
         self.collisions += info["collision"][ended].tolist()
+        self.offroads += info["offroad"][ended].tolist()
         self.running[ended] = 0.0
 
 
@@ -141,7 +156,6 @@ def collect(env, agents: Agents, td, args: Args, tracker: Tracker):
     """
     from tensordict import TensorDict
 
-    high = torch.as_tensor(env.env.action_high)
     steps = []
     for _ in range(args.num_steps):
         feat = features(td["agents", "observation"], args.num_neighbours)
@@ -149,7 +163,7 @@ def collect(env, agents: Agents, td, args: Args, tracker: Tracker):
             dist = agents.dist(feat)
             act = dist.sample()
             logp, value = dist.log_prob(act).sum(-1), agents.value(feat)
-        td["agents", "action"] = act.clamp(-1.0, 1.0) * high
+        td["agents", "action"] = act.clamp(-1.0, 1.0) * type_limits(td["agents", "observation"])
         data, td = env.step_and_maybe_reset(td)
         nxt = data["next"]
         acted = data["agents", "mask"]
@@ -168,7 +182,7 @@ def collect(env, agents: Agents, td, args: Args, tracker: Tracker):
                     "terminated": nxt["agents", "terminated"][..., 0],
                 },
                 batch_size=acted.shape,
-            )  # fmt: skip
+            )
         )
     return torch.stack(steps, dim=1), td  # [B, T, Q]
 
@@ -238,15 +252,16 @@ def ppo_update(agents: Agents, opt: torch.optim.Optimizer, batch, args: Args) ->
 
 # ---------------------------------------------------------------------- reporting
 def save_plot(rows: list[dict], path: str, title: str) -> None:
-    """Per-agent episode return, goal-reach and collision rate against agent steps."""
+    """Per-agent episode return, goal-reach, collision and off-road rate against agent steps
+    (the rates: share of the agent episodes that ended in the iteration)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     steps = np.array([r["agent_steps"] for r in rows], float)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
-    keys = ("episode_return", "goal_rate", "collision_rate")
+    fig, axes = plt.subplots(1, 4, figsize=(16, 3.6))
+    keys = ("episode_return", "goal_rate", "collision_rate", "offroad_rate")
     for ax, key in zip(axes, keys):
         y = np.array([r[key] for r in rows], float)
         ax.plot(steps, y, color="0.7", lw=0.8)
@@ -262,6 +277,10 @@ def save_plot(rows: list[dict], path: str, title: str) -> None:
     plt.close(fig)
 
 
+def _mean(values: list[float]) -> float:
+    return float(np.mean(values)) if values else float("nan")
+
+
 def summary_row(it: int, agent_steps: int, elapsed: float, tracker: Tracker, stats: dict):
     """One iteration's numbers (means over the agent episodes that ended in it)."""
     row = {
@@ -269,28 +288,30 @@ def summary_row(it: int, agent_steps: int, elapsed: float, tracker: Tracker, sta
         "agent_steps": agent_steps,
         "time_s": round(elapsed, 1),
         "episodes": len(tracker.returns),
-        "episode_return": float(np.mean(tracker.returns)) if tracker.returns else float("nan"),
-        "goal_rate": float(np.mean(tracker.goals)) if tracker.goals else float("nan"),
-        "collision_rate": float(np.mean(tracker.collisions))
-        if tracker.collisions
-        else float("nan"),
+        "episode_return": _mean(tracker.returns),
+        "goal_rate": _mean(tracker.goals),
+        "collision_rate": _mean(tracker.collisions),
+        "offroad_rate": _mean(tracker.offroads),
         **stats,
     }
-    tracker.returns, tracker.goals, tracker.collisions = [], [], []
+    tracker.returns, tracker.goals, tracker.collisions, tracker.offroads = [], [], [], []
     return row
 
 
 def make_env(args: Args):
     """``TorchRLTrafficEnv`` over the embedded generated scenes, every agent controlled."""
+    from tbsim_env.config import EnvConfig, TerminationConfig
     from tbsim_env.data.generator import default_scenarios
     from tbsim_env.integrations.torchrl import TorchRLTrafficEnv
 
+    config = EnvConfig(termination=TerminationConfig(offroad=bool(args.offroad_ends)))
     return TorchRLTrafficEnv(
         scenarios=default_scenarios(args.num_scenes),
         batch_size=args.num_envs,
         controlled="all",
         npc_policy=args.npc_policy,
         seed=args.seed,
+        config=config,
         route_points=args.route_points,
         torch_threads=args.torch_threads,
     )
@@ -335,20 +356,22 @@ def main(argv: list[str] | None = None) -> list[dict]:
 
 def print_table(rows: list[dict]) -> None:
     """Iteration table (every ~10th row and the last) and the first vs last tenth."""
-    print(" iter  agent_steps  time_s  episodes  return   goal  collision")
+    print(" iter  agent_steps  time_s  episodes  return   goal  collision  offroad")
     stride = max(1, len(rows) // 10)
     for r in rows[::stride] + ([rows[-1]] if (len(rows) - 1) % stride else []):
         print(
             f"{r['iteration']:5d} {r['agent_steps']:12d} {r['time_s']:7.0f} {r['episodes']:9d} "
-            f"{r['episode_return']:7.3f} {r['goal_rate']:6.3f} {r['collision_rate']:10.3f}"
+            f"{r['episode_return']:7.3f} {r['goal_rate']:6.3f} {r['collision_rate']:10.3f} "
+            f"{r['offroad_rate']:8.3f}"
         )
     k = max(1, len(rows) // 10)
     for name, part in (("first", rows[:k]), ("last", rows[-k:])):
-        mean = {key: np.nanmean([r[key] for r in part]) for key in ("episode_return", "goal_rate")}
-        coll = np.nanmean([r["collision_rate"] for r in part])
+        keys = ("episode_return", "goal_rate", "collision_rate", "offroad_rate")
+        mean = {key: np.nanmean([r[key] for r in part]) for key in keys}
         print(
             f"{name} {k} iterations: return {mean['episode_return']:.3f}, "
-            f"goal {mean['goal_rate']:.3f}, collision {coll:.3f}"
+            f"goal {mean['goal_rate']:.3f}, collision {mean['collision_rate']:.3f}, "
+            f"off-road {mean['offroad_rate']:.3f}"
         )
 
 
