@@ -85,20 +85,20 @@ def test_random_rollout_across_autoreset(scenes, torch_one_thread):
     b, t = done[:, :-1].nonzero(as_tuple=True)
     assert len(b) > 0
     assert not data["done"][b, t + 1].any()
-    fresh_mask = data["agents", "mask"][b, t + 1]
-    assert fresh_mask.any(-1).all()
-    assert torch.equal(data["agents", "done"][b, t + 1][..., 0], ~fresh_mask)
-    # per agent: done == not active after the step; a finished slot has every agent done
-    assert torch.equal(nxt["agents", "done"][..., 0], ~nxt["agents", "mask"])
-    assert nxt["agents", "done"][done].all()
+    assert data["agents", "mask"][b, t + 1].any(-1).all()
+    assert not data["agents", "done"][b, t + 1].any()
+    # per agent: done == ended in this step: it acted and is not active after the step
+    acted, alive = data["agents", "mask"], nxt["agents", "mask"]
+    assert torch.equal(nxt["agents", "done"][..., 0], acted & ~alive)
+    assert torch.equal(nxt["agents", "done"][done], acted[done][..., None])
     # slot terminated / truncated split the slot's done
     assert torch.equal(nxt["terminated"] | nxt["truncated"], nxt["done"])
     assert not (nxt["terminated"] & nxt["truncated"]).any()
 
 
 def test_agent_mask(scenes, torch_one_thread):
-    """The mask marks active agents; inactive ones get zero observations and rewards, and
-    their done flags stay set until the slot restarts."""
+    """The mask marks active agents; inactive ones get zero observations and rewards and
+    are never done (done marks the step an agent ends)."""
     env = TorchRLTrafficEnv(scenarios=scenes, batch_size=2, seed=4, **KW)
     td = env.reset()
     n_agents = [len(names) for names in env.env.agent_names]
@@ -120,12 +120,16 @@ def test_agent_mask(scenes, torch_one_thread):
     assert not nxt["agents", "observation", "ego_history"][~acted].any()
     assert nxt["agents", "observation", "ego_history_mask"][acted & ~m].any(-1).all()
     assert not nxt["agents", "reward"][~acted].any()
-    # sticky done: once an agent is done it stays done until its slot restarts
     done = nxt["agents", "done"][..., 0]
+    assert not done[~acted].any()
+    assert torch.equal(
+        done, nxt["agents", "terminated"][..., 0] | nxt["agents", "truncated"][..., 0]
+    )
+    # an agent that ended stays inactive until its slot restarts
     slot_done = nxt["done"][..., 0]
     for t in range(done.shape[1] - 1):
-        keep = ~slot_done[:, t, None] & done[:, t]
-        assert done[:, t + 1][keep].all()
+        gone = ~slot_done[:, t, None] & done[:, t]
+        assert not acted[:, t + 1][gone].any()
 
 
 def test_partial_reset_rules(scenes, torch_one_thread):
@@ -172,3 +176,23 @@ def test_mappo_example_tiny_run(tmp_path, monkeypatch, torch_one_thread):
     assert rows[1]["agent_steps"] > rows[0]["agent_steps"] > 0
     assert all(math.isfinite(r["approx_kl"]) and math.isfinite(r["v_loss"]) for r in rows)
     assert png.stat().st_size > 10_000
+
+
+# torchrl's own collector module warns about its deprecated weight updaters at import
+@pytest.mark.filterwarnings("ignore:Creating .*WeightUpdater:DeprecationWarning")
+def test_collector_trajectories_follow_episodes(scenes, torch_one_thread):
+    """A TorchRL collector resets finished slots itself; its trajectory ids change exactly
+    where an agent or a slot ended (agent done flags are events)."""
+    from torchrl.collectors import Collector
+
+    env = TorchRLTrafficEnv(scenarios=scenes, batch_size=2, seed=0, **KW)
+    collector = Collector(env, None, frames_per_batch=2 * 12, total_frames=2 * 12)
+    try:
+        (data,) = list(collector)
+    finally:
+        collector.shutdown()
+    assert data.shape == (2, 12)
+    assert data["next", "done"].any()
+    ids = data["collector", "traj_ids"]
+    ended = data["next", "done"][..., 0] | data["next", "agents", "done"][..., 0].any(-1)
+    assert torch.equal(ids[:, 1:] != ids[:, :-1], ended[:, :-1])

@@ -17,9 +17,10 @@ wrappers group agents. Keys (shapes with the batch; units as ``BatchedTrafficEnv
   loosest type limits (actions are clipped per type; those of inactive agents are ignored).
 * ``("agents", "reward")`` [B, Q, 1] float32, 0 for agents that did not act.
 * ``("agents", "done" | "terminated" | "truncated")`` [B, Q, 1] bool: the agent's episode
-  is over. As in TorchRL's PettingZoo wrapper they stay True once an agent has ended (and are
-  True for padding slots): ``terminated`` = ended by an event now or not active before the
-  step, ``truncated`` = reached the episode's end step now.
+  ended in this step (``BatchedTrafficEnv``'s ``terminated`` / ``truncated``; ``done`` is
+  either). They are events, not states: an agent that ended earlier, or a padding slot, is
+  not done again (its ``mask`` is False), so a collector's trajectory ids change only when
+  an agent or a slot ends.
 * ``"done" | "terminated" | "truncated"`` [B, 1] bool: the slot's episode is over (every
   agent ended); ``truncated`` when it ended at the end step, ``terminated`` otherwise.
 
@@ -189,13 +190,12 @@ class TorchRLTrafficEnv(EnvBase):
     def _reset_td(
         self, obs: dict[str, torch.Tensor], mask: torch.Tensor, scenario: torch.Tensor
     ) -> TensorDict:
-        """A reset output: first observations, no step metrics, nothing done but the agent
-        slots that are not active (padding)."""
+        """A reset output: first observations, no step metrics, nothing done."""
         b = self.env.batch_size
-        not_active = ~mask[..., None]
         group = self._group_td(obs, mask, None)
+        agent_false = torch.zeros_like(mask[..., None])
         group.update(
-            done=not_active, terminated=not_active.clone(), truncated=torch.zeros_like(not_active)
+            done=agent_false, terminated=agent_false.clone(), truncated=agent_false.clone()
         )
         root_false = torch.zeros(b, 1, dtype=torch.bool, device=self.device)
         return TensorDict(
@@ -259,8 +259,8 @@ class TorchRLTrafficEnv(EnvBase):
         group = self._group_td(info["final_obs"], alive, info)
         group.update(
             reward=rew[..., None],
-            done=~alive[..., None],
-            terminated=(term | ~active)[..., None],
+            done=(term | trunc)[..., None],
+            terminated=term[..., None].clone(),
             truncated=trunc[..., None].clone(),
         )
         slot_trunc = ended & trunc.any(-1)
