@@ -34,27 +34,45 @@ def _random_actions(env: TorchRLTrafficEnv, steps: int, seed: int) -> torch.Tens
     return (torch.rand(steps, b, q, 2, generator=g) * 2 - 1) * high
 
 
-def test_check_env_specs(scenes, torch_one_thread):
-    env = TorchRLTrafficEnv(scenarios=scenes, batch_size=2, seed=0, **KW)
+@pytest.mark.parametrize("layout", ["dense", "indexed"])
+def test_check_env_specs(scenes, layout, torch_one_thread):
+    env = TorchRLTrafficEnv(scenarios=scenes, batch_size=2, seed=0, obs_layout=layout, **KW)
     check_env_specs(env, break_when_any_done="both", seed=1)
     spec, q = env.full_done_spec, env.num_agents
     assert spec["done"].shape == (2, 1)
     assert spec["agents", "done"].shape == (2, q, 1)
     assert env.full_action_spec["agents", "action"].shape == (2, q, 2)
-    assert env.observation_spec["agents", "observation", "map"].shape == (2, q, 64, 20, 4)
+    obs_spec = env.observation_spec
+    if layout == "dense":
+        assert obs_spec["agents", "observation", "map"].shape == (2, q, 64, 20, 4)
+        assert "tokens" not in obs_spec.keys()
+    else:
+        assert obs_spec["agents", "observation", "index"].shape == (2, q, 25 + 64 + 25)
+        n = env.env.bank.start.pose.shape[1]  # agent slots of the bank
+        assert obs_spec["tokens", "agent_tokens"].shape[:2] == (2, n)
 
 
-def test_values_equal_batched_env_across_restarts(scenes, torch_one_thread):
+def _obs_entry(td, env: TorchRLTrafficEnv, key: str) -> torch.Tensor:
+    """Where a BatchedTrafficEnv observation key lives in the TorchRL TensorDict."""
+    if key == "scene":
+        return td["scenario_index"]
+    if key in ("agent_tokens", "light_tokens"):
+        return td["tokens", key]
+    return td["agents", "observation", key]
+
+
+@pytest.mark.parametrize("layout", ["dense", "indexed"])
+def test_values_equal_batched_env_across_restarts(scenes, layout, torch_one_thread):
     """Stepping through TorchRL (step_and_maybe_reset) gives BatchedTrafficEnv's values."""
-    env = TorchRLTrafficEnv(scenarios=scenes, batch_size=2, seed=5, **KW)
-    ref = BatchedTrafficEnv(scenes, 2, seed=5, **KW)
+    env = TorchRLTrafficEnv(scenarios=scenes, batch_size=2, seed=5, obs_layout=layout, **KW)
+    ref = BatchedTrafficEnv(scenes, 2, seed=5, obs_layout=layout, **KW)
     actions = _random_actions(env, 20, seed=0)
     td = env.reset()
     ref_obs, ref_info = ref.reset()
     restarts = 0
     for t in range(len(actions)):
         for k, v in ref_obs.items():
-            torch.testing.assert_close(td["agents", "observation", k], v, rtol=0, atol=0)
+            assert torch.equal(_obs_entry(td, env, k), v), k
         assert torch.equal(td["agents", "mask"], ref_info["agent_mask"])
         td["agents", "action"] = actions[t]
         data, td = env.step_and_maybe_reset(td)
@@ -64,7 +82,7 @@ def test_values_equal_batched_env_across_restarts(scenes, torch_one_thread):
         assert torch.equal(nxt["agents", "truncated"][..., 0], trunc)
         assert torch.equal(nxt["done"][:, 0], ref_info["done"])
         for k, v in ref_info["final_obs"].items():  # the true last observation
-            assert torch.equal(nxt["agents", "observation", k], v)
+            assert torch.equal(_obs_entry(nxt, env, k), v), k
         assert torch.equal(nxt["agents", "info", "progress"], ref_info["progress"])
         assert torch.equal(nxt["scenario_index"], ref_info["scenario_index"])
         restarts += int(ref_info["done"].sum())

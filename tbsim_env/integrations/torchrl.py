@@ -6,7 +6,12 @@ wrappers group agents. Keys (shapes with the batch; units as ``BatchedTrafficEnv
 
 * ``("agents", "observation", key)`` [B, Q, *shape] float32: the dense observation keys
   (``single_observation_space``: ``ego_history``, ``agents``, ``map``, ...; ``route`` when
-  ``route_points`` > 0); zero for agents that are not active.
+  ``route_points`` > 0); zero for agents that are not active. With
+  ``obs_layout="indexed"`` the per-observer keys of ``OBS_INDEXED_KEYS`` instead (``ego``,
+  ``index`` int64; ``pose``, ``mask``, ``observer_mask`` float32; ``route``), and the tokens
+  they index once per slot: ``("tokens", "agent_tokens")`` [B, N, D] and
+  ``("tokens", "light_tokens")`` [B, L, 5] (map pieces: ``env.env.map_token_bank`` rows of
+  ``"scenario_index"``; ``env.env.densify`` gives the dense layout).
 * ``("agents", "mask")`` [B, Q] bool: agents active now (they need an action; padding agent
   slots and agents that ended are False). Use it to mask losses and statistics.
 * ``("agents", "info", name)`` [B, Q] float32: metrics of the step that led here
@@ -50,7 +55,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from tbsim_env.env.vector_env import BatchedTrafficEnv
+from tbsim_env.env import episode as ep
+from tbsim_env.env.vector_env import ROUTE_KEY, BatchedTrafficEnv
 
 GROUP = "agents"
 """Default name of the agent group."""
@@ -84,13 +90,53 @@ def _done_spec(shape: tuple[int, ...], device: torch.device) -> dict[str, Catego
     return {k: _flags(shape, device) for k in ("done", "terminated", "truncated")}
 
 
+def observation_specs(env: BatchedTrafficEnv, device: torch.device) -> tuple[dict, dict]:
+    """(per-agent specs [B, Q, ...], per-slot token specs [B, ...]) of ``env``'s layout.
+
+    Dense: the Gymnasium space of one agent, no tokens. Indexed: the token counts come from
+    one episode start of the bank (``episode.start``, the env's state is not touched).
+    """
+    b, q = env.batch_size, env.num_agents
+    if env.obs_layout == "dense":
+        spaces = env.single_observation_space().spaces
+        return {k: box_spec(s, (b, q), device) for k, s in spaces.items()}, {}
+    cfg = ep.StepConfig(env.config, env.obs_config, dense=False)
+    with torch.no_grad():
+        state, _ = ep.start(env.bank, torch.zeros(1, dtype=torch.int64, device=env.device), cfg)
+        probe = ep.observe_state(state, env.obs_config)
+    k = probe.index.shape[-1]
+    unit = gym.spaces.Box(0.0, 1.0, (), np.float32)
+
+    def floats(*shape: int) -> Unbounded:
+        return Unbounded(shape=(b, *shape), dtype=torch.float32, device=device)
+
+    agent = {
+        "ego": Unbounded(shape=(b, q), dtype=torch.int64, device=device),
+        "index": Unbounded(shape=(b, q, k), dtype=torch.int64, device=device),
+        "pose": floats(q, k, 3),
+        "mask": box_spec(gym.spaces.Box(0.0, 1.0, (k,), np.float32), (b, q), device),
+        "observer_mask": box_spec(unit, (b, q), device),
+    }
+    if env.route_points:
+        agent[ROUTE_KEY] = floats(q, env.route_points, 2)
+    tokens = {
+        "agent_tokens": floats(*probe.agent_tokens.shape[1:]),
+        "light_tokens": box_spec(
+            gym.spaces.Box(0.0, 1.0, probe.light_tokens.shape[2:], np.float32),
+            (b, probe.light_tokens.shape[1]),
+            device,
+        ),
+    }
+    return agent, tokens
+
+
 # ---------------------------------------------------------------------- the env
 class TorchRLTrafficEnv(EnvBase):
     """``BatchedTrafficEnv`` as a TorchRL env of batch size [B] with one agent group.
 
     Args:
-        env: a ``BatchedTrafficEnv`` to wrap (``obs_layout="dense"``); when None, one is
-            built from ``env_kwargs``.
+        env: a ``BatchedTrafficEnv`` to wrap (either ``obs_layout``); when None, one is built
+            from ``env_kwargs``.
         group: name of the agent group in the keys.
         info_keys: per-agent metrics copied to ``(group, "info", name)``.
         env_kwargs: ``BatchedTrafficEnv`` keyword arguments (``scenarios``, ``batch_size``,
@@ -116,15 +162,14 @@ class TorchRLTrafficEnv(EnvBase):
             env = BatchedTrafficEnv(**env_kwargs)
         elif env_kwargs:
             raise ValueError("give either a BatchedTrafficEnv or its keyword arguments")
-        if env.obs_layout != "dense":
-            raise ValueError("TorchRLTrafficEnv needs a BatchedTrafficEnv with obs_layout='dense'")
         super().__init__(device=env.device, batch_size=torch.Size([env.batch_size]))
         self.env = env
         self.group = group
         self.info_keys = tuple(info_keys)
         self.num_agents = env.num_agents
         self.last_info: dict[str, Any] = {}
-        self._obs_keys = list(env.single_observation_space().spaces)
+        agent_obs, slot_obs = observation_specs(env, self.device)
+        self._obs_keys, self._token_keys = list(agent_obs), list(slot_obs)
         self._pending_seed: int | None = None
         self._reset_data: TensorDict | None = None  # first observation of restarted slots
         self._restarted = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device)
@@ -133,8 +178,7 @@ class TorchRLTrafficEnv(EnvBase):
     def _make_specs(self) -> None:
         """Observation, action, reward and done specs from the env's Gymnasium spaces."""
         b, q, dev, g = self.env.batch_size, self.num_agents, self.device, self.group
-        obs_space = self.env.single_observation_space()
-        obs = {k: box_spec(s, (b, q), dev) for k, s in obs_space.spaces.items()}
+        obs, tokens = observation_specs(self.env, dev)
         info = {k: Unbounded(shape=(b, q), dtype=torch.float32, device=dev) for k in self.info_keys}
         group_obs = Composite(
             observation=Composite(obs, shape=(b, q), device=dev),
@@ -148,6 +192,7 @@ class TorchRLTrafficEnv(EnvBase):
             {
                 g: group_obs,
                 "scenario_index": Categorical(n_scenarios, (b,), dtype=torch.int64, device=dev),
+                **({"tokens": Composite(tokens, shape=(b,), device=dev)} if tokens else {}),
             },
             shape=(b,),
             device=dev,
@@ -187,6 +232,12 @@ class TorchRLTrafficEnv(EnvBase):
             device=self.device,
         )
 
+    def _tokens(self, obs: dict[str, torch.Tensor]) -> dict[str, Any]:
+        """The per-slot token entries of an indexed observation (none when dense)."""
+        if not self._token_keys:
+            return {}
+        return {"tokens": {k: obs[k] for k in self._token_keys}}
+
     def _reset_td(
         self, obs: dict[str, torch.Tensor], mask: torch.Tensor, scenario: torch.Tensor
     ) -> TensorDict:
@@ -201,6 +252,7 @@ class TorchRLTrafficEnv(EnvBase):
         return TensorDict(
             {
                 self.group: group,
+                **self._tokens(obs),
                 "scenario_index": scenario.clone(),
                 "done": root_false,
                 "terminated": root_false.clone(),
@@ -267,6 +319,7 @@ class TorchRLTrafficEnv(EnvBase):
         out = TensorDict(
             {
                 self.group: group,
+                **self._tokens(info["final_obs"]),
                 "scenario_index": info["scenario_index"],
                 "done": ended[:, None].clone(),
                 "terminated": (ended & ~slot_trunc)[:, None],
