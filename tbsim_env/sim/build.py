@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import numpy as np
@@ -75,6 +76,124 @@ def _road_edge_segments(scenario: Scenario, origin: np.ndarray) -> tuple[np.ndar
     )
 
 
+def _check_time_grid(scenarios: Sequence[Scenario], start_step: int) -> int:
+    """The common log length T of the scenarios (every one holds ``start_step``)."""
+    if not scenarios:
+        raise ValueError("build_sim_state needs at least one scenario")
+    if start_step < 0:
+        raise ValueError(f"start_step {start_step} is negative")
+    n_t = scenarios[0].num_steps
+    for sc in scenarios:
+        if sc.num_steps != n_t:
+            raise ValueError(
+                f"scenario {sc.scenario_id!r} has {sc.num_steps} steps, "
+                f"but {scenarios[0].scenario_id!r} has {n_t}; a batch needs one time grid "
+                "(Scenario.on_time_grid)"
+            )
+        sc.require_log_until(start_step, f"a simulation that starts at step {start_step}")
+    return n_t
+
+
+def _padded_tracks(
+    scenarios: Sequence[Scenario], origins: np.ndarray, n_t: int, start_step: int
+) -> dict[str, np.ndarray]:
+    """Every scenario's tracks padded to the largest track count N (numpy, [B, N, ...]):
+    the log (pose in the origin's frame, velocity, z, valid) and the agent attributes."""
+    b, n = len(scenarios), max(sc.tracks.num_tracks for sc in scenarios)
+    out = {
+        "pose": np.zeros((b, n, n_t, 3), np.float32),
+        "vel": np.zeros((b, n, n_t, 2), np.float32),
+        "z": np.zeros((b, n, n_t), np.float32),
+        "valid": np.zeros((b, n, n_t), bool),
+        "track_id": np.full((b, n), -1, np.int64),
+        "track_index": np.full((b, n), -1, np.int64),
+        "object_type": np.zeros((b, n), np.int64),
+        "size": np.zeros((b, n, 3), np.float32),
+        "role": np.zeros((b, n, 3), bool),
+        "mask": np.zeros((b, n), bool),
+    }
+    for i, sc in enumerate(scenarios):
+        t, a = sc.tracks, sc.tracks.num_tracks
+        v = t.valid
+        out["pose"][i, :a, :, 0] = np.where(v, t.xyz[..., 0] - origins[i, 0], 0.0)
+        out["pose"][i, :a, :, 1] = np.where(v, t.xyz[..., 1] - origins[i, 1], 0.0)
+        out["pose"][i, :a, :, 2] = np.where(v, t.heading, 0.0)
+        out["vel"][i, :a] = np.where(v[..., None], t.velocity, 0.0)
+        out["z"][i, :a] = np.where(v, t.xyz[..., 2], 0.0)
+        out["valid"][i, :a] = v
+        out["track_id"][i, :a] = t.id
+        out["track_index"][i, :a] = np.arange(a)
+        out["object_type"][i, :a] = t.object_type
+        out["size"][i, :a] = _agent_sizes(sc, start_step)
+        out["role"][i, :a] = sc.role_mask()
+        out["mask"][i, :a] = True
+    return out
+
+
+def _padded_signals(
+    scenarios: Sequence[Scenario], origins: np.ndarray, n_t: int, device: torch.device
+) -> SignalLog:
+    """Every scenario's signals padded to the largest signal count (at least 1)."""
+    b, s = len(scenarios), max(max(sc.signals.num_signals for sc in scenarios), 1)
+    lane = np.full((b, s), -1, np.int64)
+    state = np.zeros((b, s, n_t), np.int64)
+    valid = np.zeros((b, s, n_t), bool)
+    stop = np.zeros((b, s, 2), np.float32)
+    to_tl = np.asarray(C.SIGNAL_TO_TL_STATE, np.int64)
+    for i, sc in enumerate(scenarios):
+        sig, k = sc.signals, sc.signals.num_signals
+        lane[i, :k] = sig.lane_id
+        state[i, :k] = np.where(sig.valid, to_tl[np.clip(sig.state, 0, 8)], 0)
+        valid[i, :k] = sig.valid
+        stop[i, :k] = sig.stop_point[:, :2] - origins[i]
+    tt = functools.partial(_tensor, device=device)
+    return SignalLog(lane_id=tt(lane), state=tt(state), valid=tt(valid), stop_point=tt(stop))
+
+
+def _padded_edges(edges: list[tuple[np.ndarray, ...]], device: torch.device) -> RoadEdges:
+    """Every scenario's road-edge segments padded to the largest count (at least 1), with
+    their grid."""
+    b, e = len(edges), max(max(len(x[0]) for x in edges), 1)
+    start = np.zeros((b, e, 2), np.float32)
+    end = np.zeros((b, e, 2), np.float32)
+    valid = np.zeros((b, e), bool)
+    prev = np.tile(np.arange(e), (b, 1))
+    nxt = np.tile(np.arange(e), (b, 1))
+    for i, (st, en, pr, nx) in enumerate(edges):
+        ne = len(st)
+        start[i, :ne], end[i, :ne], valid[i, :ne] = st, en, True
+        prev[i, :ne], nxt[i, :ne] = pr, nx
+    tt = functools.partial(_tensor, device=device)
+    return RoadEdges(
+        start=tt(start),
+        end=tt(end),
+        valid=tt(valid),
+        prev_index=tt(prev),
+        next_index=tt(nxt),
+        grid=build_edge_grid([(x[0], x[1]) for x in edges], device),
+    )
+
+
+def _tensor(x: np.ndarray, device: torch.device) -> torch.Tensor:
+    return torch.from_numpy(x).to(device)
+
+
+def _log_trajectory(tracks: dict[str, np.ndarray], device: torch.device) -> LogTrajectory:
+    """The ``LogTrajectory`` of ``_padded_tracks``' arrays (speed signed along the heading)."""
+    pose, vel = _tensor(tracks["pose"], device), _tensor(tracks["vel"], device)
+    valid = _tensor(tracks["valid"], device)
+    n_t = tracks["valid"].shape[-1]
+    first = np.where(tracks["valid"], np.arange(n_t), n_t).min(axis=-1)
+    return LogTrajectory(
+        pose=pose,
+        speed=signed_speed(vel, pose[..., 2]) * valid,
+        velocity=vel,
+        z=_tensor(tracks["z"], device),
+        valid=valid,
+        first_valid=_tensor(first.astype(np.int64), device),
+    )
+
+
 def build_sim_state(
     scenarios: Sequence[Scenario],
     *,
@@ -98,119 +217,24 @@ def build_sim_state(
     Raises:
         MissingFutureError: a scenario's log does not hold ``start_step``.
     """
-    if not scenarios:
-        raise ValueError("build_sim_state needs at least one scenario")
-    n_t = scenarios[0].num_steps
-    for sc in scenarios:
-        if sc.num_steps != n_t:
-            raise ValueError(
-                f"scenario {sc.scenario_id!r} has {sc.num_steps} steps, "
-                f"but {scenarios[0].scenario_id!r} has {n_t}; a batch needs one time grid "
-                "(Scenario.on_time_grid)"
-            )
-        if start_step < 0:
-            raise ValueError(f"start_step {start_step} is negative")
-        sc.require_log_until(start_step, f"a simulation that starts at step {start_step}")
-    b = len(scenarios)
-    n = max(sc.tracks.num_tracks for sc in scenarios)
-    s = max(max(sc.signals.num_signals for sc in scenarios), 1)
-    edges = []
-    origins = np.zeros((b, 2), np.float64)
-    for i, sc in enumerate(scenarios):
-        origins[i] = scene_origin(sc)
-        edges.append(_road_edge_segments(sc, origins[i]))
-    e = max(max(len(x[0]) for x in edges), 1)
-
-    pose = np.zeros((b, n, n_t, 3), np.float32)
-    vel = np.zeros((b, n, n_t, 2), np.float32)
-    z = np.zeros((b, n, n_t), np.float32)
-    valid = np.zeros((b, n, n_t), bool)
-    track_id = np.full((b, n), -1, np.int64)
-    track_index = np.full((b, n), -1, np.int64)
-    obj_type = np.zeros((b, n), np.int64)
-    size = np.zeros((b, n, 3), np.float32)
-    role = np.zeros((b, n, 3), bool)
-    mask = np.zeros((b, n), bool)
-    tl_lane = np.full((b, s), -1, np.int64)
-    tl_state = np.zeros((b, s, n_t), np.int64)
-    tl_valid = np.zeros((b, s, n_t), bool)
-    tl_stop = np.zeros((b, s, 2), np.float32)
-    e_start = np.zeros((b, e, 2), np.float32)
-    e_end = np.zeros((b, e, 2), np.float32)
-    e_valid = np.zeros((b, e), bool)
-    e_prev = np.tile(np.arange(e), (b, 1))
-    e_next = np.tile(np.arange(e), (b, 1))
-    to_tl = np.asarray(C.SIGNAL_TO_TL_STATE, np.int64)
-    for i, sc in enumerate(scenarios):
-        t = sc.tracks
-        a = t.num_tracks
-        v = t.valid
-        pose[i, :a, :, 0] = np.where(v, t.xyz[..., 0] - origins[i, 0], 0.0)
-        pose[i, :a, :, 1] = np.where(v, t.xyz[..., 1] - origins[i, 1], 0.0)
-        pose[i, :a, :, 2] = np.where(v, t.heading, 0.0)
-        vel[i, :a] = np.where(v[..., None], t.velocity, 0.0)
-        z[i, :a] = np.where(v, t.xyz[..., 2], 0.0)
-        valid[i, :a] = v
-        track_id[i, :a] = t.id
-        track_index[i, :a] = np.arange(a)
-        obj_type[i, :a] = t.object_type
-        size[i, :a] = _agent_sizes(sc, start_step)
-        role[i, :a] = sc.role_mask()
-        mask[i, :a] = True
-        sig = sc.signals
-        k = sig.num_signals
-        tl_lane[i, :k] = sig.lane_id
-        tl_state[i, :k] = np.where(sig.valid, to_tl[np.clip(sig.state, 0, 8)], 0)
-        tl_valid[i, :k] = sig.valid
-        tl_stop[i, :k] = sig.stop_point[:, :2] - origins[i]
-        st, en, pr, nx = edges[i]
-        ne = len(st)
-        e_start[i, :ne], e_end[i, :ne], e_valid[i, :ne] = st, en, True
-        e_prev[i, :ne], e_next[i, :ne] = pr, nx
-
+    n_t = _check_time_grid(scenarios, start_step)
     dev = torch.device(device)
-
-    def tt(x: np.ndarray) -> torch.Tensor:
-        return torch.from_numpy(x).to(dev)
-
-    log_pose, log_vel, log_valid = tt(pose), tt(vel), tt(valid)
-    log_speed = signed_speed(log_vel, log_pose[..., 2]) * log_valid
-    steps = np.arange(n_t)
-    first = np.where(valid, steps, n_t).min(axis=-1)
-    log = LogTrajectory(
-        pose=log_pose,
-        speed=log_speed,
-        velocity=log_vel,
-        z=tt(z),
-        valid=log_valid,
-        first_valid=tt(first.astype(np.int64)),
-    )
-    step = torch.full((b,), start_step, dtype=torch.int64, device=dev)
+    origins = np.stack([scene_origin(sc) for sc in scenarios]).astype(np.float64)
+    edges = [_road_edge_segments(sc, origins[i]) for i, sc in enumerate(scenarios)]
+    tracks = _padded_tracks(scenarios, origins, n_t, start_step)
+    log = _log_trajectory(tracks, dev)
+    b, n = tracks["mask"].shape
+    fields = ("track_id", "track_index", "object_type", "size", "role", "mask")
+    agents = AgentInfo(**{k: _tensor(tracks[k], dev) for k in fields})
     return SimState(
-        step=step,
-        pose=log_pose[:, :, start_step].clone(),
-        speed=log_speed[:, :, start_step].clone(),
-        valid=log_valid[:, :, start_step].clone(),
+        step=torch.full((b,), start_step, dtype=torch.int64, device=dev),
+        pose=log.pose[:, :, start_step].clone(),
+        speed=log.speed[:, :, start_step].clone(),
+        valid=log.valid[:, :, start_step].clone(),
         controlled=torch.zeros((b, n), dtype=torch.bool, device=dev),
-        agents=AgentInfo(
-            track_id=tt(track_id),
-            track_index=tt(track_index),
-            object_type=tt(obj_type),
-            size=tt(size),
-            role=tt(role),
-            mask=tt(mask),
-        ),
+        agents=agents,
         log=log,
-        signals=SignalLog(
-            lane_id=tt(tl_lane), state=tt(tl_state), valid=tt(tl_valid), stop_point=tt(tl_stop)
-        ),
-        road_edges=RoadEdges(
-            start=tt(e_start),
-            end=tt(e_end),
-            valid=tt(e_valid),
-            prev_index=tt(e_prev),
-            next_index=tt(e_next),
-            grid=build_edge_grid([(x[0], x[1]) for x in edges], dev),
-        ),
-        origin=tt(origins),
+        signals=_padded_signals(scenarios, origins, n_t, dev),
+        road_edges=_padded_edges(edges, dev),
+        origin=_tensor(origins, dev),
     )
