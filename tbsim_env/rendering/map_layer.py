@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from tbsim_env.constants import LaneType, MapFeatureType, RoadEdgeType, RoadLineType
-from tbsim_env.data.scenario import Scenario
+from tbsim_env.data.scenario import RoadMap, Scenario
 from tbsim_env.rendering import palette as P
 from tbsim_env.rendering.view import View
 
@@ -196,6 +196,122 @@ def _width_px(width_m: float, mpp: float, min_px: int, ss: int) -> int:
     return max(min_px * ss, int(round(width_m / mpp)))
 
 
+@dataclass(frozen=True)
+class _Canvas:
+    """What every map-drawing step shares: the drawing, the supersampled view, the map."""
+
+    draw: ImageDraw.ImageDraw
+    view: View  # supersampled
+    ss: int
+    road_map: RoadMap
+    visible: np.ndarray  # [F] bool, the feature may touch the view
+
+    def features(self, kind: MapFeatureType) -> np.ndarray:
+        """Indices of the visible features of one type."""
+        return np.flatnonzero((self.road_map.feature_type == int(kind)) & self.visible)
+
+    def pixels(self, k: int) -> np.ndarray:
+        """[P, 2] pixel coordinates of feature ``k``'s polyline."""
+        # PIL puts integer coordinates on pixel centres; ours put them on pixel corners.
+        return self.view.to_pixels(self.road_map.polylines[k][:, :2]) - 0.5
+
+    def width(self, width_m: float, min_px: int) -> int:
+        return _width_px(width_m, self.view.meters_per_pixel, min_px, self.ss)
+
+
+def _flat(uv: np.ndarray) -> list[float]:
+    return uv.reshape(-1).tolist()
+
+
+def _visible_features(road_map: RoadMap, view: View) -> np.ndarray:
+    """[F] bool: the feature's bounding box, grown by the widest stroke, touches ``view``."""
+    x0, x1, y0, y1 = view.extent
+    slack = 2.0 * P.ROAD_EDGE_WIDTH_M + 2.0 * P.STOP_SIGN_RADIUS_M + 4 * view.meters_per_pixel
+    polys = road_map.polylines
+    bb = np.array(
+        [(p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max()) for p in polys]
+    ).reshape(-1, 4)
+    return (
+        (bb[:, 1] >= x0 - slack)
+        & (bb[:, 0] <= x1 + slack)
+        & (bb[:, 3] >= y0 - slack)
+        & (bb[:, 2] <= y1 + slack)
+    )
+
+
+def _draw_areas(c: _Canvas) -> None:
+    """Driveways, crosswalks and speed bumps as translucent polygons."""
+    for kind, color in (
+        (MapFeatureType.DRIVEWAY, P.DRIVEWAY),
+        (MapFeatureType.CROSSWALK, P.CROSSWALK),
+        (MapFeatureType.SPEED_BUMP, P.SPEED_BUMP),
+    ):
+        for k in c.features(kind):
+            uv = c.pixels(k)
+            if uv.shape[0] >= 3:
+                c.draw.polygon(_flat(uv), fill=color)
+            elif uv.shape[0] == 2:
+                c.draw.line(_flat(uv), fill=color, width=c.width(1.0, 1))
+
+
+def _draw_lanes(c: _Canvas) -> None:
+    """Lane centre lines (bike lanes in their own colour)."""
+    width = c.width(P.LANE_CENTER_WIDTH_M, P.LANE_CENTER_MIN_PX)
+    for k in c.features(MapFeatureType.LANE):
+        uv = c.pixels(k)
+        if uv.shape[0] >= 2:
+            bike = c.road_map.subtype[k] == LaneType.BIKE_LANE
+            c.draw.line(_flat(uv), fill=P.BIKE_LANE_CENTER if bike else P.LANE_CENTER, width=width)
+
+
+def _draw_road_lines(c: _Canvas) -> None:
+    """Road lines, dashed / doubled by subtype."""
+    mpp = c.view.meters_per_pixel
+    w_line = c.width(P.ROAD_LINE_WIDTH_M, P.ROAD_LINE_MIN_PX)
+    gap_px = P.DOUBLE_LINE_GAP_M / mpp
+    for k in c.features(MapFeatureType.ROAD_LINE):
+        uv = c.pixels(k)
+        if uv.shape[0] < 2:
+            continue
+        color, strokes = road_line_style(c.road_map.subtype[k])
+        width = w_line
+        if len(strokes) == 2 and gap_px < w_line:
+            # Too small to separate the two strokes: one wider stroke, solid if either is.
+            strokes, width = ((0, strokes[0][1] and strokes[1][1]),), 2 * w_line
+        for side, dashed in strokes:
+            # Image rows grow downwards, so the image-space left normal is the world right.
+            line = offset_polyline(uv, -side * gap_px) if side else uv
+            pieces = dash_runs(line, P.DASH_M / mpp, P.GAP_M / mpp) if dashed else [line]
+            for piece in pieces:
+                c.draw.line(_flat(piece), fill=color, width=width)
+
+
+def _draw_road_edges(c: _Canvas) -> None:
+    """Road edges (medians in their own colour)."""
+    width = c.width(P.ROAD_EDGE_WIDTH_M, P.ROAD_EDGE_MIN_PX)
+    for k in c.features(MapFeatureType.ROAD_EDGE):
+        uv = c.pixels(k)
+        if uv.shape[0] >= 2:
+            median = c.road_map.subtype[k] == RoadEdgeType.MEDIAN
+            color = P.ROAD_EDGE_MEDIAN if median else P.ROAD_EDGE_BOUNDARY
+            c.draw.line(_flat(uv), fill=color, width=width, joint="curve")
+
+
+def _draw_stop_signs(c: _Canvas) -> None:
+    """Stop signs: red octagons."""
+    r = max(P.STOP_SIGN_MIN_PX * c.ss, P.STOP_SIGN_RADIUS_M / c.view.meters_per_pixel)
+    for k in c.features(MapFeatureType.STOP_SIGN):
+        u, v = c.pixels(k)[0]
+        c.draw.regular_polygon(
+            (float(u), float(v), float(r)),
+            8,
+            rotation=22.5,
+            fill=P.STOP_SIGN,
+            outline=P.STOP_SIGN_OUTLINE,
+            width=P.STOP_SIGN_OUTLINE_PX * c.ss,
+        )
+
+
 def rasterize_map(scenario: Scenario, view: View, *, supersample: int = 1) -> np.ndarray:
     """Draw every map feature of ``scenario`` that touches ``view``.
 
@@ -213,98 +329,14 @@ def rasterize_map(scenario: Scenario, view: View, *, supersample: int = 1) -> np
     """
     ss = int(supersample)
     sv = view.scaled(ss)
-    mpp = sv.meters_per_pixel
     img = Image.new("RGB", (sv.width, sv.height), P.BACKGROUND)
-    draw = ImageDraw.Draw(img, "RGBA")
     rm = scenario.road_map
-    if rm.num_features == 0:
-        return np.asarray(img.reduce(ss) if ss > 1 else img).copy()
-
-    x0, x1, y0, y1 = view.extent
-    slack = 2.0 * P.ROAD_EDGE_WIDTH_M + 2.0 * P.STOP_SIGN_RADIUS_M + 4 * view.meters_per_pixel
-    polys = rm.polylines
-    bb = np.array(
-        [(p[:, 0].min(), p[:, 0].max(), p[:, 1].min(), p[:, 1].max()) for p in polys]
-    ).reshape(-1, 4)
-    visible = (
-        (bb[:, 1] >= x0 - slack)
-        & (bb[:, 0] <= x1 + slack)
-        & (bb[:, 3] >= y0 - slack)
-        & (bb[:, 2] <= y1 + slack)
-    )
-    ftype = rm.feature_type
-    sub = rm.subtype
-
-    def px(k: int) -> np.ndarray:
-        # PIL puts integer coordinates on pixel centres; ours put them on pixel corners.
-        return sv.to_pixels(polys[k][:, :2]) - 0.5
-
-    def flat(uv: np.ndarray) -> list[float]:
-        return uv.reshape(-1).tolist()
-
-    # Translucent polygons.
-    for kind, color in (
-        (MapFeatureType.DRIVEWAY, P.DRIVEWAY),
-        (MapFeatureType.CROSSWALK, P.CROSSWALK),
-        (MapFeatureType.SPEED_BUMP, P.SPEED_BUMP),
-    ):
-        for k in np.flatnonzero((ftype == int(kind)) & visible):
-            uv = px(k)
-            if uv.shape[0] >= 3:
-                draw.polygon(flat(uv), fill=color)
-            elif uv.shape[0] == 2:
-                draw.line(flat(uv), fill=color, width=_width_px(1.0, mpp, 1, ss))
-
-    # Lane centre lines.
-    w_lane = _width_px(P.LANE_CENTER_WIDTH_M, mpp, P.LANE_CENTER_MIN_PX, ss)
-    for k in np.flatnonzero((ftype == int(MapFeatureType.LANE)) & visible):
-        uv = px(k)
-        if uv.shape[0] >= 2:
-            color = P.BIKE_LANE_CENTER if sub[k] == LaneType.BIKE_LANE else P.LANE_CENTER
-            draw.line(flat(uv), fill=color, width=w_lane)
-
-    # Road lines, dashed / doubled by subtype.
-    w_line = _width_px(P.ROAD_LINE_WIDTH_M, mpp, P.ROAD_LINE_MIN_PX, ss)
-    gap_px = P.DOUBLE_LINE_GAP_M / mpp
-    for k in np.flatnonzero((ftype == int(MapFeatureType.ROAD_LINE)) & visible):
-        uv = px(k)
-        if uv.shape[0] < 2:
-            continue
-        color, strokes = road_line_style(sub[k])
-        if len(strokes) == 2 and gap_px < w_line:
-            # Too small to separate the two strokes: one wider stroke, solid if either is.
-            strokes = ((0, strokes[0][1] and strokes[1][1]),)
-            width = 2 * w_line
-        else:
-            width = w_line
-        for side, dashed in strokes:
-            # Image rows grow downwards, so the image-space left normal is the world right.
-            line = offset_polyline(uv, -side * gap_px) if side else uv
-            pieces = dash_runs(line, P.DASH_M / mpp, P.GAP_M / mpp) if dashed else [line]
-            for piece in pieces:
-                draw.line(flat(piece), fill=color, width=width)
-
-    # Road edges.
-    w_edge = _width_px(P.ROAD_EDGE_WIDTH_M, mpp, P.ROAD_EDGE_MIN_PX, ss)
-    for k in np.flatnonzero((ftype == int(MapFeatureType.ROAD_EDGE)) & visible):
-        uv = px(k)
-        if uv.shape[0] >= 2:
-            color = P.ROAD_EDGE_MEDIAN if sub[k] == RoadEdgeType.MEDIAN else P.ROAD_EDGE_BOUNDARY
-            draw.line(flat(uv), fill=color, width=w_edge, joint="curve")
-
-    # Stop signs: red octagons.
-    r = max(P.STOP_SIGN_MIN_PX * ss, P.STOP_SIGN_RADIUS_M / mpp)
-    for k in np.flatnonzero((ftype == int(MapFeatureType.STOP_SIGN)) & visible):
-        u, v = px(k)[0]
-        draw.regular_polygon(
-            (float(u), float(v), float(r)),
-            8,
-            rotation=22.5,
-            fill=P.STOP_SIGN,
-            outline=P.STOP_SIGN_OUTLINE,
-            width=P.STOP_SIGN_OUTLINE_PX * ss,
-        )
-
+    if rm.num_features:
+        visible = _visible_features(rm, view)
+        canvas = _Canvas(ImageDraw.Draw(img, "RGBA"), sv, ss, rm, visible)
+        for step in (_draw_areas, _draw_lanes, _draw_road_lines, _draw_road_edges):
+            step(canvas)
+        _draw_stop_signs(canvas)
     if ss > 1:
         img = img.reduce(ss)
     return np.asarray(img).copy()
