@@ -228,6 +228,7 @@ def feature_samples(scenario: Scenario, rollouts: Rollouts) -> dict[str, tuple[n
     """
     from tbsim_env.metrics.wosac.features import compute_metric_features
     from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_light_map
+    from tbsim_env.metrics.wosac.scoring import scored_scenario
     from tbsim_env.metrics.wosac.trajectories import (
         concat_rollouts,
         log_trajectories,
@@ -235,6 +236,7 @@ def feature_samples(scenario: Scenario, rollouts: Rollouts) -> dict[str, tuple[n
         simulated_trajectories,
     )
 
+    scenario = scored_scenario(scenario)  # the steps WOSAC scores
     first = scenario.current_index + 1
     objects = select_objects(scenario)
     log = log_trajectories(scenario, objects, "cpu")

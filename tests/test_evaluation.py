@@ -244,3 +244,18 @@ def test_token_cache_keeps_an_lru_of_shards_and_joins_folders(tmp_path, monkeypa
             open_training_data(bad)
     with pytest.raises(CacheError):
         open_training_data(str(tmp_path / "missing"))
+
+
+def test_feature_samples_of_a_scene_logged_beyond_the_wosac_horizon(womd_dir):
+    """A 20 s ScenarioNet scene (198 steps) gives histogram samples over the 80 scored steps,
+    as scoring cuts it."""
+    from tbsim_env.data import load_scenarios
+    from tbsim_env.evaluation import feature_samples
+
+    path = womd_dir / "scenarionet_more" / "metadrive" / "0_at_f3b1e7b105.pkl"
+    sc = load_scenarios(path)[0]
+    assert sc.num_steps > 91
+    r = linear_extrapolation_rollouts(sc, num_rollouts=2)
+    samples = feature_samples(sc, r)
+    speed_log, speed_sim = samples["linear_speed"]
+    assert len(speed_log) > 0 and len(speed_sim) == pytest.approx(2 * len(speed_log), rel=0.2)

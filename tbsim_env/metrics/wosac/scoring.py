@@ -239,7 +239,7 @@ class ScenarioFeatures:
     log_valid: torch.Tensor
 
 
-def _scored(scenario: Scenario) -> Scenario:
+def scored_scenario(scenario: Scenario) -> Scenario:
     """The scenario as WOSAC scores it: a scene logged beyond the 80 steps after the current
     one (WOMD's 20 s scenes) is cut to its first ``current + 81`` steps."""
     end = scenario.current_index + 1 + NUM_FUTURE
@@ -287,7 +287,7 @@ def scenario_features(
         MissingFutureError: the log does not cover the rollouts' steps (a history-only scene).
         MapFeatureError: the scenario has no road edge.
     """
-    scenario = _scored(scenario)
+    scenario = scored_scenario(scenario)
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     edges = road_edge_segments(scenario, log.x.device)
@@ -319,7 +319,7 @@ def offroad_indication(
     Raises:
         ScoringError, MissingFutureError, MapFeatureError: as ``score_scenario``.
     """
-    scenario = _scored(scenario)
+    scenario = scored_scenario(scenario)
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     dist = distance_to_road_edge(
