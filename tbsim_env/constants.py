@@ -209,6 +209,9 @@ MAP_KNN_CLUSTERS = 16
 MAP_KNN_MARGIN = 0.05
 """m: the clustered search holds when its k-th distance is this far below the bound on every
 piece left out (5 buckets of ``KNN_DISTANCE_RESOLUTION``, far above float32 rounding)."""
+MAP_KNN_MIN_OBSERVERS = 8
+"""Observers per row from which the clustered search pays (fewer: every piece is measured,
+in fewer tensor operations)."""
 MAP_KNN_RADIUS_PAD = 0.01
 """m added to a cluster's radius (float32 rounding of its centre and members)."""
 

@@ -333,14 +333,16 @@ def _nearest_pieces(
     """The k nearest map pieces of each observer ``me_xy`` [B, Q, 2]: (indices, distances)
     [B, Q, k], equal to ``_nearest`` over every piece.
 
-    Eagerly, maps with more pieces than the clustered search measures use it (``map_knn``),
-    and the observers it does not hold for (~1% on the real samples) are searched in full. A
-    compiled graph cannot size tensors by that; it searches every piece (fused, that costs
-    less there than the gathers of the clustered search).
+    Eagerly, maps with more pieces than the clustered search measures use it (``map_knn``)
+    when a row has ``MAP_KNN_MIN_OBSERVERS`` observers or more; the observers it does not
+    hold for (~1% on the real samples) are searched in full. A compiled graph cannot size
+    tensors by that; it searches every piece (fused, that costs less there than the gathers
+    of the clustered search).
     """
     searched, size = C.MAP_KNN_CLUSTERS, ctx.clusters.members.shape[-1]
     m = ctx.pose.shape[1]
     clustered = ctx.clusters.num_clusters > searched and m > 2 * searched * size
+    clustered = clustered and me_xy.shape[1] >= C.MAP_KNN_MIN_OBSERVERS
     if not clustered or torch.compiler.is_compiling():
         return _all_pieces(ctx.knn_xy[:, :, :m], me_xy, k)
     cand, bound = candidate_pieces(ctx.clusters, me_xy, searched)
