@@ -218,6 +218,17 @@ def _report(scores, json_path: str | None, dataset: bool = False) -> None:
         print(f"wrote {json_path}")
 
 
+def _score_shards(task, shards: list, work: Path, args: cfg.WosacScore | cfg.Evaluate) -> int:
+    """Run scoring shards (resumable, Ray with --ray), then print the dataset table."""
+    from tbsim_env import distributed as D
+
+    report = D.run_shards(task, shards, work, _executor(args))
+    _print_run(report, work)
+    D.require_complete(report, work)
+    _report(D.merge_scores(work, shards), args.json, dataset=True)
+    return 0
+
+
 def _score_sharded(args: cfg.WosacScore, paths: list[Path]) -> int:
     from tbsim_env import distributed as D
 
@@ -227,12 +238,7 @@ def _score_sharded(args: cfg.WosacScore, paths: list[Path]) -> int:
     ]
     work = Path(args.work_dir or f"{args.submission.rstrip('/')}.scores")
     data = tuple(os.path.abspath(d) for d in args.data)
-    task = D.ScoreTask(data, args.version, args.skip_bad)
-    report = D.run_shards(task, shards, work, _executor(args))
-    _print_run(report, work)
-    D.require_complete(report, work)
-    _report(D.merge_scores(work, shards), args.json, dataset=True)
-    return 0
+    return _score_shards(D.ScoreTask(data, args.version, args.skip_bad), shards, work, args)
 
 
 def _cmd_wosac_score(args: cfg.WosacScore) -> int:
@@ -261,11 +267,7 @@ def _evaluate_sharded(args: cfg.Evaluate) -> int:
     work = Path(args.work_dir or f"tbsim-evaluate-{args.policy}.shards")
     shards = D.plan_shards(args.data, "scores-{k:05d}-of-{n:05d}.json", args.shard_size)
     task = D.EvaluateTask(_settings(args), args.version, args.skip_bad)
-    report = D.run_shards(task, shards, work, _executor(args))
-    _print_run(report, work)
-    D.require_complete(report, work)
-    _report(D.merge_scores(work, shards), args.json, dataset=True)
-    return 0
+    return _score_shards(task, shards, work, args)
 
 
 def _cmd_evaluate(args: cfg.Evaluate) -> int:
