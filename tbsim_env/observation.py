@@ -405,6 +405,33 @@ class IndexedObservation:
     sizes: tuple[int, int, int]
 
 
+def agent_tokens(
+    state: SimState,
+    history: History,
+    static: torch.Tensor,
+    slots: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Agent tokens: each agent's history in its own current frame (zero where invalid), the
+    history mask, its attributes (static features, speed).
+
+    Args:
+        state: current state.
+        history: ``History`` ending at the current step.
+        static: [B, N, 6] ``agent_static_features``.
+        slots: optional [B, S] int64 slots to describe (every slot by default).
+
+    Returns:
+        [B, N or S, H * 5 + H + 7] float32.
+    """
+    data, pose, speed_now = history.data, state.pose, state.speed
+    if slots is not None:
+        data, pose = gather_rows(data, slots), gather_rows(pose, slots)
+        static, speed_now = gather_rows(static, slots), gather_rows(speed_now, slots)
+    x, y, yaw, speed, valid = data.unbind(-1)  # [B, S, H], valid as 0 / 1
+    hist = _history_features(x, y, yaw, speed, pose) * valid.unsqueeze(-1)
+    return torch.cat([hist.flatten(-2), valid, static, speed_now[..., None]], -1)
+
+
 def observe_indexed(
     state: SimState,
     history: History,
@@ -413,6 +440,7 @@ def observe_indexed(
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
     agent_distance: torch.Tensor | None = None,
+    compact_agents: bool = False,
 ) -> IndexedObservation:
     """Observations of the ``observers`` agents, by token index (see ``IndexedObservation``).
 
@@ -427,13 +455,13 @@ def observe_indexed(
         agent_distance: optional [B, Q, N] centre distances of the observers to every agent
             slot at the current poses (``StepMetrics.agent_distance`` with the observers as
             query); computed when None.
+        compact_agents: when the observers see fewer slots than there are (Q (1 + Ka) < N),
+            compute the agent tokens of the seen slots only: ``agent_tokens`` then has a row
+            per observer and neighbour instead of per slot (``ego`` and the agent part of
+            ``index`` refer to those rows), for ``densify``, which gives the same dense
+            observation either way.
     """
     static = agent_static_features(state) if agent_static is None else agent_static
-    # Every agent's history in its own current frame, zero where invalid: [B, N, H, 5].
-    x, y, yaw, speed, valid = history.data.unbind(-1)  # [B, N, H], valid as 0 / 1
-    hist = _history_features(x, y, yaw, speed, state.pose)
-    hist = hist * valid.unsqueeze(-1)
-    tokens = torch.cat([hist.flatten(-2), valid, static, state.speed[..., None]], -1)
     me = gather_rows(state.pose, observers)  # [B, Q, 3]
     me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
 
@@ -466,6 +494,15 @@ def observe_indexed(
         gather_rows(ctx.tl_pose, t_idx),
     ]
     rel = relative_pose(me[:, :, None], torch.cat(poses, 2))
+    q, ka = observers.shape[1], cfg.num_agents
+    if compact_agents and q * (1 + ka) < n:
+        # Tokens of the seen slots only, each observer's own row and then its neighbours'.
+        slots = torch.cat([observers.unsqueeze(-1), a_idx], -1).flatten(1)  # [B, Q (1 + Ka)]
+        tokens = agent_tokens(state, history, static, slots)
+        observers = cached_arange(q, state.device).expand_as(observers) * (1 + ka)
+        a_idx = observers.unsqueeze(-1) + 1 + cached_arange(ka, state.device)
+    else:
+        tokens = agent_tokens(state, history, static)
     index = torch.cat([a_idx, m_idx, t_idx], -1)
     return IndexedObservation(
         agent_tokens=tokens,
@@ -539,7 +576,9 @@ def observe(
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
     """
-    ind = observe_indexed(state, history, ctx, observers, cfg, agent_static, agent_distance)
+    ind = observe_indexed(
+        state, history, ctx, observers, cfg, agent_static, agent_distance, compact_agents=True
+    )
     return densify(ind, cfg.tokens.piece_segments)
 
 

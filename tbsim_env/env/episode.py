@@ -350,7 +350,14 @@ def step(
     history = push_history(state.history, sim)
     # Removals leave every pose as step_metrics saw it: its agent distances serve.
     obs = observe_indexed(
-        sim, history, setup.ctx, setup.query, config.obs, setup.static, metrics.agent_distance
+        sim,
+        history,
+        setup.ctx,
+        setup.query,
+        config.obs,
+        setup.static,
+        metrics.agent_distance,
+        compact_agents=config.dense,
     )
     stale = None
     if torch.compiler.is_compiling():
@@ -393,10 +400,20 @@ def remove_agents(sim: SimState, query: torch.Tensor, remove: torch.Tensor) -> S
 
 
 # ---------------------------------------------------------------------- reading
-def observe_state(state: EpisodeState, obs: ObsConfig) -> IndexedObservation:
-    """Observations of the query agents in the current state (as ``step`` makes them)."""
+def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation | dict:
+    """Observations of the query agents in the current state, as ``step`` makes them (the
+    dense dict with ``config.dense``)."""
     setup = state.setup
-    return observe_indexed(state.sim, state.history, setup.ctx, setup.query, obs, setup.static)
+    obs = observe_indexed(
+        state.sim,
+        state.history,
+        setup.ctx,
+        setup.query,
+        config.obs,
+        setup.static,
+        compact_agents=config.dense,
+    )
+    return densify(obs, config.obs.tokens.piece_segments) if config.dense else obs
 
 
 def agent_infos(state: EpisodeState, metrics: StepMetrics) -> dict[str, torch.Tensor]:

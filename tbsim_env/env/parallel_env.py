@@ -54,7 +54,7 @@ from tbsim_env.env.setup import (
     select_scenarios,
 )
 from tbsim_env.errors import ActionError
-from tbsim_env.observation import ObsConfig, densify, observation_space
+from tbsim_env.observation import ObsConfig, observation_space
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import torch_threads
 
@@ -289,9 +289,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         ks = torch.zeros(1, dtype=torch.int64, device=self.device)
         state, metrics = ep.start(bank, ks, self._step_config)
         names = [agent_name(sc.tracks.id[i]) for i in query]
-        obs = densify(
-            ep.observe_state(state, self.obs_config), self.obs_config.tokens.piece_segments
-        )
+        obs = ep.observe_state(state, self._step_config)
         columns, _, _ = self._info_columns(state, metrics, None)
         infos = {a: {c: v[j] for c, v in columns.items()} for j, a in enumerate(names)}
         slot_of = {n: j for j, n in enumerate(names)}

@@ -422,10 +422,7 @@ class BatchedTrafficEnv:
     # ------------------------------------------------------------------ packaging
     def _observe(self, state: EpisodeState) -> dict[str, torch.Tensor]:
         """The observation dict of ``state``'s rows (their agents outside ``alive`` zero)."""
-        obs = ep.observe_state(state, self.obs_config)
-        if self._step_config.dense:
-            obs = densify(obs, self.obs_config.tokens.piece_segments)
-        return self._package(obs, state.alive, state)
+        return self._package(ep.observe_state(state, self._step_config), state.alive, state)
 
     def _package(
         self,
