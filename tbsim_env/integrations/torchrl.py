@@ -103,7 +103,7 @@ def observation_specs(env: BatchedTrafficEnv, device: torch.device) -> tuple[dic
     cfg = ep.StepConfig(env.config, env.obs_config, dense=False)
     with torch.no_grad():
         state, _ = ep.start(env.bank, torch.zeros(1, dtype=torch.int64, device=env.device), cfg)
-        probe = ep.observe_state(state, env.obs_config)
+        probe = ep.observe_state(state, cfg)
     k = probe.index.shape[-1]
     unit = gym.spaces.Box(0.0, 1.0, (), np.float32)
 
