@@ -28,6 +28,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from safetensors.torch import load_file, save_file
@@ -231,12 +232,21 @@ class _Logger:
             self.tb.close()
 
 
-def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
-    """Train (or resume) a TrafficBots model; returns the last logged scalars.
+@dataclass(frozen=True)
+class _Process:
+    """This process's place in a (possibly distributed) run."""
 
-    Runs distributed when launched by ``torchrun`` (``WORLD_SIZE`` > 1): one process per GPU
-    (NCCL) or per CPU worker (Gloo), gradients averaged by ``DistributedDataParallel``.
-    """
+    world: int
+    rank: int
+    device: torch.device
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def _start_process(cfg: TrainConfig) -> _Process:
+    """The device, threads and process group of this process (``torchrun`` sets the env)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
@@ -251,14 +261,16 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         torch.distributed.init_process_group(backend=backend)
     if device.type == "cuda":
         torch.cuda.set_device(device)
-    main = rank == 0
-    out = Path(cfg.out)
-    if main:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    return _Process(world, rank, device)
 
-    torch.manual_seed(cfg.seed + rank)
-    model = TrafficBots(cfg.model_config()).to(device)
+
+def _model_and_optimizer(
+    cfg: TrainConfig, proc: _Process, out: Path
+) -> tuple[TrafficBots, torch.optim.Optimizer, AveragedModel | None, int]:
+    """(model, optimizer, EMA or None, first step): resumed from ``out``, fine-tuned from
+    ``cfg.init``, or new."""
+    torch.manual_seed(cfg.seed + proc.rank)
+    model = TrafficBots(cfg.model_config()).to(proc.device)
     opt = torch.optim.AdamW(
         model.parameters(),
         lr=cfg.lr,
@@ -266,15 +278,14 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         betas=(cfg.beta1, cfg.beta2),
     )
     start = 0
-    last = out / "last"
     if (out / "last.safetensors").exists() and (out / "optimizer.json").exists():
-        load_state_into(model, last)
+        load_state_into(model, out / "last")
         start = _optimizer_state_from_files(opt, out / "optimizer")
-        if main:
+        if proc.main:
             print(f"resuming {out} from step {start}")
     elif cfg.init:
         load_state_into(model, cfg.init)  # CheckpointError names the file and the mismatch
-        if main:
+        if proc.main:
             print(f"fine-tuning from {cfg.init}")
     ema = None
     if cfg.ema_decay is not None:
@@ -284,21 +295,18 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         if (out / "ema.safetensors").exists() and start > 0:
             load_state_into(ema.module, out / "ema")
             ema.n_averaged.fill_(start)
-    objective: torch.nn.Module = TrainingObjective(model)
-    if world > 1:
-        # Prior-latent batches leave the posterior encoders unused: find_unused_parameters.
-        # device_ids=None: the module lives on one device, and DDP must not try to scatter
-        # the TokenBatch input.
-        objective = torch.nn.parallel.DistributedDataParallel(
-            objective, device_ids=None, find_unused_parameters=True
-        )
+    return model, opt, ema, start
 
+
+def _loader(cfg: TrainConfig, proc: _Process, start: int) -> tuple[DataLoader, Any]:
+    """(data loader, its sampler) over the token cache: random with replacement on one
+    process, a ``DistributedSampler`` over several."""
     data = open_training_data(cfg.data, max_shards=cfg.cache_shards or None)
     if len(data) == 0:
         raise ValueError(f"token cache {cfg.data} is empty")
-    gen = torch.Generator().manual_seed(cfg.seed + 1000 * rank + start)
-    if world > 1:
-        sampler = DistributedSampler(data, num_replicas=world, rank=rank, seed=cfg.seed)
+    gen = torch.Generator().manual_seed(cfg.seed + 1000 * proc.rank + start)
+    if proc.world > 1:
+        sampler = DistributedSampler(data, num_replicas=proc.world, rank=proc.rank, seed=cfg.seed)
     else:
         sampler = RandomSampler(data, replacement=True, num_samples=10**9, generator=gen)
     loader = DataLoader(
@@ -310,43 +318,81 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         persistent_workers=cfg.workers > 0,
         drop_last=True,
     )
-    if world > 1 and len(loader) == 0:
+    if proc.world > 1 and len(loader) == 0:
         raise ValueError(
-            f"{len(data)} scenes cannot fill one batch of {cfg.batch_size} on each of {world} "
-            "processes; lower --batch-size or add data"
+            f"{len(data)} scenes cannot fill one batch of {cfg.batch_size} on each of "
+            f"{proc.world} processes; lower --batch-size or add data"
         )
-    use_amp = cfg.amp and device.type == "cuda"
+    return loader, sampler
+
+
+def _batches(loader: DataLoader, sampler: Any):
+    """Batches forever (a ``DistributedSampler`` gets the next epoch after each pass)."""
+    epoch = 0
+    while True:
+        yield from loader
+        epoch += 1
+        if isinstance(sampler, DistributedSampler):
+            sampler.set_epoch(epoch)
+
+
+def _check_replicas(model: TrafficBots, world: int, scalars: dict[str, float]) -> dict:
+    """Compare a parameter checksum across the ranks (replicas must be identical), then
+    close the process group; ``scalars`` with the checksum."""
+    checksum = torch.stack([p.detach().double().sum() for p in model.parameters()]).sum()
+    sums = [torch.zeros_like(checksum) for _ in range(world)]
+    torch.distributed.all_gather(sums, checksum)
+    if any(abs(float(x) - float(sums[0])) > 1e-6 * (1 + abs(float(sums[0]))) for x in sums):
+        raise RuntimeError(f"DDP replicas diverged: parameter checksums {sums}")
+    torch.distributed.barrier()
+    torch.distributed.destroy_process_group()
+    return {**scalars, "param_checksum": float(checksum)}
+
+
+def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
+    """Train (or resume) a TrafficBots model; returns the last logged scalars.
+
+    Runs distributed when launched by ``torchrun`` (``WORLD_SIZE`` > 1): one process per GPU
+    (NCCL) or per CPU worker (Gloo), gradients averaged by ``DistributedDataParallel``.
+    """
+    proc = _start_process(cfg)
+    out = Path(cfg.out)
+    if proc.main:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
+    model, opt, ema, start = _model_and_optimizer(cfg, proc, out)
+    objective: torch.nn.Module = TrainingObjective(model)
+    if proc.world > 1:
+        # Prior-latent batches leave the posterior encoders unused: find_unused_parameters.
+        # device_ids=None: the module lives on one device, and DDP must not try to scatter
+        # the TokenBatch input.
+        objective = torch.nn.parallel.DistributedDataParallel(
+            objective, device_ids=None, find_unused_parameters=True
+        )
+    loader, sampler = _loader(cfg, proc, start)
+    use_amp = cfg.amp and proc.device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
-    logger = _Logger(out, main)
-    roll_gen = torch.Generator(device=device).manual_seed(cfg.seed + 7919 * rank + start)
+    logger = _Logger(out, proc.main)
+    roll_gen = torch.Generator(device=proc.device).manual_seed(cfg.seed + 7919 * proc.rank + start)
     model.train()
     end = cfg.steps if cfg.stop_at is None else min(cfg.stop_at, cfg.steps)
-    bar = tqdm(total=end, initial=start, desc="train", unit="step", disable=not (progress and main))
+    shown = progress and proc.main
+    bar = tqdm(total=end, initial=start, desc="train", unit="step", disable=not shown)
     scalars: dict[str, float] = {}
     t0, seen = time.perf_counter(), 0
-    epoch = 0
-    it = iter(loader)
-    step = start
-    while step < end:
-        try:
-            items = next(it)
-        except StopIteration:  # DistributedSampler: next epoch
-            epoch += 1
-            if isinstance(sampler, DistributedSampler):
-                sampler.set_epoch(epoch)
-            it = iter(loader)
-            items = next(it)
+    batches = _batches(loader, sampler)
+    for step in range(start + 1, end + 1):
+        items = next(batches)
         # The batch's used rows only (same draws and losses as the padded batch, fewer FLOPs).
-        batch = TokenBatch.from_tokens(items, device=device).trim()
-        with torch.autocast(device_type=device.type, dtype=torch.float16, enabled=use_amp):
-            loss, logs = objective(
-                batch, cfg.prior_prob, cfg.teacher_forcing(step), roll_gen, cfg.rollout_steps
-            )
+        batch = TokenBatch.from_tokens(items, device=proc.device).trim()
+        with torch.autocast(device_type=proc.device.type, dtype=torch.float16, enabled=use_amp):
+            tf = cfg.teacher_forcing(step - 1)
+            loss, logs = objective(batch, cfg.prior_prob, tf, roll_gen, cfg.rollout_steps)
         if not math.isfinite(float(loss.detach())):
-            raise FloatingPointError(f"non-finite loss at step {step}: {logs}")
+            raise FloatingPointError(f"non-finite loss at step {step - 1}: {logs}")
         opt.zero_grad(set_to_none=True)
         for group in opt.param_groups:
-            group["lr"] = cfg.lr_at(step)
+            group["lr"] = cfg.lr_at(step - 1)
         scaler.scale(loss).backward()
         scaler.unscale_(opt)
         grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip))
@@ -354,38 +400,22 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         scaler.update()
         if ema is not None:
             ema.update_parameters(model)
-        step += 1
-        seen += len(items) * world
+        seen += len(items) * proc.world
         bar.update(1)
         if step % cfg.log_every == 0 or step == end:
             rate = seen / (time.perf_counter() - t0)
-            scalars = {
-                **logs,
-                "grad_norm": grad_norm,
-                "scenarios_per_s": rate,
-                "teacher_forcing": cfg.teacher_forcing(step - 1),
-                "lr": cfg.lr_at(step - 1),
-            }
+            scalars = {**logs, "grad_norm": grad_norm, "scenarios_per_s": rate}
+            scalars.update(teacher_forcing=tf, lr=cfg.lr_at(step - 1))
             logger.log(step, scalars)
             bar.set_postfix(loss=f"{logs['loss']:.3f}", il=f"{logs['imitation']:.3f}")
-        if main and (step % cfg.ckpt_every == 0 or step == end):
-            save_checkpoint(model, last)
+        if proc.main and (step % cfg.ckpt_every == 0 or step == end):
+            save_checkpoint(model, out / "last")
             if ema is not None:
                 save_checkpoint(ema.module, out / "ema")
             _optimizer_state_to_files(opt, step, out / "optimizer")
     bar.close()
     logger.close()
-    if world > 1:
-        # Replicas must still be identical: compare a parameter checksum across ranks.
-        checksum = torch.stack([p.detach().double().sum() for p in model.parameters()]).sum()
-        sums = [torch.zeros_like(checksum) for _ in range(world)]
-        torch.distributed.all_gather(sums, checksum)
-        if any(abs(float(x) - float(sums[0])) > 1e-6 * (1 + abs(float(sums[0]))) for x in sums):
-            raise RuntimeError(f"DDP replicas diverged: parameter checksums {sums}")
-        scalars = {**scalars, "param_checksum": float(checksum)}
-        torch.distributed.barrier()
-        torch.distributed.destroy_process_group()
-    return scalars
+    return _check_replicas(model, proc.world, scalars) if proc.world > 1 else scalars
 
 
 def build_parser() -> argparse.ArgumentParser:
