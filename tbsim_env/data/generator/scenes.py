@@ -18,7 +18,7 @@ import numpy as np
 
 from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
 from tbsim_env.data.generator.behaviour import CALIBRATED, Behaviour
-from tbsim_env.data.generator.crossings import plan_crossings
+from tbsim_env.data.generator.crossings import CrossingPlan, plan_crossings
 from tbsim_env.data.generator.driver import (
     DriveLog,
     DriverConfig,
@@ -343,6 +343,59 @@ def _pedestrians(
     return size, xy, heading, vel, valid
 
 
+@dataclass(frozen=True)
+class _Road:
+    """A layout's road network and what its traffic draws from."""
+
+    net: RoadNetwork
+    routes: RouteTable
+    weights: np.ndarray  # [R] route weights (stop-sign sources boosted)
+    boost: np.ndarray  # [sources] spawn boost per source lane
+    observed: float  # m, half extent of the observed area
+
+
+def _road(layout: str, traffic: LayoutTraffic) -> _Road:
+    """The layout's network (grown by ``MAP_MARGIN_M`` beyond the observed area), its routes
+    and their weights."""
+    observed = LAYOUT_BUILDERS[layout]().half_extent
+    net = LAYOUT_BUILDERS[layout](observed + MAP_MARGIN_M)
+    routes = build_routes(net)
+    weights = _route_weights(routes)
+    sources = np.unique(routes.source)
+    boost = np.ones(sources.size)
+    if net.junction is not None:
+        stops = [lid for lid, k in zip(net.junction.lane_ids, net.junction.kind) if k == STOP]
+        boost = np.where(np.isin(sources, stops), traffic.stop_source_boost, 1.0)
+        weights = weights * boost[np.searchsorted(sources, routes.source)]
+    return _Road(net, routes, weights, boost, observed)
+
+
+def _drive(
+    road: _Road, n_init: int, cfg: DriverConfig, rngs: tuple[np.random.Generator, ...], crossing_fn
+) -> tuple[DriveLog, float, CrossingPlan]:
+    """(the driven log over the warm-up and the episode, the signal offset s, the crossing
+    plan): the fleet drawn, placed and simulated (``rngs`` = traffic, vulnerable users)."""
+    rng, vru = rngs
+    net, routes, weights = road.net, road.routes, road.weights
+    total_steps = int(round(cfg.warmup_s / DT)) + NUM_STEPS
+    n_src = int(np.unique(routes.source).size)
+    capacity = n_init + int(3 * cfg.inflow * n_src * total_steps * DT) + 4
+    fleet = draw_fleet(routes, weights, capacity, cfg, rng)
+    fleet = add_cyclists(fleet, weights, kerb_routes(net, routes), cfg, vru)
+    s0 = _place_initial(net, routes, fleet.route, n_init, rng, fleet.size[:, 0])
+    v0 = fleet.desired_speed * rng.uniform(0.6, 0.9, capacity)
+    placed = np.concatenate([s0 >= 0.0, np.zeros(capacity - n_init, bool)])
+    # Slots that found no spot are moved to the end and spawned later instead.
+    order = np.concatenate([np.flatnonzero(placed), np.flatnonzero(~placed)])
+    fleet = type(fleet)(**{k: getattr(fleet, k)[order] for k in fleet.__dataclass_fields__})
+    s0 = np.concatenate([s0, np.zeros(capacity - n_init)])[order]
+    offset_s = float(rng.uniform(0.0, net.signals.cycle_s)) if net.signals else 0.0
+    crossing = crossing_fn(offset_s)
+    args = (net, routes, fleet, s0, v0[order], int(placed.sum()), road.boost * cfg.inflow * DT)
+    log = simulate(*args, weights, total_steps, cfg, rng, offset_s, crossing)
+    return log, offset_s, crossing
+
+
 def generate_scenario(
     layout: str = "intersection",
     seed: int = 0,
@@ -362,7 +415,8 @@ def generate_scenario(
             cyclists and crossing pedestrians).
         num_vehicles: vehicles placed on the map at the start of the warm-up (more enter
             during the run through the map borders); None draws a layout default.
-        num_pedestrians: pedestrians on the sidewalks; None uses the layout default.
+        num_pedestrians: pedestrians on the sidewalks (none on layouts without sidewalks, e.g.
+            the merge); None uses the layout default.
         num_crossing: pedestrians who cross on the crosswalks (at most one per crosswalk,
             none on layouts without); None draws a layout default.
         behaviour: how the agents move (speeds, acceleration, headways, walking); the
@@ -388,84 +442,77 @@ def generate_scenario(
     traffic = TRAFFIC[layout]
     cfg = behaviour.driver(traffic.driver)
     rng = _rng(layout, seed)
-    observed = LAYOUT_BUILDERS[layout]().half_extent
-    net = LAYOUT_BUILDERS[layout](observed + MAP_MARGIN_M)
-    routes = build_routes(net)
-    weights = _route_weights(routes)
-    sources = np.unique(routes.source)
-    boost = np.ones(sources.size)
-    if net.junction is not None:
-        stops = [lid for lid, k in zip(net.junction.lane_ids, net.junction.kind) if k == STOP]
-        boost = np.where(np.isin(sources, stops), traffic.stop_source_boost, 1.0)
-        weights = weights * boost[np.searchsorted(sources, routes.source)]
+    road = _road(layout, traffic)
     lo, hi = traffic.initial_vehicles
     n_init = int(rng.integers(lo, hi + 1)) if num_vehicles is None else int(num_vehicles)
-    n_init = int(round(n_init * net.half_extent / observed))  # same density on longer roads
-    warm = int(round(cfg.warmup_s / DT))
-    total_steps = warm + NUM_STEPS
-    n_src = int(np.unique(routes.source).size)
-    capacity = n_init + int(3 * cfg.inflow * n_src * total_steps * DT) + 4
-    fleet = draw_fleet(routes, weights, capacity, cfg, rng)
+    n_init = int(round(n_init * road.net.half_extent / road.observed))  # same density
     vru = _vru_rng(layout, seed)
-    fleet = add_cyclists(fleet, weights, kerb_routes(net, routes), cfg, vru)
-    s0 = _place_initial(net, routes, fleet.route, n_init, rng, fleet.size[:, 0])
-    v0 = fleet.desired_speed * rng.uniform(0.6, 0.9, capacity)
-    placed = np.concatenate([s0 >= 0.0, np.zeros(capacity - n_init, bool)])
-    # Slots that found no spot are moved to the end and spawned later instead.
-    order = np.concatenate([np.flatnonzero(placed), np.flatnonzero(~placed)])
-    fleet = type(fleet)(**{k: getattr(fleet, k)[order] for k in fleet.__dataclass_fields__})
-    s0 = np.concatenate([s0, np.zeros(capacity - n_init)])[order]
-    n_placed = int(placed.sum())
-    offset_s = float(rng.uniform(0.0, net.signals.cycle_s)) if net.signals else 0.0
-    lo, hi = traffic.crossing_pedestrians
-    if num_crossing is None:
-        num_crossing = int(vru.integers(lo, hi + 1)) if hi > 0 else 0
-    crossing = plan_crossings(
-        net, num_crossing, vru, cfg.warmup_s, offset_s, behaviour.crossing_speed
-    )
-    log = simulate(
-        net,
-        routes,
-        fleet,
-        s0,
-        v0[order],
-        n_placed,
-        boost * cfg.inflow * DT,
-        weights,
-        total_steps,
-        cfg,
-        rng,
-        offset_s,
-        crossing,
-    )
-    window = slice(warm, warm + NUM_STEPS)
-    slot, vxy, vhead, vvel, vvalid = _vehicle_tracks(routes, log, window)
+
+    def crossing_fn(offset_s: float) -> CrossingPlan:
+        lo, hi = traffic.crossing_pedestrians
+        n = num_crossing
+        if n is None:
+            n = int(vru.integers(lo, hi + 1)) if hi > 0 else 0
+        return plan_crossings(road.net, n, vru, cfg.warmup_s, offset_s, behaviour.crossing_speed)
+
+    log, offset_s, crossing = _drive(road, n_init, cfg, (rng, vru), crossing_fn)
     n_ped = traffic.pedestrians if num_pedestrians is None else num_pedestrians
-    psize, pxy, phead, pvel, pvalid = _pedestrians(
-        net, n_ped, rng, observed, behaviour, _ped_rng(layout, seed)
+    walkers = _pedestrians(road.net, n_ped, rng, road.observed, behaviour, _ped_rng(layout, seed))
+    tracks, n_tracks = _tracks(road, log, crossing, walkers, rng, cfg)
+    predict = _tracks_to_predict(tracks, tracks.object_type.astype(np.int64), tracks.valid)
+    return (
+        Scenario(
+            scenario_id=f"gen-{layout}-{seed:04d}",
+            timestamps=DT * np.arange(NUM_STEPS, dtype=np.float64),
+            current_index=CURRENT_INDEX,
+            tracks=tracks,
+            road_map=to_road_map(road.net),
+            signals=_signals(road.net, offset_s),
+            sdc_index=n_tracks - 1,
+            tracks_to_predict=predict,
+            predict_difficulty=np.ones(predict.size, np.int8),
+            objects_of_interest=np.zeros(0, np.int64),
+            source=f"<generated {layout} seed {seed}>",
+        )
+        .transformed(shift=frame_offset(layout, seed))
+        .validate()
     )
+
+
+def _tracks(
+    road: _Road,
+    log: DriveLog,
+    crossing: CrossingPlan,
+    walkers: tuple[np.ndarray, ...],
+    rng: np.random.Generator,
+    cfg: DriverConfig,
+) -> tuple[Tracks, int]:
+    """(the ``Tracks`` of the episode window, their count): vehicles and cyclists, then
+    sidewalk and crossing pedestrians, objects never in the observed area dropped, the SDC
+    last; track ids drawn from ``rng``."""
+    warm = int(round(cfg.warmup_s / DT))
+    window = slice(warm, warm + NUM_STEPS)
+    slot, vxy, vhead, vvel, vvalid = _vehicle_tracks(road.routes, log, window)
+    psize, pxy, phead, pvel, pvalid = walkers
     cxy, chead, cvel = crossing.poses(log.ped_s[:, window], log.ped_speed[:, window])
-    n_ped += crossing.num
+    n_ped = len(psize) + crossing.num
     psize = np.concatenate([psize, crossing.size])
     pxy, phead = np.concatenate([pxy, cxy]), np.concatenate([phead, wrap_angle_np(chead)])
     pvel = np.concatenate([pvel, cvel])
     pvalid = np.concatenate([pvalid, np.ones(chead.shape, bool)])
-
     n_veh = slot.size
     vsize = np.broadcast_to(log.fleet.size[slot, None, :], (n_veh, NUM_STEPS, 3))
     size = np.concatenate([vsize, np.broadcast_to(psize[:, None, :], (n_ped, NUM_STEPS, 3))])
     xy = np.concatenate([vxy, pxy])
     heading = np.concatenate([vhead, phead])
     vel = np.concatenate([vvel, pvel])
-    valid = np.concatenate([vvalid, pvalid]) & (np.abs(xy) <= observed).all(axis=-1)
+    valid = np.concatenate([vvalid, pvalid]) & (np.abs(xy) <= road.observed).all(axis=-1)
     vtype = np.where(log.fleet.cyclist[slot], int(ObjectType.CYCLIST), int(ObjectType.VEHICLE))
     otype = np.concatenate([vtype, np.full(n_ped, int(ObjectType.PEDESTRIAN))])
     seen = valid.any(axis=1)  # objects that never enter the observed area are not tracks
     n_veh, n_ped = int(seen[:n_veh].sum()), int(seen[n_veh:].sum())
     size, xy, heading, vel, valid, otype = (a[seen] for a in (size, xy, heading, vel, valid, otype))
-    z = 0.5 * size[..., 2:3]
-    xyz = np.concatenate([xy, z], axis=-1)
-
+    xyz = np.concatenate([xy, 0.5 * size[..., 2:3]], axis=-1)
     motor = otype[:n_veh] == int(ObjectType.VEHICLE)
     sdc = _choose_sdc(xy[:n_veh], valid[:n_veh] & motor[:, None])
     order = np.concatenate([np.delete(np.arange(n_veh + n_ped), sdc), [sdc]])
@@ -482,24 +529,7 @@ def generate_scenario(
         size=np.where(mask3, size, 0.0).astype(np.float32),
         valid=valid,
     )
-    predict = _tracks_to_predict(tracks, otype, valid)
-    return (
-        Scenario(
-            scenario_id=f"gen-{layout}-{seed:04d}",
-            timestamps=DT * np.arange(NUM_STEPS, dtype=np.float64),
-            current_index=CURRENT_INDEX,
-            tracks=tracks,
-            road_map=to_road_map(net),
-            signals=_signals(net, offset_s),
-            sdc_index=len(order) - 1,
-            tracks_to_predict=predict,
-            predict_difficulty=np.ones(predict.size, np.int8),
-            objects_of_interest=np.zeros(0, np.int64),
-            source=f"<generated {layout} seed {seed}>",
-        )
-        .transformed(shift=frame_offset(layout, seed))
-        .validate()
-    )
+    return tracks, len(order)
 
 
 SDC_MIN_TRAVEL_M: float = 10.0
