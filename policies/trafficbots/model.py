@@ -206,27 +206,16 @@ class TrafficBots(nn.Module):
         Returns:
             ``RolloutContext`` with batch B * n_rollouts.
         """
-        cfg, dev = self.cfg, batch.device
+        cfg = self.cfg
         n_hist = cfg.n_history
-        n_sc, n_ag = batch.ag_type.shape
-        n_mp, n_node = batch.mp_valid.shape[1:]
-        n_ag_pad, n_mp_pad = batch.draw_sizes  # draws are cut to the (trimmed) sizes
         enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
         if self.training and input_dropout_p > 0.0:
-            u = rand((n_sc, n_mp_pad, n_node), generator, dev)[:, :n_mp]
-            keep = u >= input_dropout_p
-            keep[..., 0] = True  # node 0 (the token pose) is never dropped
-            enc_node_valid = batch.mp_valid & keep
-            u = rand((n_sc, n_ag_pad, n_hist), generator, dev)[:, :n_ag]
-            keep = u >= input_dropout_p
-            keep[..., -1] = True  # the current step is never dropped
-            dest_hist_valid = dest_hist_valid & keep
+            enc_node_valid, dest_hist_valid = self._input_dropout(batch, generator, input_dropout_p)
         mp = self.map_encoder(batch.mp_pose, enc_node_valid, batch.mp_cls)
         mp = dataclasses.replace(mp, node_valid=batch.mp_valid)  # true nodes for the rules
         tl_src = batch.tl_valid if tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
         tl = tl_context(cfg, batch.tl_piece, tl_src.any(-1), mp)
         attr = agent_attributes(batch.ag_type, batch.ag_size)
-        h_valid = batch.ag_valid[..., :n_hist]
         dest_logits, dest_usable = self.dest_predictor(
             dest_hist_valid,
             batch.ag_pose[..., :n_hist, :],
@@ -242,27 +231,14 @@ class TrafficBots(nn.Module):
             )
 
         n = n_rollouts
-        shape = (n_sc * n, n_ag_pad, cfg.latent_dim)
-        if latent == "prior":
-            z = randn(shape, generator, dev)[:, :n_ag]
-            z_valid = h_valid.any(-1).repeat_interleave(n, 0)
-        else:
-            z = post_mean.repeat_interleave(n, 0)
-            if latent == "posterior":
-                eps = randn(shape, generator, dev)[:, :n_ag]
-                z = z + post_log_std.exp().repeat_interleave(n, 0) * eps
-            z_valid = post_valid.repeat_interleave(n, 0)
+        h_valid = batch.ag_valid[..., :n_hist]
+        post = (post_mean, post_log_std, post_valid)
+        z, z_valid = self._sample_latent(batch, n, generator, latent, post, h_valid)
         if dest == "gt":
             dest_idx = batch.ag_dest.repeat_interleave(n, 0)
             dest_valid = (batch.ag_valid.any(-1) & (batch.ag_dest >= 0)).repeat_interleave(n, 0)
         else:
-            # Categorical sample by Gumbel-max (reproducible from the generator alone).
-            logits = dest_logits.detach().repeat_interleave(n, 0)
-            if not self.training:
-                logits = logits / self.inference.dest_temperature
-            u = rand((n_sc * n, n_ag_pad, n_mp_pad), generator, dev)[:, :n_ag, :n_mp]
-            u = u.clamp(1e-12, 1.0 - 1e-7)
-            dest_idx = (logits - torch.log(-torch.log(u))).argmax(-1)
+            dest_idx = self._sample_destinations(batch, n, generator, dest_logits)
             dest_valid = dest_usable.repeat_interleave(n, 0)
         return RolloutContext(
             mp=mp.repeat(n),
@@ -281,6 +257,65 @@ class TrafficBots(nn.Module):
             post_valid=post_valid,
             hold=self._hold_mask(batch, n),
         )
+
+    def _input_dropout(
+        self, batch: TokenBatch, generator: torch.Generator | None, p: float
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(map node validity for the encoder, history validity for the destination
+        predictor) with each map node 1..P-1 and history step 0..9 hidden with probability
+        ``p`` (spec 1.9)."""
+        dev, n_hist = batch.device, self.cfg.n_history
+        n_sc, n_ag = batch.ag_type.shape
+        n_mp, n_node = batch.mp_valid.shape[1:]
+        n_ag_pad, n_mp_pad = batch.draw_sizes  # draws are cut to the (trimmed) sizes
+        keep = rand((n_sc, n_mp_pad, n_node), generator, dev)[:, :n_mp] >= p
+        keep[..., 0] = True  # node 0 (the token pose) is never dropped
+        enc_node_valid = batch.mp_valid & keep
+        keep = rand((n_sc, n_ag_pad, n_hist), generator, dev)[:, :n_ag] >= p
+        keep[..., -1] = True  # the current step is never dropped
+        return enc_node_valid, batch.ag_valid[..., :n_hist] & keep
+
+    def _sample_latent(
+        self,
+        batch: TokenBatch,
+        n: int,
+        generator: torch.Generator | None,
+        latent: str,
+        posterior: tuple,
+        h_valid: torch.Tensor,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(z [B * n, N, D], z_valid [B * n, N]): from the N(0, I) prior, a posterior sample
+        or the posterior mean (``posterior`` = (mean, log std, valid))."""
+        n_sc, n_ag = batch.ag_type.shape
+        shape = (n_sc * n, batch.draw_sizes[0], self.cfg.latent_dim)
+        if latent == "prior":
+            z = randn(shape, generator, batch.device)[:, :n_ag]
+            return z, h_valid.any(-1).repeat_interleave(n, 0)
+        post_mean, post_log_std, post_valid = posterior
+        z = post_mean.repeat_interleave(n, 0)
+        if latent == "posterior":
+            eps = randn(shape, generator, batch.device)[:, :n_ag]
+            z = z + post_log_std.exp().repeat_interleave(n, 0) * eps
+        return z, post_valid.repeat_interleave(n, 0)
+
+    def _sample_destinations(
+        self,
+        batch: TokenBatch,
+        n: int,
+        generator: torch.Generator | None,
+        dest_logits: torch.Tensor,
+    ) -> torch.Tensor:
+        """[B * n, N] destination pieces sampled from the predictor by Gumbel-max
+        (reproducible from the generator alone; tempered in eval mode)."""
+        n_sc, n_ag = batch.ag_type.shape
+        n_mp = batch.mp_valid.shape[1]
+        n_ag_pad, n_mp_pad = batch.draw_sizes
+        logits = dest_logits.detach().repeat_interleave(n, 0)
+        if not self.training:
+            logits = logits / self.inference.dest_temperature
+        u = rand((n_sc * n, n_ag_pad, n_mp_pad), generator, batch.device)[:, :n_ag, :n_mp]
+        u = u.clamp(1e-12, 1.0 - 1e-7)
+        return (logits - torch.log(-torch.log(u))).argmax(-1)
 
     def _hold_mask(self, batch: TokenBatch, n: int) -> torch.Tensor | None:
         """[B * n, N] agents held at rest in eval mode (``rules.parked_vehicles``), or None."""
