@@ -390,3 +390,41 @@ def test_indexed_layout_densifies_to_the_dense_layout_through_restarts(scenes):
     per_dense = sum(v[0, 0].numel() for v in d_obs.values())
     per_indexed = sum(i_obs[k][0, 0].numel() for k in ("index", "pose", "mask"))
     assert per_indexed * 10 < per_dense
+
+
+def test_reset_slots_restarts_only_those_slots(scenes):
+    kw = dict(controlled="all", npc_policy="constant_velocity", seed=5)
+    venv = BatchedTrafficEnv(scenes, 3, **kw)
+    twin = BatchedTrafficEnv(scenes, 3, **kw)
+    venv.reset()
+    twin.reset()
+    rng = np.random.default_rng(0)
+    for _ in range(7):
+        a = torch.from_numpy(rng.uniform(-2, 2, (3, venv.num_agents, 2)).astype(np.float32))
+        venv.step(a)
+        twin.step(a)
+    obs = venv.reset_slots([1])
+    # The new scenario is the next draw of the env's seeded generator.
+    draws = np.random.default_rng(5)
+    expected = [int(draws.integers(len(scenes))) for _ in range(4)][3]
+    assert int(venv.scenario_index[1]) == expected
+    fresh = BatchedTrafficEnv(scenes, 1, **kw)
+    fobs, _ = fresh.reset(scenario_indices=[expected])
+    keep = [0, 2]
+    for key in obs:
+        torch.testing.assert_close(obs[key][1], fobs[key][0], rtol=0, atol=0)
+    # The other slots go on exactly as in a twin that never reset.
+    for _ in range(5):
+        a = torch.from_numpy(rng.uniform(-2, 2, (3, venv.num_agents, 2)).astype(np.float32))
+        o1, r1, *_, info = venv.step(a)
+        o2, r2, *_ = twin.step(a)
+        assert not info["done"][keep].any()  # a restart would draw differently
+        assert torch.equal(r1[keep], r2[keep])
+        for key in o1:
+            assert torch.equal(o1[key][keep], o2[key][keep]), key
+    with pytest.raises(ValueError, match="distinct"):
+        venv.reset_slots([0, 0])
+    with pytest.raises(ValueError, match="distinct"):
+        venv.reset_slots([3])
+    with pytest.raises(ValueError, match="at least one"):
+        venv.reset_slots([])

@@ -343,6 +343,29 @@ class BatchedTrafficEnv:
             policy_state = self._policy_start(state.sim, state.scenario)
         return dataclasses.replace(state, policy_state=policy_state)
 
+    def reset_slots(self, slots: Sequence[int] | torch.Tensor) -> dict[str, torch.Tensor]:
+        """Start new episodes (drawn from the seeded generator) in some slots now, as the
+        autoreset does for finished ones; the other slots go on.
+
+        Args:
+            slots: distinct slot indices in [0, B).
+
+        Returns:
+            The observation dict of every slot [B, Q, ...] (fresh in ``slots``).
+        """
+        rows = torch.as_tensor(list(slots) if not isinstance(slots, torch.Tensor) else slots)
+        rows = rows.to(device=self.device, dtype=torch.int64)
+        if rows.numel() == 0:
+            raise ValueError("reset_slots needs at least one slot")
+        outside = bool(((rows < 0) | (rows >= self.batch_size)).any())
+        if outside or rows.unique().numel() != rows.numel():
+            raise ValueError(
+                f"slots must be distinct indices in [0, {self.batch_size}), got {rows.tolist()}"
+            )
+        with torch_threads(self.torch_threads), torch.no_grad():
+            self._episode = self._restart(self.episode, rows)
+            return self._observe(self.episode)
+
     # ------------------------------------------------------------------ step
     def _check_actions(self, actions: torch.Tensor) -> torch.Tensor:
         actions = torch.as_tensor(actions)
