@@ -228,7 +228,6 @@ def feature_samples(scenario: Scenario, rollouts: Rollouts) -> dict[str, tuple[n
     """
     from tbsim_env.metrics.wosac.features import compute_metric_features
     from tbsim_env.metrics.wosac.features_map import road_edge_segments, traffic_light_map
-    from tbsim_env.metrics.wosac.scoring import scored_scenario
     from tbsim_env.metrics.wosac.trajectories import (
         concat_rollouts,
         log_trajectories,
@@ -236,7 +235,7 @@ def feature_samples(scenario: Scenario, rollouts: Rollouts) -> dict[str, tuple[n
         simulated_trajectories,
     )
 
-    scenario = scored_scenario(scenario)  # the steps WOSAC scores
+    scenario = scenario.motion_window()  # the steps WOSAC scores
     first = scenario.current_index + 1
     objects = select_objects(scenario)
     log = log_trajectories(scenario, objects, "cpu")

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from tbsim_env.constants import CURRENT_INDEX, DT, MapFeatureType, ObjectType, SignalState
+from tbsim_env.data.cache import TokenCache, build_cache
 from tbsim_env.data.scenarionet import (
     ALLOWED_GLOBALS,
     MAP_TYPES,
@@ -101,6 +102,20 @@ def test_main_file_marks_and_unwrapped_headings(real: dict) -> None:
     lanes = s.road_map.indices_of(MapFeatureType.LANE)
     assert any(len(s.road_map.exit_lanes[i]) for i in lanes)  # connectivity kept
     assert s.road_map.speed_limit_mph[lanes].max() > 0
+
+
+def test_twenty_second_scenes_enter_a_token_cache_in_the_motion_window(
+    real: dict, womd_dir: Path, tmp_path: Path
+) -> None:
+    _, s = real[MAIN_FILE[0]]
+    window = s.motion_window()
+    assert window.num_steps == CURRENT_INDEX + 81 and s.num_steps == 199
+    np.testing.assert_array_equal(window.tracks.xyz, s.tracks.xyz[:, : CURRENT_INDEX + 81])
+    assert window.has_future and window.motion_window() is window
+    manifest = build_cache([str(womd_dir / MAIN_FILE[0])], tmp_path, workers=1, progress=False)
+    assert manifest["scenario_ids"] == [MAIN_FILE[1]] and not manifest["skipped"]
+    (tokens,) = TokenCache(tmp_path)
+    assert tokens.agent_valid.shape[-1] == CURRENT_INDEX + 81
 
 
 def test_metadata_marks_are_kept(real: dict) -> None:

@@ -125,7 +125,9 @@ def _work(item: Scenario | tuple[str, int], cfg: TokenConfig) -> SceneTokens | s
             from tbsim_env.data.generator import generate_scenario
 
             item = generate_scenario(item[0], item[1])
-        # Training and validation losses compare with the whole logged episode.
+        # Training and validation losses compare with the whole logged episode (of WOMD's
+        # 91 steps: 20 s scenes are cut to them, as WOSAC scores them).
+        item = item.motion_window()
         item.require_log_until(NUM_STEPS - 1, "a token cache (training targets)")
         return preprocess_scenario(item, cfg)
     except ValueError as err:  # e.g. too many relevant agents, a history-only scene

@@ -408,6 +408,14 @@ class Scenario:
             logged_steps=None if logged == num_steps else logged,
         )
 
+    def motion_window(self) -> Scenario:
+        """This scenario within WOMD's motion window: a scene logged beyond the
+        ``NUM_FUTURE`` steps after the current one (WOMD's 20 s scenes, ScenarioNet
+        conversions of them) is cut to its first ``current + 1 + NUM_FUTURE`` steps, as WOSAC
+        scores it and as TrafficBots trains on it; a shorter one is returned as it is."""
+        end = self.current_index + 1 + C.NUM_FUTURE
+        return self.on_time_grid(end) if self.num_steps > end else self
+
     @property
     def sdc_id(self) -> int:
         return int(self.tracks.id[self.sdc_index])

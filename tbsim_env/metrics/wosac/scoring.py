@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.constants import NUM_FUTURE, ObjectType
+from tbsim_env.constants import ObjectType
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import (
@@ -239,13 +239,6 @@ class ScenarioFeatures:
     log_valid: torch.Tensor
 
 
-def scored_scenario(scenario: Scenario) -> Scenario:
-    """The scenario as WOSAC scores it: a scene logged beyond the 80 steps after the current
-    one (WOMD's 20 s scenes) is cut to its first ``current + 81`` steps."""
-    end = scenario.current_index + 1 + NUM_FUTURE
-    return scenario.on_time_grid(end) if scenario.num_steps > end else scenario
-
-
 def _trajectories(
     scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None
 ) -> tuple[MetricObjects, ObjectTrajectories, ObjectTrajectories]:
@@ -287,7 +280,7 @@ def scenario_features(
         MissingFutureError: the log does not cover the rollouts' steps (a history-only scene).
         MapFeatureError: the scenario has no road edge.
     """
-    scenario = scored_scenario(scenario)
+    scenario = scenario.motion_window()
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     edges = road_edge_segments(scenario, log.x.device)
@@ -319,7 +312,7 @@ def offroad_indication(
     Raises:
         ScoringError, MissingFutureError, MapFeatureError: as ``score_scenario``.
     """
-    scenario = scored_scenario(scenario)
+    scenario = scenario.motion_window()
     objects, log, sim = _trajectories(scenario, rollouts, device)
     first = scenario.current_index + 1
     dist = distance_to_road_edge(
