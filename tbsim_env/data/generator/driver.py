@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -583,265 +584,392 @@ class _Pedestrians:
         self.v = np.where(arrived, 0.0, v_new)
 
 
-def simulate(
-    net: RoadNetwork,
-    routes: RouteTable,
-    fleet: Fleet,
-    s0: np.ndarray,
-    v0: np.ndarray,
-    num_initial: int,
-    spawn_prob: np.ndarray,
-    route_weights: np.ndarray,
-    num_steps: int,
-    cfg: DriverConfig,
-    rng: np.random.Generator,
-    signal_offset_s: float,
-    crossing: CrossingPlan | None = None,
-) -> DriveLog:
-    """Run the driver for ``num_steps`` steps of ``DT`` starting at time ``-cfg.warmup_s``.
+LONG_VEHICLE_M = 7.5
+"""Trucks and buses: vehicles longer than this (metres) keep to routes without sharp turns."""
+SPAWN_CLEAR_M = 10.0
+"""A vehicle enters a source lane only when the last one there is this far (plus its own
+length) from the lane start, metres."""
+SPAWN_SPEED_SHARE = 0.9
+"""An entering vehicle's speed: this share of its desired speed (less behind a slow leader)."""
+SPAWN_CLOSING_SPEED = 1.0
+"""An entering vehicle is at most this much faster than the leader it enters behind, m/s."""
+STOP_ZONE_M = 3.5
+"""At a stop sign, a vehicle whose front is within this of the line has reached it, metres."""
+STOPPED_SPEED = 0.05
+"""Below this speed a vehicle at a stop sign has come to its full stop, m/s."""
+CREEP_SPEED = 0.3
+"""Below this speed a vehicle held at a stop sign is brought to exactly 0, m/s."""
+DECIDE_MARGIN_M = 4.0
+"""A priority-approach vehicle decides whether it may go this far (plus its comfortable
+stopping distance) before the junction line, metres."""
+GRANT_CLEAR_M = 1.0
+"""A granted vehicle holds its connector until its rear is this far past the connector end."""
+BEND_BRAKE = -0.3
+"""Braking for a bend ahead applies when the bend needs a deceleration below this, m/s^2."""
 
-    Slots ``[0, num_initial)`` start on the map at ``s0``/``v0``; the remaining slots are
-    spawned in order at the start of a source lane when it is clear (each step with
-    probability ``spawn_prob`` per source lane) and get a route from that lane by weight.
-    Cyclists only enter on kerb lanes: when the next slot is a cyclist and the source is
-    not a kerb lane, the next motor vehicle slot enters instead.
 
-    Args:
+@dataclass(frozen=True)
+class DriveSetup:
+    """What the driver runs: the road, the vehicle slots and how they start.
+
+    Attributes:
         net: road network.
         routes: its routes.
         fleet: N vehicle slots.
-        s0, v0: [N] initial route coordinate and speed (used for the first slots only).
+        s0, v0: [N] initial route coordinate (m) and speed (m/s), used for the first
+            ``num_initial`` slots only.
         num_initial: vehicles on the map at the first step.
         spawn_prob: [num source lanes] spawn probability per step of each source lane
             (sources in increasing lane id order).
         route_weights: [R] relative probability of each route among those of its source.
         num_steps: steps to simulate (warm-up included).
-        cfg: driver configuration.
-        rng: random generator (spawn times).
-        signal_offset_s: signal plan phase offset in seconds.
+        signal_offset_s: signal plan phase offset, s.
         crossing: pedestrians who cross on the crosswalks (None: none), moved along their
             paths in the same loop (see ``crossings``).
-
-    Returns:
-        The ``DriveLog`` of all N slots (and the crossing pedestrians) over ``num_steps``
-        steps.
     """
-    st = _prepare(net, routes)
-    n = fleet.route.shape[0]
-    size = fleet.size.copy()
-    length = size[:, 0]
-    straight = straight_routes(routes, cfg)
-    granted = np.zeros(n, bool)  # junction connector granted (or stop line passed)
-    stop_t = np.full(n, -1, np.int64)  # step of the full stop at a stop sign, -1 if none
-    s = np.where(np.arange(n) < num_initial, s0, 0.0).astype(float)
-    v = np.where(np.arange(n) < num_initial, v0, 0.0).astype(float)
-    alive = np.arange(n) < num_initial
-    done = np.zeros(n, bool)
-    latch = np.zeros(n, np.int8)  # yellow decision: 0 none, 1 stop, 2 go
-    merge_ok = np.zeros(n, bool)
-    next_slot = num_initial
-    spawned = np.arange(n) < num_initial
-    kerb = kerb_routes(net, routes)
-    times = -cfg.warmup_s + DT * np.arange(num_steps)
-    sig = (
-        signal_states(net.signals, times, signal_offset_s)
-        if net.signals is not None
-        else np.zeros((0, num_steps), np.int8)
-    )
-    sources = np.unique(routes.source)
-    kerb_src = np.asarray([kerb[routes.source == src].any() for src in sources])
-    out_s = np.zeros((n, num_steps))
-    out_v = np.zeros((n, num_steps))
-    out_alive = np.zeros((n, num_steps), bool)
-    r = fleet.route.copy()
-    idx = np.arange(n)
-    peds = _Pedestrians.start(net, routes, crossing, times, signal_offset_s)
 
-    for t in range(num_steps):
-        lane_c, sig_c = routes.locate(r, s)
-        lane_f, _ = routes.locate(r, s + 0.5 * length)
-        lane_b, _ = routes.locate(r, s - 0.5 * length)
+    net: RoadNetwork
+    routes: RouteTable
+    fleet: Fleet
+    s0: np.ndarray
+    v0: np.ndarray
+    num_initial: int
+    spawn_prob: np.ndarray
+    route_weights: np.ndarray
+    num_steps: int
+    signal_offset_s: float
+    crossing: CrossingPlan | None = None
 
-        # ---------------------------------------------------------------- spawning
-        for k, src in enumerate(sources):
-            if next_slot >= n or rng.random() >= spawn_prob[k]:
+
+class _Leaders(NamedTuple):
+    """Who each vehicle follows this step (N vehicles)."""
+
+    gap: np.ndarray  # [N] bumper gap to the leader, m (inf: free road)
+    v_lead: np.ndarray  # [N] the leader's speed, m/s
+    front: np.ndarray  # [N] route s of the vehicle's front, m
+    committed: np.ndarray  # [N] past its merge decision (or accepted a gap)
+    valid_pair: np.ndarray  # [N, N] both on the map, distinct
+    v_off: np.ndarray  # [N, N] j's position in i's merge frame (nan: none), m
+
+
+class _Traffic:
+    """The vehicles' state inside the driver loop (N slots); one method per rule.
+
+    Each step: ``locate``, ``spawn``, ``leaders``, the stop targets (``signal_stops``,
+    ``merge_stops``, ``junction_stops``), ``acceleration``, ``record`` and ``move``.
+    """
+
+    def __init__(self, setup: DriveSetup, cfg: DriverConfig) -> None:
+        net, routes, fleet, n0 = setup.net, setup.routes, setup.fleet, setup.num_initial
+        self.setup, self.cfg, self.fleet, self.routes = setup, cfg, fleet, routes
+        self.st = _prepare(net, routes)
+        n = fleet.route.shape[0]
+        self.n, self.idx = n, np.arange(n)
+        self.size = fleet.size.copy()
+        self.length = self.size[:, 0]  # a view: a truck slot turned into a car changes it
+        self.straight = straight_routes(routes, cfg)
+        self.kerb = kerb_routes(net, routes)
+        self.sources = np.unique(routes.source)
+        self.kerb_src = np.asarray([self.kerb[routes.source == src].any() for src in self.sources])
+        first = self.idx < n0
+        self.s = np.where(first, setup.s0, 0.0).astype(float)
+        self.v = np.where(first, setup.v0, 0.0).astype(float)
+        self.alive, self.spawned = first.copy(), first.copy()
+        self.r = fleet.route.copy()
+        self.next_slot = n0
+        self.granted = np.zeros(n, bool)  # junction connector granted (or stop line passed)
+        self.stop_t = np.full(n, -1, np.int64)  # step of the full stop at a stop sign
+        self.latch = np.zeros(n, np.int8)  # yellow decision: 0 none, 1 stop, 2 go
+        self.merge_ok = np.zeros(n, bool)
+        self.out_s = np.zeros((n, setup.num_steps))
+        self.out_v = np.zeros((n, setup.num_steps))
+        self.out_alive = np.zeros((n, setup.num_steps), bool)
+
+    def locate(self) -> None:
+        """Lane and lane coordinate of every vehicle's centre, front and rear."""
+        r, s, half = self.r, self.s, 0.5 * self.length
+        self.lane_c, self.sig_c = self.routes.locate(r, s)
+        self.lane_f, _ = self.routes.locate(r, s + half)
+        self.lane_b, _ = self.routes.locate(r, s - half)
+
+    def spawn(self, rng: np.random.Generator) -> None:
+        """Each source lane lets the next slot enter with its spawn probability when clear.
+
+        Cyclists only enter on kerb lanes: when the next slot is a cyclist and the source is
+        not a kerb lane, the next motor vehicle slot enters instead.
+        """
+        fleet = self.fleet
+        for k, src in enumerate(self.sources):
+            if self.next_slot >= self.n or rng.random() >= self.setup.spawn_prob[k]:
                 continue
-            want = next_slot
-            if fleet.cyclist[want] and not kerb_src[k]:
-                # Cyclists enter on kerb lanes only: the next motor vehicle slot goes here.
-                motor = np.flatnonzero(~spawned[want:] & ~fleet.cyclist[want:])
+            want = self.next_slot
+            if fleet.cyclist[want] and not self.kerb_src[k]:
+                motor = np.flatnonzero(~self.spawned[want:] & ~fleet.cyclist[want:])
                 if motor.size == 0:
                     continue
                 want += int(motor[0])
-            on_src = alive & ((lane_b == src) | (lane_c == src))
-            rear = np.where(on_src, s - 0.5 * length, np.inf)
-            j = int(np.argmin(rear)) if on_src.any() else -1
-            if j >= 0 and rear[j] < length[want] + 10.0:
-                continue
-            v_new = fleet.desired_speed[want] * 0.9
-            if j >= 0:
-                room = rear[j] - 0.5 * length[want] - fleet.min_gap[want]
-                v_new = min(v_new, v[j] + 1.0, max(room, 0.0) / fleet.time_headway[want])
-            choices = np.flatnonzero(routes.source == src)
-            if fleet.cyclist[want]:
-                choices = choices[kerb[choices]]
-            if length[want] > 7.5:
-                if straight[choices].any():
-                    choices = choices[straight[choices]]
-                else:
-                    size[want] = CAR_SIZE
-            w = route_weights[choices]
-            r[want] = choices[rng.choice(choices.size, p=w / w.sum())]
-            s[want], v[want], alive[want] = 0.0, v_new, True
-            lane_new, sig_new = routes.locate(r[[want]], s[[want]])
-            lane_c[want], sig_c[want] = lane_new[0], sig_new[0]
-            lane_f[want] = lane_b[want] = lane_new[0]
-            spawned[want] = True
-            while next_slot < n and spawned[next_slot]:
-                next_slot += 1
+            self._enter(want, src, rng)
 
-        # ---------------------------------------------------------------- leaders
-        off = routes.lane_offset[r[:, None], lane_c[None, :]]  # [N, N] j's lane in i's route
-        pos = off + sig_c[None, :]
+    def _enter(self, want: int, src: int, rng: np.random.Generator) -> None:
+        """Slot ``want`` enters at the start of source lane ``src`` if there is room."""
+        fleet, routes, length, s = self.fleet, self.routes, self.length, self.s
+        on_src = self.alive & ((self.lane_b == src) | (self.lane_c == src))
+        rear = np.where(on_src, s - 0.5 * length, np.inf)
+        j = int(np.argmin(rear)) if on_src.any() else -1
+        if j >= 0 and rear[j] < length[want] + SPAWN_CLEAR_M:
+            return
+        v_new = fleet.desired_speed[want] * SPAWN_SPEED_SHARE
+        if j >= 0:
+            room = rear[j] - 0.5 * length[want] - fleet.min_gap[want]
+            v_new = min(
+                v_new, self.v[j] + SPAWN_CLOSING_SPEED, max(room, 0.0) / fleet.time_headway[want]
+            )
+        choices = np.flatnonzero(routes.source == src)
+        if fleet.cyclist[want]:
+            choices = choices[self.kerb[choices]]
+        if length[want] > LONG_VEHICLE_M:
+            if self.straight[choices].any():
+                choices = choices[self.straight[choices]]
+            else:
+                self.size[want] = CAR_SIZE
+        w = self.setup.route_weights[choices]
+        self.r[want] = choices[rng.choice(choices.size, p=w / w.sum())]
+        s[want], self.v[want], self.alive[want] = 0.0, v_new, True
+        lane_new, sig_new = routes.locate(self.r[[want]], s[[want]])
+        self.lane_c[want], self.sig_c[want] = lane_new[0], sig_new[0]
+        self.lane_f[want] = self.lane_b[want] = lane_new[0]
+        self.spawned[want] = True
+        while self.next_slot < self.n and self.spawned[self.next_slot]:
+            self.next_slot += 1
+
+    def leaders(self) -> _Leaders:
+        """The nearest vehicle ahead on each route: on the route's own lanes, on a sibling
+        connector it just left, or (in merge coordinates) on the lane it merges with."""
+        st, routes, r, s, length = self.st, self.routes, self.r, self.s, self.length
+        lane_c, sig_c, idx = self.lane_c, self.sig_c, self.idx
+        pos = routes.lane_offset[r[:, None], lane_c[None, :]] + sig_c[None, :]  # [N, N]
         par = st.parent[lane_c]
         par_off = routes.lane_offset[r[:, None], par[None, :]] + routes.lane_length[par][None, :]
-        par_ok = (par > 0) & (sig_c - 0.5 * length < cfg.diverge_clear)
+        par_ok = (par > 0) & (sig_c - 0.5 * length < self.cfg.diverge_clear)
         pos = np.where(np.isnan(pos) & par_ok[None, :], par_off + sig_c[None, :], pos)
         front = s + 0.5 * length
-        committed = merge_ok | (front >= st.conflict_s[r])
+        committed = self.merge_ok | (front >= st.conflict_s[r])
         v_off = st.merge_virtual[r[:, None], lane_c[None, :]] + sig_c[None, :]
         # A merging vehicle follows priority-lane vehicles only once it has accepted a gap;
-        # before that it is held by its conflict-point stop line (see merge gaps below).
+        # before that it is held by its conflict-point stop line (``merge_stops``).
         engaged = np.isfinite(st.conflict_s[r]) & committed
         pos = np.where(np.isnan(pos) & engaged[:, None], v_off, pos)
         p_off = st.merge_prio[r[:, None], lane_c[None, :]] + sig_c[None, :]
         pos = np.where(np.isnan(pos) & committed[None, :], p_off, pos)
+        alive = self.alive
         valid_pair = alive[:, None] & alive[None, :] & (idx[:, None] != idx[None, :])
         ahead = valid_pair & (pos > s[:, None])
         gap_m = np.where(ahead, pos - s[:, None] - 0.5 * (length[:, None] + length[None, :]), _BIG)
         lead = np.argmin(gap_m, axis=1)
         gap = gap_m[idx, lead]
         gap = np.where(gap >= _BIG, np.inf, gap)
-        v_lead = v[lead]
+        return _Leaders(gap, self.v[lead], front, committed, valid_pair, v_off)
 
-        # ---------------------------------------------------------------- stop lines
-        stop_at = np.full(n, np.inf)
-        sig_hold = np.zeros(n, bool)  # held at its stop line by the light
+    def signal_stops(
+        self, t: int, sig: np.ndarray, front: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(stop targets [N] (inf: none), held by the light [N]) at step t: red, yellow when
+        the vehicle decided to stop, or vehicles of another phase still in the box."""
+        st, r, v, cfg = self.st, self.r, self.v, self.cfg
+        stop_at = np.full(self.n, np.inf)
+        sig_hold = np.zeros(self.n, bool)
+        if not sig.shape[0]:
+            return stop_at, sig_hold
         has_line = st.signal_row[r] >= 0
         line = st.line_s[r]
         before = has_line & (front < line)
-        if sig.shape[0]:
-            state = np.where(has_line, sig[np.maximum(st.signal_row[r], 0), t], 0)
-            to_line = np.maximum(line - front, 0.01)
-            need = v**2 / (2.0 * to_line)
-            latch = np.where(state == int(SignalState.GO), 0, latch).astype(np.int8)
-            decide = before & (state == int(SignalState.CAUTION)) & (latch == 0)
-            latch = np.where(decide, np.where(need <= cfg.yellow_decel, 1, 2), latch)
-            red = state == int(SignalState.STOP)
-            must = (red & ((latch != 2) | (need <= cfg.max_decel))) | (
-                (state == int(SignalState.CAUTION)) & (latch == 1)
-            )
-            occupied = np.zeros(st.other_phase.shape[1], bool)  # per approach arm
-            for lane in (lane_c, lane_f, lane_b):
-                arm = st.conn_arm[lane]
-                occupied[arm[alive & (arm >= 0)]] = True
-            busy = (occupied[None, :] & st.other_phase[r]).any(axis=1)
-            must = must | busy
-            sig_hold = before & must
-            stop_at = np.where(sig_hold, line, stop_at)
+        state = np.where(has_line, sig[np.maximum(st.signal_row[r], 0), t], 0)
+        need = v**2 / (2.0 * np.maximum(line - front, 0.01))
+        latch = np.where(state == int(SignalState.GO), 0, self.latch).astype(np.int8)
+        decide = before & (state == int(SignalState.CAUTION)) & (latch == 0)
+        self.latch = np.where(decide, np.where(need <= cfg.yellow_decel, 1, 2), latch)
+        red = state == int(SignalState.STOP)
+        must = (red & ((self.latch != 2) | (need <= cfg.max_decel))) | (
+            (state == int(SignalState.CAUTION)) & (self.latch == 1)
+        )
+        occupied = np.zeros(st.other_phase.shape[1], bool)  # per approach arm
+        for lane in (self.lane_c, self.lane_f, self.lane_b):
+            arm = st.conn_arm[lane]
+            occupied[arm[self.alive & (arm >= 0)]] = True
+        must = must | (occupied[None, :] & st.other_phase[r]).any(axis=1)
+        sig_hold = before & must
+        return np.where(sig_hold, line, stop_at), sig_hold
 
-        # ---------------------------------------------------------------- merge gaps
-        yielding = alive & np.isfinite(st.conflict_s[r]) & ~committed
-        if yielding.any():
-            rel = np.where(valid_pair & ~np.isnan(v_off), v_off - s[:, None], np.nan)
-            half = 0.5 * (length[:, None] + length[None, :])
-            fgap = np.where(rel >= 0, rel - half, np.inf).min(axis=1)
-            rgap_m = np.where(rel < 0, -rel - half, np.inf)
-            follower = np.argmin(rgap_m, axis=1)
-            rgap = rgap_m[idx, follower]
-            vf = v[follower]
-            ok_front = fgap >= cfg.merge_front_gap + 1.0 * v
-            ok_rear = rgap >= cfg.merge_rear_gap + 1.5 * vf + 2.0 * np.maximum(vf - v, 0.0)
-            c_s = st.conflict_s[r]
-            near = c_s - front <= v**2 / (2.0 * fleet.comfort_decel) + 2.0
-            merge_ok = merge_ok | (yielding & near & ok_front & ok_rear)
-            wait = yielding & ~merge_ok
-            stop_at = np.where(wait, np.minimum(stop_at, c_s), stop_at)
+    def merge_stops(self, stop_at: np.ndarray, lead: _Leaders) -> np.ndarray:
+        """Stop targets [N] with yielding vehicles held before their conflict point until
+        they accept the gaps ahead of and behind them on the priority lane."""
+        st, r, v, cfg, fleet = self.st, self.r, self.v, self.cfg, self.fleet
+        yielding = self.alive & np.isfinite(st.conflict_s[r]) & ~lead.committed
+        if not yielding.any():
+            return stop_at
+        length = self.length
+        rel = np.where(
+            lead.valid_pair & ~np.isnan(lead.v_off), lead.v_off - self.s[:, None], np.nan
+        )
+        half = 0.5 * (length[:, None] + length[None, :])
+        fgap = np.where(rel >= 0, rel - half, np.inf).min(axis=1)
+        rgap_m = np.where(rel < 0, -rel - half, np.inf)
+        follower = np.argmin(rgap_m, axis=1)
+        rgap = rgap_m[self.idx, follower]
+        vf = v[follower]
+        ok_front = fgap >= cfg.merge_front_gap + 1.0 * v
+        ok_rear = rgap >= cfg.merge_rear_gap + 1.5 * vf + 2.0 * np.maximum(vf - v, 0.0)
+        c_s = st.conflict_s[r]
+        near = c_s - lead.front <= v**2 / (2.0 * fleet.comfort_decel) + 2.0
+        self.merge_ok = self.merge_ok | (yielding & near & ok_front & ok_rear)
+        wait = yielding & ~self.merge_ok
+        return np.where(wait, np.minimum(stop_at, c_s), stop_at)
 
-        # ---------------------------------------------------------------- junction
-        creep = np.zeros(n, bool)
-        if net.junction is not None:
-            jr = alive & (st.j_kind[r] >= 0)
-            j_line = st.j_line[r]
-            granted |= jr & (front >= j_line)
-            # At a signalised junction a vehicle its light holds neither keeps a grant nor
-            # yields or is yielded to (the light orders the phases; the rules order a green).
-            granted &= ~sig_hold
-            held = jr & granted & (s - 0.5 * length < st.j_exit[r] + 1.0)
-            waiting = jr & ~granted & ~sig_hold
-            to_line = j_line - front
-            is_stop = st.j_kind[r] == STOP
-            zone = waiting & is_stop & (to_line < 3.5)
-            stop_t = np.where(zone & (v < 0.05) & (stop_t < 0), t, stop_t)
-            first = np.zeros(n, bool)
-            wi = np.flatnonzero(waiting)
-            if wi.size:
-                order = wi[np.lexsort((-front[wi], st.j_in[r[wi]]))]
-                lanes_o = st.j_in[r[order]]
-                first[order[np.concatenate([[True], lanes_o[1:] != lanes_o[:-1]])]] = True
-            dwell = (t - stop_t) * DT >= fleet.reaction
-            ready = first & is_stop & (stop_t >= 0) & dwell & (to_line < 3.5)
-            d_decide = v**2 / (2.0 * fleet.comfort_decel) + 4.0
-            major = first & ~is_stop
-            ready |= major & (to_line < d_decide)
-            rank, conn = st.j_rank[r], st.j_conn[r]
-            ttl = np.where(waiting, np.maximum(to_line, 0.0) / np.maximum(v, 0.5), np.inf)
-            held_conns = list(conn[held])
+    def junction_stops(
+        self, t: int, stop_at: np.ndarray, sig_hold: np.ndarray, front: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(stop targets [N], creeping to a full stop [N]) at an unsignalised junction or a
+        signalised one with permissive turns: connectors are granted in order of priority
+        and arrival, never while a conflicting one is held."""
+        st, r, fleet = self.st, self.r, self.fleet
+        jr = self.alive & (st.j_kind[r] >= 0)
+        j_line = st.j_line[r]
+        self.granted |= jr & (front >= j_line)
+        # At a signalised junction a vehicle its light holds neither keeps a grant nor
+        # yields or is yielded to (the light orders the phases; the rules order a green).
+        self.granted &= ~sig_hold
+        waiting = jr & ~self.granted & ~sig_hold
+        to_line = j_line - front
+        is_stop = st.j_kind[r] == STOP
+        zone = waiting & is_stop & (to_line < STOP_ZONE_M)
+        self.stop_t = np.where(zone & (self.v < STOPPED_SPEED) & (self.stop_t < 0), t, self.stop_t)
+        first = self._first_in_queue(waiting)
+        dwell = (t - self.stop_t) * DT >= fleet.reaction
+        ready = first & is_stop & (self.stop_t >= 0) & dwell & (to_line < STOP_ZONE_M)
+        major = first & ~is_stop
+        ready |= major & (to_line < self.v**2 / (2.0 * fleet.comfort_decel) + DECIDE_MARGIN_M)
+        must = self._grant(t, ready, major, waiting, to_line, jr)
+        hold = jr & ~self.granted & (is_stop | must)
+        target = j_line + np.where(is_stop, fleet.min_gap - 1.0, 0.0)
+        stop_at = np.where(hold, np.minimum(stop_at, target), stop_at)
+        creep = hold & is_stop & (to_line < STOP_ZONE_M) & (self.v < CREEP_SPEED)
+        return stop_at, creep
 
-            args = (conn, rank, waiting, ttl, fleet.gap_time, st)
-            cand = np.flatnonzero(ready)
-            arrival = np.where(stop_t >= 0, stop_t, t)
-            for i in cand[np.lexsort((cand, arrival[cand], rank[cand]))]:
-                if not _junction_blocked(i, *args, held_conns):
-                    granted[i] = True
-                    held_conns.append(conn[i])
-            # Priority approaches flow freely; they only brake for the line when blocked.
-            must = np.zeros(n, bool)
-            for i in np.flatnonzero(major & ~granted):
-                must[i] = _junction_blocked(i, *args, held_conns)
-            hold = jr & ~granted & (is_stop | must)
-            target = j_line + np.where(is_stop, fleet.min_gap - 1.0, 0.0)
-            stop_at = np.where(hold, np.minimum(stop_at, target), stop_at)
-            creep = hold & is_stop & (to_line < 3.5) & (v < 0.3)
+    def _first_in_queue(self, waiting: np.ndarray) -> np.ndarray:
+        """[N] bool, the waiting vehicle nearest the line on each inbound lane."""
+        first = np.zeros(self.n, bool)
+        wi = np.flatnonzero(waiting)
+        if wi.size:
+            front = self.s + 0.5 * self.length
+            order = wi[np.lexsort((-front[wi], self.st.j_in[self.r[wi]]))]
+            lanes_o = self.st.j_in[self.r[order]]
+            first[order[np.concatenate([[True], lanes_o[1:] != lanes_o[:-1]])]] = True
+        return first
 
-        # ---------------------------------------------------------------- pedestrians
-        if peds.num:
-            stop_at = np.minimum(stop_at, peds.interact(t, r, s, v, length, alive, fleet))
+    def _grant(
+        self,
+        t: int,
+        ready: np.ndarray,
+        major: np.ndarray,
+        waiting: np.ndarray,
+        to_line: np.ndarray,
+        jr: np.ndarray,
+    ) -> np.ndarray:
+        """Grant connectors to the ready vehicles (priority rank, then arrival); returns the
+        priority-approach vehicles that must brake for the line because they are blocked."""
+        st, r, v = self.st, self.r, self.v
+        held = jr & self.granted & (self.s - 0.5 * self.length < st.j_exit[r] + GRANT_CLEAR_M)
+        rank, conn = st.j_rank[r], st.j_conn[r]
+        ttl = np.where(waiting, np.maximum(to_line, 0.0) / np.maximum(v, 0.5), np.inf)
+        held_conns = list(conn[held])
+        args = (conn, rank, waiting, ttl, self.fleet.gap_time, st)
+        cand = np.flatnonzero(ready)
+        arrival = np.where(self.stop_t >= 0, self.stop_t, t)
+        for i in cand[np.lexsort((cand, arrival[cand], rank[cand]))]:
+            if not _junction_blocked(i, *args, held_conns):
+                self.granted[i] = True
+                held_conns.append(conn[i])
+        # Priority approaches flow freely; they only brake for the line when blocked.
+        must = np.zeros(self.n, bool)
+        for i in np.flatnonzero(major & ~self.granted):
+            must[i] = _junction_blocked(i, *args, held_conns)
+        return must
 
-        # ---------------------------------------------------------------- acceleration
-        cap_here, a_curve = _curve_accel(routes, r, s, v, cfg.lateral_accel)
+    def acceleration(self, lead: _Leaders, stop_at: np.ndarray, creep: np.ndarray) -> np.ndarray:
+        """[N] m/s^2: the lowest IDM acceleration of free road (capped in bends), the
+        leader and the stop target, bend braking, clipped to the limits."""
+        fleet, v, cfg = self.fleet, self.v, self.cfg
+        cap_here, a_curve = _curve_accel(self.routes, self.r, self.s, v, cfg.lateral_accel)
         v_des = np.minimum(fleet.desired_speed, cap_here)
-        acc = _idm(fleet, v, v_des, gap, v_lead)
-        line_gap = np.where(np.isfinite(stop_at), stop_at - front, np.inf)
-        acc = np.minimum(acc, _idm(fleet, v, v_des, line_gap, np.zeros(n)))
-        acc = np.where(a_curve < -0.3, np.minimum(acc, a_curve), acc)
+        acc = _idm(fleet, v, v_des, lead.gap, lead.v_lead)
+        line_gap = np.where(np.isfinite(stop_at), stop_at - lead.front, np.inf)
+        acc = np.minimum(acc, _idm(fleet, v, v_des, line_gap, np.zeros(self.n)))
+        acc = np.where(a_curve < BEND_BRAKE, np.minimum(acc, a_curve), acc)
         acc = np.clip(acc, -cfg.max_decel, fleet.max_accel)
         # Come to a full stop at a stop sign (v reaches exactly 0).
-        acc = np.where(creep, np.minimum(acc, -v / DT), acc)
+        return np.where(creep, np.minimum(acc, -v / DT), acc)
 
-        out_s[:, t], out_v[:, t], out_alive[:, t] = s, v, alive
-        peds.advance(t)
+    def record(self, t: int) -> None:
+        """Store step t's route s, speed and presence."""
+        self.out_s[:, t], self.out_v[:, t], self.out_alive[:, t] = self.s, self.v, self.alive
+
+    def move(self, acc: np.ndarray) -> None:
+        """One step of ``DT`` at acceleration ``acc`` (speeds stay >= 0); vehicles past the
+        end of their route leave the map."""
+        alive, v = self.alive, self.v
         v_new = np.maximum(v + acc * DT, 0.0)
-        s = np.where(alive, s + 0.5 * (v + v_new) * DT, s)
-        v = np.where(alive, v_new, v)
-        gone = alive & (s >= routes.length[r])
-        done |= gone
-        alive &= ~gone
+        self.s = np.where(alive, self.s + 0.5 * (v + v_new) * DT, self.s)
+        self.v = np.where(alive, v_new, v)
+        gone = alive & (self.s >= self.routes.length[self.r])
+        self.alive = alive & ~gone
+
+
+def simulate(setup: DriveSetup, cfg: DriverConfig, rng: np.random.Generator) -> DriveLog:
+    """Run the driver for ``setup.num_steps`` steps of ``DT`` starting at ``-cfg.warmup_s``.
+
+    Slots ``[0, num_initial)`` start on the map at ``s0``/``v0``; the remaining slots are
+    spawned in order at the start of a source lane when it is clear (each step with
+    probability ``spawn_prob`` per source lane) and get a route from that lane by weight.
+
+    Args:
+        setup: the road, the slots and their start.
+        cfg: driver configuration.
+        rng: random generator (spawn times and routes).
+
+    Returns:
+        The ``DriveLog`` of all N slots (and the crossing pedestrians) over ``num_steps``
+        steps.
+    """
+    net, routes, num_steps = setup.net, setup.routes, setup.num_steps
+    traffic = _Traffic(setup, cfg)
+    times = -cfg.warmup_s + DT * np.arange(num_steps)
+    sig = (
+        signal_states(net.signals, times, setup.signal_offset_s)
+        if net.signals is not None
+        else np.zeros((0, num_steps), np.int8)
+    )
+    peds = _Pedestrians.start(net, routes, setup.crossing, times, setup.signal_offset_s)
+    for t in range(num_steps):
+        traffic.locate()
+        traffic.spawn(rng)
+        lead = traffic.leaders()
+        stop_at, sig_hold = traffic.signal_stops(t, sig, lead.front)
+        stop_at = traffic.merge_stops(stop_at, lead)
+        creep = np.zeros(traffic.n, bool)
+        if net.junction is not None:
+            stop_at, creep = traffic.junction_stops(t, stop_at, sig_hold, lead.front)
+        if peds.num:
+            t_v = (traffic.r, traffic.s, traffic.v, traffic.length, traffic.alive)
+            stop_at = np.minimum(stop_at, peds.interact(t, *t_v, traffic.fleet))
+        acc = traffic.acceleration(lead, stop_at, creep)
+        traffic.record(t)
+        peds.advance(t)
+        traffic.move(acc)
     return DriveLog(
-        fleet=dataclasses.replace(fleet, route=r, size=size),
-        s=out_s,
-        speed=out_v,
-        alive=out_alive,
+        fleet=dataclasses.replace(setup.fleet, route=traffic.r, size=traffic.size),
+        s=traffic.out_s,
+        speed=traffic.out_v,
+        alive=traffic.out_alive,
         crossing=peds.plan,
         ped_s=peds.out_s,
         ped_speed=peds.out_v,

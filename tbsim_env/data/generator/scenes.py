@@ -22,6 +22,7 @@ from tbsim_env.data.generator.crossings import CrossingPlan, plan_crossings
 from tbsim_env.data.generator.driver import (
     DriveLog,
     DriverConfig,
+    DriveSetup,
     add_cyclists,
     draw_fleet,
     kerb_routes,
@@ -391,8 +392,20 @@ def _drive(
     s0 = np.concatenate([s0, np.zeros(capacity - n_init)])[order]
     offset_s = float(rng.uniform(0.0, net.signals.cycle_s)) if net.signals else 0.0
     crossing = crossing_fn(offset_s)
-    args = (net, routes, fleet, s0, v0[order], int(placed.sum()), road.boost * cfg.inflow * DT)
-    log = simulate(*args, weights, total_steps, cfg, rng, offset_s, crossing)
+    setup = DriveSetup(
+        net=net,
+        routes=routes,
+        fleet=fleet,
+        s0=s0,
+        v0=v0[order],
+        num_initial=int(placed.sum()),
+        spawn_prob=road.boost * cfg.inflow * DT,
+        route_weights=weights,
+        num_steps=total_steps,
+        signal_offset_s=offset_s,
+        crossing=crossing,
+    )
+    log = simulate(setup, cfg, rng)
     return log, offset_s, crossing
 
 
