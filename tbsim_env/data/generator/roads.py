@@ -271,35 +271,59 @@ def _link(
     )
 
 
-def _build_junction(
-    layout: str, arms: tuple[int, ...], control: str, arm_length: float
-) -> RoadNetwork:
-    """Junction of 2-lane-per-direction roads on the given arms (shared by the 4-way layouts
-    and the T-junction).
+JUNCTION_LANES = 2
+"""Lanes per direction on every junction arm."""
+STOP_LINE_M = 14.0
+"""Distance from the junction centre to the stop lines (and the kerb corners), metres."""
+CROSSWALK_M = (8.5, 12.0)
+"""Crosswalk extent along each arm from the junction centre, metres."""
+SIDEWALK_KERB_M = 2.5
+"""Sidewalk walking line beyond the road edge, metres."""
+SIDEWALK_START_M = 3.0
+"""Sidewalks start this far past the stop line, metres."""
+SPLIT_PHASES = dict(green_s=9.0, yellow_s=3.5, all_red_s=2.5)
+"""Timing of the split-phase signals (one arm at a time), seconds."""
+PERMISSIVE_PHASES = dict(green_s=PERMISSIVE_GREEN_S, yellow_s=3.5, all_red_s=2.0)
+"""Timing of the two-phase signals with permissive left turns, seconds."""
+SPEED_LIMIT_MPH = {"signal": 35.0, "stop": 30.0}
+"""Lane speed limits of signalised and stop-controlled junctions."""
 
-    Arm k points along polar angle k*pi/2 (east, north, west, south). Inbound lanes end at the
-    stop line 14 m from the centre; connector lanes (through from both lanes, left turn from
-    the inner lane, right turn from the outer lane, where the target arm exists) cross the box.
 
-    Args:
-        layout: layout name.
-        arms: the present arms, a subset of (0, 1, 2, 3) in increasing order; a missing arm
-            must have both neighbours present.
-        control: "signal" (split phasing, one arm at a time), "signal_permissive" (two
-            phases, opposite arms together; left turns yield to oncoming through and
-            right-turning traffic on the green), "all_stop" (stop sign on every arm) or
-            "minor_stop" (stop sign on arms whose opposite arm is missing; the through road
-            has priority and its left turns yield to oncoming traffic).
-        arm_length: distance from the centre to the map border along each arm, metres.
+def _axes(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(along, right-hand normal) unit vectors of arm k (polar angle k * pi / 2)."""
+    th = k * np.pi / 2
+    return np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
+
+
+@dataclass(frozen=True)
+class _JunctionLanes:
+    """The lane graph of a junction (0-based lane indices inside).
+
+    Attributes:
+        lanes: the frozen lanes.
+        inbound: arm -> its inbound lane indices, inner lane first.
+        exits: lane index -> successor lane indices.
+        turn: connector index -> -1 right, 0 through, 1 left.
     """
-    w, n_lanes, stop, half = LANE_WIDTH, 2, 14.0, 2 * LANE_WIDTH
+
+    lanes: tuple[Lane, ...]
+    inbound: dict[int, list[int]]
+    exits: dict[int, list[int]]
+    turn: dict[int, int]
+
+
+def _junction_lanes(arms: tuple[int, ...], arm_length: float) -> _JunctionLanes:
+    """Inbound and outbound lanes of every arm and the connectors across the box (through
+    from both lanes, left turn from the inner lane, right turn from the outer lane, where the
+    target arm exists)."""
+    w, n_lanes = LANE_WIDTH, JUNCTION_LANES
     points: list[np.ndarray] = []
     approach: list[int] = []
     connector: list[bool] = []
     exits: dict[int, list[int]] = {}
     left: dict[int, list[int]] = {}
     right: dict[int, list[int]] = {}
-    turn: dict[int, int] = {}  # connector -> -1 right, 0 through, 1 left
+    turn: dict[int, int] = {}
 
     def add(pts: np.ndarray, arm: int, is_conn: bool) -> int:
         points.append(pts)
@@ -307,18 +331,16 @@ def _build_junction(
         connector.append(is_conn)
         return len(points) - 1
 
-    def axes(k: int) -> tuple[np.ndarray, np.ndarray]:
-        th = k * np.pi / 2
-        return np.array([np.cos(th), np.sin(th)]), np.array([-np.sin(th), np.cos(th)])
-
     inbound = {k: [0] * n_lanes for k in arms}
     outbound = {k: [0] * n_lanes for k in arms}
     for k in arms:
-        u, r = axes(k)
+        u, r = _axes(k)
         for i in range(n_lanes):
             lat = (i + 0.5) * w
-            inbound[k][i] = add(line(arm_length * u + lat * r, stop * u + lat * r), k, False)
-            outbound[k][i] = add(line(stop * u - lat * r, arm_length * u - lat * r), -1, False)
+            inbound[k][i] = add(line(arm_length * u + lat * r, STOP_LINE_M * u + lat * r), k, False)
+            outbound[k][i] = add(
+                line(STOP_LINE_M * u - lat * r, arm_length * u - lat * r), -1, False
+            )
         for lanes in (inbound[k], outbound[k]):
             for i in range(n_lanes - 1):
                 right[lanes[i]] = [lanes[i + 1]]
@@ -336,119 +358,151 @@ def _build_junction(
             exits.setdefault(inbound[k][i], []).append(conn)
             exits[conn] = [outbound[k_out][j]]
     lanes = _link(points, exits, left, right, approach, connector)
+    return _JunctionLanes(lanes=lanes, inbound=inbound, exits=exits, turn=turn)
 
-    road_lines: list[np.ndarray] = []
-    line_types: list[RoadLineType] = []
-    edges: list[np.ndarray] = []
-    crosswalks: list[np.ndarray] = []
-    crossings: list[Crossing] = []
-    sidewalks: list[np.ndarray] = []
-    for k in arms:
-        u, r = axes(k)
-        road_lines.append(line(stop * u, arm_length * u))
-        line_types.append(RoadLineType.SOLID_DOUBLE_YELLOW)
-        for side in (1.0, -1.0):
-            for i in range(1, n_lanes):
-                road_lines.append(
-                    line(stop * u + side * i * w * r, arm_length * u + side * i * w * r)
-                )
-                line_types.append(RoadLineType.BROKEN_SINGLE_WHITE)
-            walk = side * (half + 2.5) * r
-            sidewalks.append(line((stop + 3.0) * u + walk, arm_length * u + walk))
-        c0, c1 = 8.5, 12.0
-        crosswalks.append(
-            np.stack([c0 * u - half * r, c1 * u - half * r, c1 * u + half * r, c0 * u + half * r])
-        )
-        mid = 0.5 * (c0 + c1)
-        crossings.append(
-            Crossing(
-                arm=k,
-                centre=mid * u,
-                along=u,
-                axis=r,
-                kerb=half + 2.3,
-                walk=half + 4.3,
-                bend=stop + 2.0 - mid,
-                reach=arm_length - mid,
-                offset=(0.15, 0.25 * (c1 - c0)),
-            )
-        )
-        b, _ = axes(k + 1)
-        if (k + 1) % 4 in arms:
-            # Kerb of the quadrant between arm k and arm k+1, road on the left of the direction.
-            a0 = np.arctan2(-b[1], -b[0])
-            arc = circle_arc(stop * u + stop * b, stop - half, a0, a0 - np.pi / 2)
-            edge = np.concatenate(
-                [
-                    line(arm_length * u + half * b, stop * u + half * b)[:-1],
-                    arc,
-                    line(half * u + stop * b, half * u + arm_length * b)[1:],
-                ]
-            )
-        else:
-            # Arm k+1 is missing: one straight kerb from arm k to arm k+2.
-            edge = line(arm_length * u + half * b, -arm_length * u + half * b)
-        edges.append(edge)
 
-    inbound_ids = tuple(inbound[k][i] + 1 for k in arms for i in range(n_lanes))
-    plan = None
-    junction = None
-    stop_signs: list[StopSign] = []
+def _arm_markings(k: int, arm_length: float) -> tuple[list, list, list]:
+    """(road lines, their types, sidewalks) along arm k: the double yellow centre line, the
+    broken white lane lines, and a walking line beyond each road edge."""
+    u, r = _axes(k)
+    half = JUNCTION_LANES * LANE_WIDTH
+    lines, types, sidewalks = [line(STOP_LINE_M * u, arm_length * u)], [], []
+    types.append(RoadLineType.SOLID_DOUBLE_YELLOW)
+    for side in (1.0, -1.0):
+        for i in range(1, JUNCTION_LANES):
+            lat = side * i * LANE_WIDTH * r
+            lines.append(line(STOP_LINE_M * u + lat, arm_length * u + lat))
+            types.append(RoadLineType.BROKEN_SINGLE_WHITE)
+        walk = side * (half + SIDEWALK_KERB_M) * r
+        sidewalks.append(line((STOP_LINE_M + SIDEWALK_START_M) * u + walk, arm_length * u + walk))
+    return lines, types, sidewalks
+
+
+def _arm_crossing(k: int, arm_length: float) -> tuple[np.ndarray, Crossing]:
+    """The crosswalk polygon [4, 2] across arm k and the pedestrians' crossing on it."""
+    u, r = _axes(k)
+    half = JUNCTION_LANES * LANE_WIDTH
+    c0, c1 = CROSSWALK_M
+    polygon = np.stack([c0 * u - half * r, c1 * u - half * r, c1 * u + half * r, c0 * u + half * r])
+    mid = 0.5 * (c0 + c1)
+    crossing = Crossing(
+        arm=k,
+        centre=mid * u,
+        along=u,
+        axis=r,
+        kerb=half + 2.3,
+        walk=half + 4.3,
+        bend=STOP_LINE_M + 2.0 - mid,
+        reach=arm_length - mid,
+        offset=(0.15, 0.25 * (c1 - c0)),
+    )
+    return polygon, crossing
+
+
+def _kerb(k: int, arms: tuple[int, ...], arm_length: float) -> np.ndarray:
+    """The road edge between arm k and arm k+1 (road on its left): along arm k, round the
+    corner, out along arm k+1; or straight on to arm k+2 when arm k+1 is missing."""
+    u, _ = _axes(k)
+    b, _ = _axes(k + 1)
+    half, stop = JUNCTION_LANES * LANE_WIDTH, STOP_LINE_M
+    if (k + 1) % 4 not in arms:
+        return line(arm_length * u + half * b, -arm_length * u + half * b)
+    a0 = np.arctan2(-b[1], -b[0])
+    arc = circle_arc(stop * u + stop * b, stop - half, a0, a0 - np.pi / 2)
+    return np.concatenate(
+        [
+            line(arm_length * u + half * b, stop * u + half * b)[:-1],
+            arc,
+            line(half * u + stop * b, half * u + arm_length * b)[1:],
+        ]
+    )
+
+
+def _junction_control(
+    control: str, arms: tuple[int, ...], graph: _JunctionLanes
+) -> tuple[SignalPlan | None, JunctionControl | None, tuple[StopSign, ...]]:
+    """(signal plan, right-of-way rules, stop signs) of the junction's control scheme."""
+    n_lanes = JUNCTION_LANES
+    inbound_ids = tuple(graph.inbound[k][i] + 1 for k in arms for i in range(n_lanes))
     if control == "signal":
-        plan = SignalPlan(
-            lane_ids=inbound_ids,
-            phase=tuple(p for p, _ in enumerate(arms) for _ in range(n_lanes)),
-            num_phases=len(arms),
-            green_s=9.0,
-            yellow_s=3.5,
-            all_red_s=2.5,
-        )
-    elif control == "signal_permissive":
-        plan = SignalPlan(
-            lane_ids=inbound_ids,
-            phase=tuple(k % 2 for k in arms for _ in range(n_lanes)),
-            num_phases=2,
-            green_s=PERMISSIVE_GREEN_S,
-            yellow_s=3.5,
-            all_red_s=2.0,
-        )
+        phase = tuple(p for p, _ in enumerate(arms) for _ in range(n_lanes))
+        plan = SignalPlan(inbound_ids, phase, num_phases=len(arms), **SPLIT_PHASES)
+        return plan, None, ()
+    if control == "signal_permissive":
+        phase = tuple(k % 2 for k in arms for _ in range(n_lanes))
+        plan = SignalPlan(inbound_ids, phase, num_phases=2, **PERMISSIVE_PHASES)
         # Every approach has right of way on its green; left turns rank below the oncoming
         # through and right turns they cross.
-        rank = {c + 1: 1 if turn[c] == 1 else 0 for c in turn}
-        junction = JunctionControl(
-            lane_ids=inbound_ids, kind=(PRIORITY,) * len(inbound_ids), rank=rank
-        )
-    elif control in ("all_stop", "minor_stop"):
-        kinds: list[int] = []
-        rank: dict[int, int] = {}
-        for k in arms:
-            minor = control == "all_stop" or (k + 2) % 4 not in arms
-            kinds += [STOP if minor else PRIORITY] * n_lanes
-            if minor:
-                u, r = axes(k)
-                pos = (stop + 1.0) * u + (half + 1.0) * r
-                stop_signs.append(StopSign(pos, tuple(inbound[k][i] + 1 for i in range(n_lanes))))
-            for i in range(n_lanes):
-                for c in exits[inbound[k][i]]:
-                    rank[c + 1] = 2 if minor else (1 if turn[c] == 1 else 0)
-        junction = JunctionControl(lane_ids=inbound_ids, kind=tuple(kinds), rank=rank)
-    else:
+        rank = {c + 1: 1 if graph.turn[c] == 1 else 0 for c in graph.turn}
+        priority = (PRIORITY,) * len(inbound_ids)
+        return plan, JunctionControl(lane_ids=inbound_ids, kind=priority, rank=rank), ()
+    if control not in ("all_stop", "minor_stop"):
         raise ValueError(f"unknown junction control {control!r}")
+    kinds: list[int] = []
+    rank: dict[int, int] = {}
+    signs: list[StopSign] = []
+    half = n_lanes * LANE_WIDTH
+    for k in arms:
+        minor = control == "all_stop" or (k + 2) % 4 not in arms
+        kinds += [STOP if minor else PRIORITY] * n_lanes
+        if minor:
+            u, r = _axes(k)
+            pos = (STOP_LINE_M + 1.0) * u + (half + 1.0) * r
+            signs.append(StopSign(pos, tuple(graph.inbound[k][i] + 1 for i in range(n_lanes))))
+        for i in range(n_lanes):
+            for c in graph.exits[graph.inbound[k][i]]:
+                rank[c + 1] = 2 if minor else (1 if graph.turn[c] == 1 else 0)
+    junction = JunctionControl(lane_ids=inbound_ids, kind=tuple(kinds), rank=rank)
+    return None, junction, tuple(signs)
+
+
+def _build_junction(
+    layout: str, arms: tuple[int, ...], control: str, arm_length: float
+) -> RoadNetwork:
+    """Junction of 2-lane-per-direction roads on the given arms (shared by the 4-way layouts
+    and the T-junction).
+
+    Arm k points along polar angle k*pi/2 (east, north, west, south). Inbound lanes end at the
+    stop line ``STOP_LINE_M`` from the centre; connector lanes (``_junction_lanes``) cross the
+    box.
+
+    Args:
+        layout: layout name.
+        arms: the present arms, a subset of (0, 1, 2, 3) in increasing order; a missing arm
+            must have both neighbours present.
+        control: "signal" (split phasing, one arm at a time), "signal_permissive" (two
+            phases, opposite arms together; left turns yield to oncoming through and
+            right-turning traffic on the green), "all_stop" (stop sign on every arm) or
+            "minor_stop" (stop sign on arms whose opposite arm is missing; the through road
+            has priority and its left turns yield to oncoming traffic).
+        arm_length: distance from the centre to the map border along each arm, metres.
+    """
+    graph = _junction_lanes(arms, arm_length)
+    plan, junction, stop_signs = _junction_control(control, arms, graph)
+    road_lines, line_types, sidewalks, crosswalks, crossings = [], [], [], [], []
+    for k in arms:
+        lines, types, walks = _arm_markings(k, arm_length)
+        road_lines += lines
+        line_types += types
+        sidewalks += walks
+        polygon, crossing = _arm_crossing(k, arm_length)
+        crosswalks.append(polygon)
+        crossings.append(crossing)
     return RoadNetwork(
         layout=layout,
         lane_type=LaneType.SURFACE_STREET,
-        speed_limit_mph=35.0 if control.startswith("signal") else 30.0,
-        lanes=lanes,
+        speed_limit_mph=SPEED_LIMIT_MPH["signal" if control.startswith("signal") else "stop"],
+        lanes=graph.lanes,
         road_lines=tuple(road_lines),
         road_line_types=tuple(line_types),
-        road_edges=tuple(edges),
+        road_edges=tuple(_kerb(k, arms, arm_length) for k in arms),
         crosswalks=tuple(crosswalks),
         sidewalks=tuple(sidewalks),
         signals=plan,
         merges=(),
         half_extent=arm_length,
         junction=junction,
-        stop_signs=tuple(stop_signs),
+        stop_signs=stop_signs,
         crossings=tuple(crossings),
     )
 
