@@ -14,7 +14,7 @@ kept; seeds as ``tbsim evaluate``), with the shipped inference rules or the spec
 * ``histograms.png``: log vs simulation feature histograms (``tbsim evaluate --plot``).
 
     python scripts/diagnose_npc_real.py --split validation --rules spec --out /tmp/spec
-        [--samples 16 --keep 16] [--data ../shared/data/womd]
+        [--samples 16 --keep 16] [--data ../shared/data/womd] [--checkpoint runs/x/ema]
     python scripts/diagnose_npc_real.py --compare /tmp/spec /tmp/shipped
 
 ``--compare A B`` prints the means over scenes of both runs' ``scores.json`` with 90% bootstrap
@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from policies.trafficbots.checkpoint import load_checkpoint
 from policies.trafficbots.config import InferenceConfig
 from policies.trafficbots.rules import still_agents
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
@@ -140,7 +141,7 @@ def parked_motion(sc: Scenario, rollouts: Rollouts, out: dict[str, list[float]])
 
 def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
     """Roll out, score and count every scene of the split."""
-    model = load_default_model()
+    model = load_checkpoint(args.checkpoint) if args.checkpoint else load_default_model()
     if args.rules == "spec":
         model.inference = InferenceConfig.spec()
     entries = json.loads(SPLITS.read_text())[args.split]
@@ -158,9 +159,7 @@ def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
         f = scenario_features(sc, r)
         count_events(sc, f, events)
         parked_motion(sc, r, parked)
-        end = sc.current_index + 1 + r.num_steps
-        scored = sc.on_time_grid(end) if sc.num_steps > end else sc
-        for name, pair in feature_samples(scored, r).items():
+        for name, pair in feature_samples(sc, r).items():
             samples.setdefault(name, []).append(pair)
         print(
             f"{sc.scenario_id}: meta {s.realism_meta_metric:.3f} collision "
@@ -229,6 +228,7 @@ def main() -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument("--out")
+    p.add_argument("--checkpoint", help="checkpoint base path (default: the shipped weights)")
     p.add_argument("--compare", nargs=2, metavar=("A", "B"), help="compare two output folders")
     args = p.parse_args()
     if args.compare:

@@ -32,6 +32,7 @@ from tbsim_env.observation_spec import (
     observation_space,
 )
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
+from tbsim_env.sim.knn import nearest_k
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange, const, gather_rows
 
@@ -287,20 +288,22 @@ def agent_static_features(state: SimState) -> torch.Tensor:
 
 
 def _nearest(
-    dist: torch.Tensor, invalid: torch.Tensor | None, k: int, ids: torch.Tensor | None = None
+    dist: torch.Tensor,
+    invalid: torch.Tensor | None,
+    k: int,
+    within: float,
+    ids: tuple[torch.Tensor, int] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k].
-
-    Distances rank in buckets of ``KNN_DISTANCE_RESOLUTION`` (1 cm, edges off round
-    distances by ``KNN_BUCKET_OFFSET``), ties by the lower index, as TrafficBots' KNN does:
-    targets equally far in exact arithmetic (pieces starting at one node, mirrored lanes) are
-    then chosen the same way in any world frame, on any device and whatever the padding.
+    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k], ranked
+    by ``sim.knn.nearest_k`` (1 cm buckets, ties to the lower index).
 
     Args:
         dist: [B, Q, M] distances (>= 0 or +inf); invalid: [B, Q, M] bool (broadcastable),
             targets to skip (None: none, e.g. distances already +inf where invalid).
-        ids: optional [B, Q, M] int64 target index of each column (a subset of the targets,
-            e.g. ``map_knn`` candidates; ties go to the lower id); the column by default.
+        k: how many.
+        within: the radius the caller masks beyond, metres.
+        ids: optional ([B, Q, M] int64 target index of each column, number of targets): a
+            subset of the targets (e.g. ``map_knn`` candidates); the column by default.
 
     Returns:
         (indices, distances: +inf where there is no valid target; the index of such an
@@ -313,22 +316,17 @@ def _nearest(
     pad = k if torch.compiler.is_compiling() else max(k - m, 0)
     if pad:
         d = torch.nn.functional.pad(d, (0, pad), value=float("inf"))
-    scaled = d * const(1.0 / C.KNN_DISTANCE_RESOLUTION, d) + const(C.KNN_BUCKET_OFFSET, d)
-    bucket = torch.floor(scaled).clamp(max=2.0**30).to(torch.int64)
     if ids is None:
-        col = cached_arange(d.shape[-1], d.device)
-    else:
-        col = torch.nn.functional.pad(ids, (0, pad), value=0) if pad else ids
-    pos = torch.topk((bucket << 32) | col, k, dim=-1, largest=False, sorted=True).indices
-    top = torch.gather(d, -1, pos)
-    idx = pos if ids is None else col.gather(-1, pos)
-    if pad and ids is None:
-        idx = idx.clamp(max=m - 1)
-    return idx, top
+        pos = nearest_k(d, k, exact_within=within)
+        top = torch.gather(d, -1, pos)
+        return (pos.clamp(max=m - 1) if pad else pos), top
+    col = torch.nn.functional.pad(ids[0], (0, pad), value=0) if pad else ids[0]
+    pos = nearest_k(d, k, ids=col, num_ids=ids[1], exact_within=within)
+    return col.gather(-1, pos), torch.gather(d, -1, pos)
 
 
 def _nearest_pieces(
-    ctx: MapContext, me_xy: torch.Tensor, k: int
+    ctx: MapContext, me_xy: torch.Tensor, k: int, within: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The k nearest map pieces of each observer ``me_xy`` [B, Q, 2]: (indices, distances)
     [B, Q, k], equal to ``_nearest`` over every piece.
@@ -344,29 +342,30 @@ def _nearest_pieces(
     clustered = ctx.clusters.num_clusters > searched and m > 2 * searched * size
     clustered = clustered and me_xy.shape[1] >= C.MAP_KNN_MIN_OBSERVERS
     if not clustered or torch.compiler.is_compiling():
-        return _all_pieces(ctx.knn_xy[:, :, :m], me_xy, k)
+        return _all_pieces(ctx.knn_xy[:, :, :m], me_xy, k, within)
     cand, bound = candidate_pieces(ctx.clusters, me_xy, searched)
     xy = gather_rows(ctx.piece_xy, cand)  # [B, Q, C, 2]
     dx = xy[..., 0] - me_xy[..., 0:1]
     dy = xy[..., 1] - me_xy[..., 1:2]
-    idx, top = _nearest(torch.sqrt(dx * dx + dy * dy), None, k, ids=cand)
+    idx, top = _nearest(torch.sqrt(dx * dx + dy * dy), None, k, within, ids=(cand, m))
     rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
     if len(rows):  # the few observers it does not hold for: every piece
-        full_idx, full_top = _all_pieces(ctx.knn_xy[rows, :, :m], me_xy[rows, cols, None], k)
+        pieces, observer = ctx.knn_xy[rows, :, :m], me_xy[rows, cols, None]
+        full_idx, full_top = _all_pieces(pieces, observer, k, within)
         idx = idx.index_put((rows, cols), full_idx[:, 0])
         top = top.index_put((rows, cols), full_top[:, 0])
     return idx, top
 
 
 def _all_pieces(
-    pieces_xy: torch.Tensor, me_xy: torch.Tensor, k: int
+    pieces_xy: torch.Tensor, me_xy: torch.Tensor, k: int, within: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``_nearest`` over every piece ``pieces_xy`` [R, 1, M, 2] (+inf for padding) of the
     observers ``me_xy`` [R, Q, 2]: (indices, distances) [R, Q, k]."""
     # x and y apart (no [R, Q, M, 2] difference): the same values, a third of the time.
     dx = pieces_xy[..., 0] - me_xy[..., 0:1]
     dy = pieces_xy[..., 1] - me_xy[..., 1:2]
-    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k)
+    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k, within)
 
 
 @dataclass(frozen=True)
@@ -473,14 +472,15 @@ def observe_indexed(
     # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
     itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
     not_other = state.valid.unsqueeze(1) <= itself
-    a_idx, a_top = _nearest(dist, not_other, cfg.num_agents)
-    m_idx, m_top = _nearest_pieces(ctx, me[..., :2], cfg.num_map)
+    a_idx, a_top = _nearest(dist, not_other, cfg.num_agents, cfg.agent_radius)
+    m_idx, m_top = _nearest_pieces(ctx, me[..., :2], cfg.num_map, cfg.map_radius)
     # x and y apart (no [B, Q, L, 2] difference): the same values, a third of the time.
     light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
     dx = light_xy[..., 0] - me_xy[..., 0]  # [B, Q, L]
     dy = light_xy[..., 1] - me_xy[..., 1]
     tl_invalid, tl_tokens = _lights_at(ctx, state.step)  # [B, 1, L], [B, L, F]
-    t_idx, t_top = _nearest(torch.sqrt(dx * dx + dy * dy), tl_invalid, cfg.num_traffic_lights)
+    tl_dist = torch.sqrt(dx * dx + dy * dy)
+    t_idx, t_top = _nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
 
     # Poses of all selected tokens relative to the observer, zero where masked.
     sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)

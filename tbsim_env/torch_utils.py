@@ -26,11 +26,13 @@ def torch_threads(n: int | None):
         torch.set_num_threads(before)
 
 
-_ARANGE: dict[tuple[int, torch.device], torch.Tensor] = {}
+_ARANGE: dict[tuple[int, torch.device, torch.dtype], torch.Tensor] = {}
 
 
-def cached_arange(n: int, device: torch.device | str) -> torch.Tensor:
-    """``torch.arange(n)`` (int64) on ``device``, built once per (n, device); never modify it.
+def cached_arange(
+    n: int, device: torch.device | str, dtype: torch.dtype = torch.int64
+) -> torch.Tensor:
+    """``torch.arange(n)`` on ``device``, built once per (n, device, dtype); never modify it.
 
     Hot per-step code indexes with it (e.g. the batch index ``cached_arange(B)[:, None]``);
     building it anew costs about as much as the indexing itself. It is made outside
@@ -38,12 +40,12 @@ def cached_arange(n: int, device: torch.device | str) -> torch.Tensor:
     ``arange`` (free in a graph; a cache lookup would only add guards on the cache).
     """
     if torch.compiler.is_compiling():
-        return torch.arange(n, device=device)
-    key = (n, torch.device(device))
+        return torch.arange(n, device=device, dtype=dtype)
+    key = (n, torch.device(device), dtype)
     out = _ARANGE.get(key)
     if out is None:
         with torch.inference_mode(False):
-            out = _ARANGE[key] = torch.arange(n, device=key[1])
+            out = _ARANGE[key] = torch.arange(n, device=key[1], dtype=dtype)
     return out
 
 

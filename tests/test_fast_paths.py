@@ -368,7 +368,8 @@ def test_reset_reuses_the_start_of_a_scenario_without_sharing_outputs(scenes):
             np.testing.assert_array_equal(obs[a][key], ref_obs[a][key], key)
 
 
-def test_nearest_breaks_ties_by_index_whatever_the_padding() -> None:
+@pytest.mark.parametrize("within", [math.inf, 100.0])  # int64 key, int32 key
+def test_nearest_breaks_ties_by_index_whatever_the_padding(within: float) -> None:
     """Lane pieces branching from one point are equally far; the pick must not depend on how
     far the distance row is padded (batched envs pad to the largest scene), on the device,
     or on the world frame's rounding (distances within one 1 cm bucket tie)."""
@@ -378,12 +379,12 @@ def test_nearest_breaks_ties_by_index_whatever_the_padding() -> None:
     d = torch.randint(0, 4, (2, 3, 40), generator=gen).float() * 0.7  # many exact ties
     d[0, 0, 5] = float("inf")  # an invalid target
     d[1, 1, 7] += 1e-5  # equal but for rounding: still a tie
-    idx, top = nearest(d, None, 16)
+    idx, top = nearest(d, None, 16, within)
     lex = np.lexsort((np.broadcast_to(np.arange(40), d.shape), _buckets(d.numpy())), axis=-1)
     lex = lex[..., :16]
     assert torch.equal(idx, torch.from_numpy(lex.copy()))
     padded = torch.nn.functional.pad(d, (0, 300), value=float("inf"))
-    idx_p, top_p = nearest(padded, None, 16)
+    idx_p, top_p = nearest(padded, None, 16, within)
     assert torch.equal(idx_p, idx) and torch.equal(top_p, top)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -44,7 +46,7 @@ def _full(ctx, me_xy: torch.Tensor, k: int):
     m = ctx.pose.shape[1]
     dx = ctx.knn_xy[:, :, :m, 0] - me_xy[..., 0:1]
     dy = ctx.knn_xy[:, :, :m, 1] - me_xy[..., 1:2]
-    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k)
+    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k, math.inf)  # the int64 key
 
 
 @pytest.mark.parametrize("name", ["real", "generated"])
@@ -53,7 +55,7 @@ def test_clustered_search_equals_the_full_search(contexts, name):
     gen = torch.Generator().manual_seed(0)
     me = _observers(ctx, gen)
     k = ObsConfig().num_map
-    idx, top = _nearest_pieces(ctx, me, k)
+    idx, top = _nearest_pieces(ctx, me, k, ObsConfig().map_radius)
     ref_idx, ref_top = _full(ctx, me, k)
     assert torch.equal(top, ref_top)
     finite = torch.isfinite(ref_top)
@@ -69,7 +71,8 @@ def test_the_clustered_search_holds_near_the_map_and_not_far_away(contexts):
     xy = torch.stack([ctx.piece_xy[b, cand[b]] for b in range(len(cand))])
     dx, dy = xy[..., 0] - me[..., 0:1], xy[..., 1] - me[..., 1:2]
     d = torch.sqrt(dx * dx + dy * dy)
-    _, top = _nearest(d, None, ObsConfig().num_map, ids=cand)
+    m = ctx.pose.shape[1]
+    _, top = _nearest(d, None, ObsConfig().num_map, ObsConfig().map_radius, ids=(cand, m))
     holds = search_holds(top[..., -1], bound)
     assert holds[:, 5:].float().mean() > 0.95  # near the map: the clusters suffice
     # Where it holds, the candidates' k nearest are the true ones.
@@ -81,7 +84,7 @@ def test_a_search_of_too_few_clusters_falls_back_to_the_full_search(contexts, mo
     ctx = contexts["real"]
     monkeypatch.setattr(C, "MAP_KNN_CLUSTERS", 2)  # 32 candidates cannot hold 64 nearest
     me = _observers(ctx, torch.Generator().manual_seed(2), q=50)
-    idx, top = _nearest_pieces(ctx, me, ObsConfig().num_map)
+    idx, top = _nearest_pieces(ctx, me, ObsConfig().num_map, ObsConfig().map_radius)
     ref_idx, ref_top = _full(ctx, me, ObsConfig().num_map)
     assert torch.equal(top, ref_top) and torch.equal(idx, ref_idx)
 

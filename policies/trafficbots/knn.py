@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 
 from policies.trafficbots.encodings import relative_pose
-from tbsim_env.constants import KNN_BUCKET_OFFSET, KNN_DISTANCE_RESOLUTION
-from tbsim_env.torch_utils import cached_arange, gather_rows
+from tbsim_env.sim.knn import nearest_k
+from tbsim_env.torch_utils import gather_rows
 
 
 @torch.no_grad()
@@ -23,15 +23,14 @@ def knn_select(
     selected (first, unless a target of a lower row lies within the resolution of it).
     ``k`` is capped at the number of targets.
 
-    Distances rank in buckets of ``KNN_DISTANCE_RESOLUTION`` (1 cm; the edges offset from
-    round distances by ``KNN_BUCKET_OFFSET``), ties broken by the lower target row. Equal
-    distances are common: map pieces that start at the same node are equally far from
-    everything, and in a symmetric generated map two lanes are equally far from an agent
-    between them. Compared in full float32 precision, such a tie is decided by the rounding
-    of the scene frame, so a rotated and shifted copy of the scene picked other neighbours
-    (deviation from spec 2.4, which ranks exact distances). The selection does not depend
-    on the device, on ``topk``'s algorithm or on padding rows after the targets either
-    (``TokenBatch.trim``).
+    Ranked by ``tbsim_env.sim.knn.nearest_k``, the environment's rule: 1 cm distance buckets,
+    ties broken by the lower target row. Equal distances are common: map pieces that start at
+    the same node are equally far from everything, and in a symmetric generated map two lanes
+    are equally far from an agent between them. Compared in full float32 precision, such a
+    tie is decided by the rounding of the scene frame, so a rotated and shifted copy of the
+    scene picked other neighbours (deviation from spec 2.4, which ranks exact distances). The
+    selection does not depend on the device, on ``topk``'s algorithm or on padding rows after
+    the targets either (``TokenBatch.trim``).
 
     Args:
         query_xy: [B, Q, 2] query positions.
@@ -48,13 +47,7 @@ def knn_select(
     dx = query_xy[:, :, None, 0] - target_xy[:, None, :, 0]  # [B, Q, T]
     dy = query_xy[:, :, None, 1] - target_xy[:, None, :, 1]
     dist2 = (dx * dx + dy * dy).masked_fill_(~target_valid[:, None, :], float("inf"))
-    # Unique keys (distance bucket, row): the bucket in the high 32 bits, the row in the low
-    # ones. Invalid targets (inf) and anything beyond 1e7 m share the last bucket. The bucket
-    # edges sit at an irrational fraction of the resolution, off round distances.
-    scaled = dist2.sqrt().mul_(1.0 / KNN_DISTANCE_RESOLUTION).add_(KNN_BUCKET_OFFSET)
-    bucket = scaled.floor_().clamp_(max=2.0**30)
-    key = (bucket.long() << 32) | cached_arange(dist2.shape[-1], dist2.device)
-    idx = torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
+    idx = nearest_k(dist2.sqrt(), k, exact_within=dist_limit)
     return idx, dist2.gather(-1, idx) <= dist_limit * dist_limit
 
 

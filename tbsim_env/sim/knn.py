@@ -1,0 +1,81 @@
+"""The one rule that ranks neighbours by distance: 1 cm buckets, ties to the lower index.
+
+Observations (``tbsim_env.observation``) and TrafficBots' attention neighbours
+(``policies.trafficbots.knn``) both pick their k nearest targets with ``nearest_k``.
+
+Distances rank in buckets of ``KNN_DISTANCE_RESOLUTION`` (1 cm) whose edges sit
+``KNN_BUCKET_OFFSET`` of a bucket off round distances; inside a bucket the lower target id
+wins. Targets equally far in exact arithmetic (map pieces starting at one node, mirrored
+lanes) are then chosen the same way in any world frame, on any device and whatever the
+padding after the targets: compared in full float32 precision, such a tie would be decided by
+the rounding of the scene frame.
+
+The rank is one integer key per target, ``bucket * 2**bits + id``, and one ``topk`` over it.
+When the caller masks everything beyond ``exact_within`` metres anyway (its radius), the key
+is an int32: the buckets beyond a bound well past that radius share the last one (which of
+those far targets fills a masked entry is then decided by id). Half the bytes of the int64
+key, built in place: this selection is the largest single cost of an observation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from tbsim_env.constants import KNN_BUCKET_OFFSET, KNN_DISTANCE_RESOLUTION
+from tbsim_env.torch_utils import cached_arange, const
+
+INT64_LAST_BUCKET = 2**30
+"""Last bucket of the int64 key (1e7 m): +inf and anything farther share it."""
+FLOAT32_EXACT = 2**24
+"""Largest bucket of an int32 key: the clamp to it runs in float32, exact up to here."""
+INT32_MIN_REACH = 2.0
+"""An int32 key is used only when its last bucket lies this many times ``exact_within`` out."""
+
+
+def _key_layout(num_ids: int, exact_within: float) -> tuple[torch.dtype, int, int]:
+    """(key dtype, id bits, last bucket) for ids in [0, num_ids)."""
+    bits = max(1, (max(num_ids, 1) - 1).bit_length())
+    # The clamp runs in float32, exact up to 2**24.
+    last32 = min(2 ** (31 - bits) - 1, FLOAT32_EXACT)
+    reach = last32 * KNN_DISTANCE_RESOLUTION
+    if math.isfinite(exact_within) and reach >= INT32_MIN_REACH * exact_within:
+        return torch.int32, bits, last32
+    return torch.int64, 32, INT64_LAST_BUCKET
+
+
+def nearest_k(
+    dist: torch.Tensor,
+    k: int,
+    ids: torch.Tensor | None = None,
+    num_ids: int | None = None,
+    exact_within: float = math.inf,
+) -> torch.Tensor:
+    """Positions [..., k] (along the last dim) of the k nearest targets, nearest first.
+
+    Args:
+        dist: [..., M] float distances, >= 0 or +inf (+inf: no target; ranked last).
+        k: how many, <= M.
+        ids: optional [..., M] int64 id of each column (a subset of the targets, e.g. search
+            candidates); ties go to the lower id. The column index by default.
+        num_ids: ids lie in [0, num_ids) (default: M; needed with ``ids``).
+        exact_within: the caller masks targets farther than this (metres); the ranking is
+            exact out to at least ``INT32_MIN_REACH`` times it (inf: everywhere).
+
+    Returns:
+        [..., k] int64 positions along the last dim of ``dist``.
+    """
+    m = dist.shape[-1]
+    if ids is not None and num_ids is None:
+        raise ValueError("nearest_k needs num_ids with ids")
+    dtype, bits, last = _key_layout(m if ids is None else int(num_ids), exact_within)
+    scaled = dist * const(1.0 / KNN_DISTANCE_RESOLUTION, dist) + const(KNN_BUCKET_OFFSET, dist)
+    # The scaled distances are > 0, so truncation is the floor.
+    key = scaled.clamp_(max=float(last)).to(dtype)
+    col = cached_arange(m, dist.device, dtype) if ids is None else ids.to(dtype)
+    key.bitwise_left_shift_(bits).bitwise_or_(col)
+    return torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
+
+
+__all__ = ["nearest_k"]
