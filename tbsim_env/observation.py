@@ -378,15 +378,16 @@ class IndexedObservation:
     ``densify`` gathers the dense layout from it, so the two never disagree.
 
     Attributes:
-        agent_tokens: [B, N, H * 5 + H + 7] float32, every agent slot this step: its history
-            in its own current frame, the history mask, its attributes (length, width, type
-            one-hot, speed).
+        agent_tokens: [B, R, H * 5 + H + 7] float32, agent tokens this step: the history in
+            the agent's own current frame, the history mask, its attributes (length, width,
+            type one-hot, speed). A row per agent slot (R = N), or per observer and seen
+            neighbour (R = Q (1 + Ka), ``observe_indexed(compact_agents=True)``).
         map_tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, map pieces (nodes in the
             piece frame, node mask, class one-hot); fixed for an episode.
         light_tokens: [B, L, NUM_TL_STATES] float32, traffic-light state one-hot this step.
-        ego: [B, Q] int64, each observer's agent slot (its own row of ``agent_tokens``).
-        index: [B, Q, Ka + Km + Kt] int64, the tokens each observer sees: Ka agent slots, Km
-            map pieces, Kt lights, nearest first.
+        ego: [B, Q] int64, each observer's own row of ``agent_tokens``.
+        index: [B, Q, Ka + Km + Kt] int64, the tokens each observer sees: Ka rows of
+            ``agent_tokens``, Km map pieces, Kt lights, nearest first.
         pose: [B, Q, Ka + Km + Kt, 3] float32, their poses (dx m, dy m, dyaw rad) in the
             observer's frame, zero where masked.
         mask: [B, Q, Ka + Km + Kt] float32, 1 where a token is seen (0 for padding and tokens

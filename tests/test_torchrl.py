@@ -49,7 +49,8 @@ def test_check_env_specs(scenes, layout, torch_one_thread):
     else:
         assert obs_spec["agents", "observation", "index"].shape == (2, q, 25 + 64 + 25)
         n = env.env.bank.start.pose.shape[1]  # agent slots of the bank
-        assert obs_spec["tokens", "agent_tokens"].shape[:2] == (2, n)
+        rows = min(n, q * (1 + 25))  # per slot, or per observer and neighbour when fewer
+        assert obs_spec["tokens", "agent_tokens"].shape[:2] == (2, rows)
 
 
 def _obs_entry(td, env: TorchRLTrafficEnv, key: str) -> torch.Tensor:

@@ -363,13 +363,18 @@ def test_stateful_npc_policy_resets_one_slot_without_touching_the_others(scenes)
     assert venv.episode.policy_state.rollout.hist_pose.shape[0] == 2
 
 
-def test_indexed_layout_densifies_to_the_dense_layout_through_restarts(scenes):
-    kw = dict(controlled="all", npc_policy="constant_velocity", seed=3, route_points=4)
+@pytest.mark.parametrize("controlled", ["all", "sdc"])
+def test_indexed_layout_densifies_to_the_dense_layout_through_restarts(scenes, controlled):
+    kw = dict(controlled=controlled, npc_policy="constant_velocity", seed=3, route_points=4)
     dense = BatchedTrafficEnv(scenes, 3, **kw)
     indexed = BatchedTrafficEnv(scenes, 3, obs_layout="indexed", **kw)
     d_obs, _ = dense.reset()
     i_obs, _ = indexed.reset()
     assert set(i_obs) == set(OBS_INDEXED_KEYS) | {ROUTE_KEY}
+    # A row per agent slot, or per observer and neighbour where that is fewer (one learner).
+    n, q, ka = indexed.bank.start.pose.shape[1], indexed.num_agents, indexed.obs_config.num_agents
+    rows = q * (1 + ka) if q * (1 + ka) < n else n
+    assert i_obs["agent_tokens"].shape[1] == rows and (rows < n) == (controlled == "sdc")
     rng = np.random.default_rng(0)
     restarts = 0
     for _ in range(120):

@@ -67,11 +67,13 @@ ROUTE_KEY = "route"
 
 OBS_INDEXED_KEYS = {
     "scene": "[B] int64, the slot's scenario: its row of ``map_token_bank``",
-    "agent_tokens": "[B, N, H * 5 + H + 7] float32, every agent slot this step: history in "
-    "its own frame, history mask, attributes (length, width, type one-hot, speed)",
+    "agent_tokens": "[B, R, H * 5 + H + 7] float32, agent tokens this step: history in "
+    "its own frame, history mask, attributes (length, width, type one-hot, speed); a row per "
+    "agent slot (R = N), or, when that is fewer rows, per observer and neighbour it sees "
+    "(R = Q (1 + Ka)); fixed per env",
     "light_tokens": "[B, L, 5] float32, traffic-light state one-hot this step",
-    "ego": "[B, Q] int64, each observer's agent slot (its row of agent_tokens)",
-    "index": "[B, Q, Ka + Km + Kt] int64, the agent slots, map pieces and lights it sees",
+    "ego": "[B, Q] int64, each observer's own row of agent_tokens",
+    "index": "[B, Q, Ka + Km + Kt] int64, the agent_tokens rows, map pieces and lights it sees",
     "pose": "[B, Q, Ka + Km + Kt, 3] float32, their (dx, dy, dyaw) in the observer's frame",
     "mask": "[B, Q, Ka + Km + Kt] float32, 1 where seen",
     "observer_mask": "[B, Q] float32, 1 for active observers (all else is zero for others)",

@@ -9,7 +9,7 @@ wrappers group agents. Keys (shapes with the batch; units as ``BatchedTrafficEnv
   ``route_points`` > 0); zero for agents that are not active. With
   ``obs_layout="indexed"`` the per-observer keys of ``OBS_INDEXED_KEYS`` instead (``ego``,
   ``index`` int64; ``pose``, ``mask``, ``observer_mask`` float32; ``route``), and the tokens
-  they index once per slot: ``("tokens", "agent_tokens")`` [B, N, D] and
+  they index: ``("tokens", "agent_tokens")`` [B, R, D] (``OBS_INDEXED_KEYS``) and
   ``("tokens", "light_tokens")`` [B, L, 5] (map pieces: ``env.env.map_token_bank`` rows of
   ``"scenario_index"``; ``env.env.densify`` gives the dense layout).
 * ``("agents", "mask")`` [B, Q] bool: agents active now (they need an action; padding agent
