@@ -80,16 +80,13 @@ def _log_at(state: SimState, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
 
     A batch of one on the CPU reads the step as a number (a view per field instead of an
     indexing operation; not under ``torch.compile``, where that would break the graph);
-    otherwise one index per field, b-th row at t[b].
+    otherwise one ``index_select`` of the time-major ``by_step`` blocks, b-th row at t[b].
     """
     log = state.log
     if state.batch_size == 1 and t.device.type == "cpu" and not torch.compiler.is_compiling():
         i = int(t.item())
         return log.valid[:, :, i], log.pose[:, :, i], log.speed[:, :, i]
-    at = (cached_arange(state.batch_size, state.device)[:, None], _agent_index(state), t[:, None])
-    return log.valid[at], log.pose[at], log.speed[at]
-
-
-def _agent_index(state: SimState) -> torch.Tensor:
-    """[N] agent-slot index of the state's device."""
-    return cached_arange(state.num_agents, state.device)
+    n_t = log.by_step.shape[1]
+    rows = cached_arange(state.batch_size, state.device) * n_t + t
+    at = log.by_step.flatten(0, 1).index_select(0, rows)  # [B, N, 5]
+    return at[..., 4] > 0, at[..., :3], at[..., 3]

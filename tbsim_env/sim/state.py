@@ -55,6 +55,10 @@ class LogTrajectory:
         z: [B, N, T] float32 box-centre height m.
         valid: [B, N, T] bool.
         first_valid: [B, N] int64, first step the agent is valid (T if never).
+        by_step: [B, T, N, 5] float32, what a simulation step reads of the log, time-major
+            (x, y, yaw, speed, valid as 0 / 1): one contiguous block per row and step, so
+            that reading step t of every row is one ``index_select`` (derived from the fields
+            above when not given).
     """
 
     pose: torch.Tensor
@@ -63,6 +67,13 @@ class LogTrajectory:
     z: torch.Tensor
     valid: torch.Tensor
     first_valid: torch.Tensor
+    by_step: torch.Tensor | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        if self.by_step is None:
+            cols = [self.pose, self.speed[..., None], self.valid[..., None].to(self.pose.dtype)]
+            packed = torch.cat(cols, -1).transpose(1, 2).contiguous()
+            object.__setattr__(self, "by_step", packed)
 
 
 @dataclass(frozen=True)
