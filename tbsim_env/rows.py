@@ -3,6 +3,8 @@
 The environments keep an episode as a frozen dataclass of ``[B, ...]`` tensors; starting new
 episodes in some rows is ``with_rows(state, rows, fresh)`` and looking at some rows is
 ``take_rows(state, rows)``. Both are pure: they return new trees and modify nothing.
+``sim.state.Shared`` tables (per-scenario tables that rows read through a row map) pass
+through both unchanged.
 """
 
 from __future__ import annotations
@@ -11,6 +13,8 @@ import dataclasses
 from typing import Any
 
 import torch
+
+from tbsim_env.sim.state import Shared
 
 
 def take_rows(tree: Any, rows: torch.Tensor) -> Any:
@@ -26,8 +30,8 @@ def take_rows(tree: Any, rows: torch.Tensor) -> Any:
     Raises:
         TypeError: a leaf is neither a tensor nor None.
     """
-    if tree is None:
-        return None
+    if tree is None or isinstance(tree, Shared):
+        return tree
     if isinstance(tree, torch.Tensor):
         return tree[rows]
     if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
@@ -58,6 +62,10 @@ def with_rows(dst: Any, rows: torch.Tensor, src: Any, strict: bool = True) -> An
     """
     if dst is None and src is None:
         return None
+    if isinstance(dst, Shared):
+        if not isinstance(src, Shared) or src.value is not dst.value:
+            raise ValueError("with_rows: the trees do not share their tables (another bank)")
+        return dst
     if isinstance(dst, torch.Tensor):
         if not isinstance(src, torch.Tensor) or dst.shape[1:] != src.shape[1:]:
             got = tuple(src.shape) if isinstance(src, torch.Tensor) else type(src).__name__

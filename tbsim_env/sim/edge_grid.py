@@ -20,7 +20,7 @@ import torch
 
 from tbsim_env import constants as C
 from tbsim_env.sim.geometry import segment_projection
-from tbsim_env.sim.state import EdgeGrid, RoadEdges
+from tbsim_env.sim.state import EdgeGrid, RoadEdges, Shared
 from tbsim_env.torch_utils import gather_rows
 
 
@@ -113,10 +113,18 @@ def build_edge_grid(
         cell=torch.full((b, 1, 1), float(cell), dtype=torch.float32, device=dev),
         lower=torch.from_numpy(np.stack([x["lower"] for x in grids]).astype(np.float32)).to(dev),
         shape=torch.from_numpy(np.stack([x["shape"] for x in grids])).to(dev),
-        cells=torch.from_numpy(cells).to(dev),
-        bound=torch.from_numpy(bound).to(dev),
-        center=torch.from_numpy(center).to(dev),
+        row=torch.arange(b, device=dev),
+        cells=Shared(torch.from_numpy(cells).to(dev)),
+        bound=Shared(torch.from_numpy(bound).to(dev)),
+        center=Shared(torch.from_numpy(center).to(dev)),
     )
+
+
+def _table_rows(table: Shared, row: torch.Tensor, cell: torch.Tensor) -> torch.Tensor:
+    """``table[row[b], cell[b, k]]`` [B, K, ...] of a shared [K', G, ...] table."""
+    t = table.value
+    flat = (cell + (row * t.shape[1]).unsqueeze(-1)).reshape(-1)
+    return t.flatten(0, 1).index_select(0, flat).view(*cell.shape, *t.shape[2:])
 
 
 def _cell_of(grid: EdgeGrid, xy: torch.Tensor) -> torch.Tensor:
@@ -147,7 +155,7 @@ def grid_signed_distance(
         may be wrong there).
     """
     cell = _cell_of(grid, points)  # [B, K]
-    cand = gather_rows(grid.cells, cell)  # [B, K, Cc]
+    cand = _table_rows(grid.cells, grid.row, cell)  # [B, K, Cc]
     a = gather_rows(edges.start, cand)  # [B, K, Cc, 2]
     ab = gather_rows(edges.end, cand) - a
     t, dist = segment_projection(points.unsqueeze(-2), a, ab)
@@ -157,8 +165,9 @@ def grid_signed_distance(
     best = cand.gather(-1, local)[..., 0].long()  # [B, K]
     sign = joint_sign(points, edges, best, t_best)
     out = torch.where(edges.valid.any(-1, keepdim=True), sign * d, C.NO_EDGE_DISTANCE)
-    centre = gather_rows(grid.center, cell)
-    slack = gather_rows(grid.bound, cell) - torch.linalg.vector_norm(points - centre, dim=-1)
+    centre = _table_rows(grid.center, grid.row, cell)
+    bound = _table_rows(grid.bound, grid.row, cell)
+    slack = bound - torch.linalg.vector_norm(points - centre, dim=-1)
     return out, d > slack
 
 

@@ -19,6 +19,7 @@ import torch
 
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.rollouts import Rollouts, log_replay_rollouts
+from tbsim_env.rows import take_rows
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.horizon import wosac_end_step, wosac_scenario
@@ -27,16 +28,8 @@ from tbsim_env.sim.state import SimState
 
 
 def tile_state(state: SimState, n: int) -> SimState:
-    """Repeat a batch-of-one state ``n`` times along the batch axis (every tensor field)."""
-
-    def tile(x):
-        if isinstance(x, torch.Tensor):
-            return x.repeat(n, *([1] * (x.dim() - 1))).contiguous()
-        if dataclasses.is_dataclass(x):
-            return type(x)(**{f.name: tile(getattr(x, f.name)) for f in dataclasses.fields(x)})
-        return x
-
-    return tile(state)
+    """Repeat a batch-of-one state ``n`` times along the batch axis (``take_rows`` of row 0)."""
+    return take_rows(state, torch.zeros(n, dtype=torch.int64, device=state.device))
 
 
 def sim_agent_mask(scenario: Scenario) -> np.ndarray:

@@ -93,28 +93,45 @@ class SignalLog:
     stop_point: torch.Tensor
 
 
+@dataclass(frozen=True, eq=False)
+class Shared:
+    """A table of K scenarios that batch rows read through a row map (``EdgeGrid.row``).
+
+    Row operations (``tbsim_env.rows``) pass it through instead of splitting it: rows of one
+    bank share its tables, so starting a new episode in a row copies none of them (a road-edge
+    grid is megabytes per scenario).
+
+    Attributes:
+        value: [K, ...] tensor.
+    """
+
+    value: torch.Tensor
+
+
 @dataclass(frozen=True)
 class EdgeGrid:
     """Per-cell candidate road-edge segments of B scenarios (``tbsim_env.sim.edge_grid``),
-    padded to the largest grid.
+    padded to the largest grid; the large per-cell tables are ``Shared`` by the rows of a bank.
 
     Attributes:
         cell: [B, 1, 1] float32, cell size (m).
         lower: [B, 2] float32, the grid's lower-left corner (m, state frame).
         shape: [B, 2] int64, cells along x and y (at least 1 each).
-        cells: [B, G, Cc] int32, per cell (x-major: ``ix * shape_y + iy``) the indices of its
-            Cc nearest segments, nearest first; padding entries repeat the last real one.
-        bound: [B, G] float32, distance from the cell centre of the nearest segment not listed
-            (inf when every segment is listed), less a rounding slack.
-        center: [B, G, 2] float32, cell centres.
+        row: [B] int64, each batch row's row of the shared tables.
+        cells: Shared [K, G, Cc] int32, per cell (x-major: ``ix * shape_y + iy``) the indices
+            of its Cc nearest segments, nearest first; padding entries repeat the last real one.
+        bound: Shared [K, G] float32, distance from the cell centre of the nearest segment not
+            listed (inf when every segment is listed), less a rounding slack.
+        center: Shared [K, G, 2] float32, cell centres.
     """
 
     cell: torch.Tensor
     lower: torch.Tensor
     shape: torch.Tensor
-    cells: torch.Tensor
-    bound: torch.Tensor
-    center: torch.Tensor
+    row: torch.Tensor
+    cells: Shared
+    bound: Shared
+    center: Shared
 
 
 @dataclass(frozen=True)
