@@ -115,7 +115,10 @@ def candidate_pieces(
         (candidates [B, Q, searched * S] int64 piece indices (``M`` for empty slots),
         bound [B, Q] m: no piece outside the candidates is nearer; +inf when none is left).
     """
-    d = torch.linalg.vector_norm(clusters.center[:, None] - me_xy[:, :, None], dim=-1)
+    d = torch.hypot(
+        clusters.center[:, None, :, 0] - me_xy[:, :, None, 0],
+        clusters.center[:, None, :, 1] - me_xy[:, :, None, 1],
+    )
     lower = (d - clusters.radius[:, None]).clamp_min(0.0)  # [B, Q, G], +inf for padding
     lower, order = torch.topk(lower, searched + 1, dim=-1, largest=False, sorted=True)
     members = gather_rows(clusters.members, order[..., :searched])  # [B, Q, searched, S]

@@ -31,6 +31,7 @@ from tbsim_env.observation_spec import (
     observation_shapes,
     observation_space,
 )
+from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.knn import nearest_k
 from tbsim_env.sim.state import SimState
@@ -469,7 +470,7 @@ def observe_indexed(
     n = state.num_agents
     dist = agent_distance  # [B, Q, N]
     if dist is None:
-        dist = torch.linalg.vector_norm(state.pose[:, None, :, :2] - me_xy, dim=-1)
+        dist = agent_distances(me, state.pose)
     # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
     itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
     not_other = state.valid.unsqueeze(1) <= itself

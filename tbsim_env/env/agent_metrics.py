@@ -187,7 +187,8 @@ def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     a, ab = route.segment_start, route.segments
     q = xy.unsqueeze(-2)
     t = (((q - a) * ab).sum(-1) / route.segment_length2).clamp(0.0, 1.0)
-    d = torch.linalg.vector_norm(q - (a + t.unsqueeze(-1) * ab), dim=-1)
+    foot = q - (a + t.unsqueeze(-1) * ab)
+    d = torch.hypot(foot[..., 0], foot[..., 1])
     best = d.argmin(-1, keepdim=True)
     along = t.gather(-1, best) * route.segment_length.gather(-1, best)
     return (route.segment_arc.gather(-1, best) + along).squeeze(-1)

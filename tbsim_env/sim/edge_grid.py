@@ -167,7 +167,7 @@ def grid_signed_distance(
     out = torch.where(edges.valid.any(-1, keepdim=True), sign * d, C.NO_EDGE_DISTANCE)
     centre = _table_rows(grid.center, grid.row, cell)
     bound = _table_rows(grid.bound, grid.row, cell)
-    slack = bound - torch.linalg.vector_norm(points - centre, dim=-1)
+    slack = bound - torch.hypot(points[..., 0] - centre[..., 0], points[..., 1] - centre[..., 1])
     return out, d > slack
 
 
