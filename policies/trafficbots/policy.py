@@ -27,6 +27,7 @@ from policies.trafficbots.model import RolloutContext, RolloutState, TrafficBots
 from tbsim_env.config import TokenConfig
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
+from tbsim_env.data.tokens import SceneTokens
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import gather_rows
 
@@ -72,6 +73,9 @@ class TrafficBotsPolicy:
             one batch row at a time into a state of fixed shapes (``BatchedTrafficEnv``) use
             ``for_scenarios``, which fixes the rows to those of their whole scenario set.
         min_rows: (agents, map pieces, TL tokens) rows that a trimmed batch keeps at least.
+        token_cache: preprocessed tokens of scenarios this policy will start from
+            (``for_scenarios`` fills it), so that a restart does not preprocess the scene
+            again: ``id(scenario)`` -> (the scenario, its ``SceneTokens``).
     """
 
     name = "trafficbots"
@@ -83,11 +87,20 @@ class TrafficBotsPolicy:
         token_config: TokenConfig | None = None,
         trim: bool = False,
         min_rows: tuple[int, int, int] | None = None,
+        token_cache: dict[int, tuple[Scenario, SceneTokens]] | None = None,
     ) -> None:
         self.model = model.eval()
         self.token_config = token_config or TokenConfig()
         self.trim = trim
         self.min_rows = min_rows
+        self.token_cache = token_cache or {}
+
+    def _tokens(self, scenario: Scenario) -> SceneTokens:
+        """The scenario's tokens: cached (the same object was bound), else preprocessed."""
+        hit = self.token_cache.get(id(scenario))
+        if hit is not None and hit[0] is scenario:
+            return hit[1]
+        return preprocess_scenario(scenario, self.token_config)
 
     def for_scenarios(self, scenarios: Sequence[Scenario]) -> TrafficBotsPolicy:
         """This policy with state shapes fixed for any batch drawn from ``scenarios``.
@@ -104,10 +117,15 @@ class TrafficBotsPolicy:
         if not self.trim:
             return self
         rows = [0, 0, 0]
+        cache = {}
         for sc in tqdm(scenarios, desc="token rows", disable=len(scenarios) < 256, leave=False):
-            used = TokenBatch.from_tokens(preprocess_scenario(sc, self.token_config)).rows_used()
+            tokens = preprocess_scenario(sc, self.token_config)
+            cache[id(sc)] = (sc, tokens)
+            used = TokenBatch.from_tokens(tokens).rows_used()
             rows = [max(a, b) for a, b in zip(rows, used, strict=True)]
-        return TrafficBotsPolicy(self.model, self.token_config, trim=True, min_rows=tuple(rows))
+        return TrafficBotsPolicy(
+            self.model, self.token_config, trim=True, min_rows=tuple(rows), token_cache=cache
+        )
 
     @classmethod
     def from_checkpoint(
@@ -128,7 +146,7 @@ class TrafficBotsPolicy:
         dev = state.device
         if dev != self.model.device:
             raise ValueError(f"simulator on {dev} but the TrafficBots model on {self.model.device}")
-        tokens = [preprocess_scenario(sc, self.token_config) for sc in scenarios]
+        tokens = [self._tokens(sc) for sc in scenarios]
         batch = TokenBatch.from_tokens(tokens, device=self.model.device)
         if self.trim:
             batch = batch.trim(self.min_rows)
