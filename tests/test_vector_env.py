@@ -433,3 +433,28 @@ def test_reset_slots_restarts_only_those_slots(scenes):
         venv.reset_slots([3])
     with pytest.raises(ValueError, match="at least one"):
         venv.reset_slots([])
+
+
+def test_trafficbots_restarts_from_its_scene_caches_exactly(scenes):
+    """A bound TrafficBots policy keeps each scene's tokens and destination distribution; the
+    rollouts across slot restarts are those of a policy that computes them every time."""
+
+    class Forget(dict):
+        def __setitem__(self, key, value) -> None:  # never remembers a scene
+            pass
+
+    def run(cache: bool) -> tuple[list[torch.Tensor], int]:
+        venv = BatchedTrafficEnv(scenes, 2, controlled="sdc", npc_policy="trafficbots", seed=4)
+        if not cache:
+            venv.npc_policy.destination_cache = Forget()
+        venv.reset()
+        poses, restarts = [], 0
+        for _ in range(100):
+            *_, info = venv.step(venv.expert_actions())
+            restarts += int(info["done"].sum())
+            poses.append(venv.sim_state.pose.clone())
+        return poses, restarts
+
+    (cached, n1), (fresh, n2) = run(True), run(False)
+    assert n1 == n2 >= 2
+    assert all(torch.equal(a, b) for a, b in zip(cached, fresh))

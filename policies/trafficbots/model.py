@@ -188,6 +188,7 @@ class TrafficBots(nn.Module):
         tl_valid_from: Literal["history", "full"] = "history",
         with_posterior: bool = False,
         input_dropout_p: float = 0.0,
+        destinations: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> RolloutContext:
         """Per-scenario precomputation and per-rollout sampling (spec 5.1, 6.1, 7.1).
 
@@ -202,6 +203,9 @@ class TrafficBots(nn.Module):
             input_dropout_p: training-mode input dropout of spec 1.9 (``dropout_p_history``):
                 map nodes 1..P-1 are hidden from the map encoder and history steps 0..9 from
                 the destination predictor, each with this probability. Ignored in eval mode.
+            destinations: the destination predictor's (logits [B, N, M], usable [B, N]) for
+                these scenes, computed before (it depends on the scene only; eval mode):
+                skips the predictor, the largest part of ``prepare`` at inference.
 
         Returns:
             ``RolloutContext`` with batch B * n_rollouts.
@@ -216,14 +220,17 @@ class TrafficBots(nn.Module):
         tl_src = batch.tl_valid if tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
         tl = tl_context(cfg, batch.tl_piece, tl_src.any(-1), mp)
         attr = agent_attributes(batch.ag_type, batch.ag_size)
-        dest_logits, dest_usable = self.dest_predictor(
-            dest_hist_valid,
-            batch.ag_pose[..., :n_hist, :],
-            batch.ag_motion[..., :n_hist, :],
-            attr,
-            batch.ag_type,
-            mp,
-        )
+        if destinations is not None and not self.training:
+            dest_logits, dest_usable = destinations
+        else:
+            dest_logits, dest_usable = self.dest_predictor(
+                dest_hist_valid,
+                batch.ag_pose[..., :n_hist, :],
+                batch.ag_motion[..., :n_hist, :],
+                attr,
+                batch.ag_type,
+                mp,
+            )
         post_mean = post_log_std = post_valid = None
         if latent != "prior" or with_posterior:
             post_mean, post_log_std, post_valid = self.posterior(

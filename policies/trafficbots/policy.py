@@ -75,7 +75,10 @@ class TrafficBotsPolicy:
         min_rows: (agents, map pieces, TL tokens) rows that a trimmed batch keeps at least.
         token_cache: preprocessed tokens of scenarios this policy will start from
             (``for_scenarios`` fills it), so that a restart does not preprocess the scene
-            again: ``id(scenario)`` -> (the scenario, its ``SceneTokens``).
+            again: ``id(scenario)`` -> (the scenario, its ``SceneTokens``). The destination
+            predictor's output of these scenes is kept too, once computed (it depends on the
+            scene only), so that a restart only samples (``destination_cache``: ``id(scenario)``
+            -> (the scenario, logits [1, N, M], usable [1, N])).
     """
 
     name = "trafficbots"
@@ -94,6 +97,7 @@ class TrafficBotsPolicy:
         self.trim = trim
         self.min_rows = min_rows
         self.token_cache = token_cache or {}
+        self.destination_cache: dict[int, tuple[Scenario, torch.Tensor, torch.Tensor]] = {}
 
     def _tokens(self, scenario: Scenario) -> SceneTokens:
         """The scenario's tokens: cached (the same object was bound), else preprocessed."""
@@ -151,7 +155,18 @@ class TrafficBotsPolicy:
         if self.trim:
             batch = batch.trim(self.min_rows)
         n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
-        ctx = self.model.prepare(batch, 1, generator, latent="prior", dest="sample")
+        known = [self.destination_cache.get(id(sc)) for sc in scenarios]
+        dest = None
+        if all(k is not None and k[0] is sc for k, sc in zip(known, scenarios)):
+            dest = (torch.cat([k[1] for k in known]), torch.cat([k[2] for k in known]))
+        ctx = self.model.prepare(
+            batch, 1, generator, latent="prior", dest="sample", destinations=dest
+        )
+        if dest is None:
+            for i, sc in enumerate(scenarios):
+                if id(sc) in self.token_cache:
+                    rows = (ctx.dest_logits[i : i + 1].clone(), ctx.dest_usable[i : i + 1].clone())
+                    self.destination_cache[id(sc)] = (sc, *rows)
         tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])  # trimmed rows
         slot = _match(torch.as_tensor(tok_track, device=dev), state.agents.track_index)
         lane_ids = []
