@@ -50,6 +50,14 @@ def _cmd_info(args: cfg.Info) -> int:
     return 0
 
 
+def _video_config():
+    """The env config of ``render`` and ``demo``: a video shows the whole scenario, so the
+    SDC's collisions, off-road moments and goal do not end it (the frames mark them)."""
+    from tbsim_env.config import EnvConfig, TerminationConfig
+
+    return EnvConfig(termination=TerminationConfig(collision=False, offroad=False, goal=False))
+
+
 def _episode_video(env, out: Path, fps: int, steps: int | None, desc: str) -> int:
     from tbsim_env.env.parallel_env import episode_length
     from tbsim_env.rendering import write_video
@@ -72,6 +80,7 @@ def _cmd_demo(args: cfg.Demo) -> int:
         None,
         controlled="sdc",
         npc_policy=args.npc_policy,
+        config=_video_config(),
         render_mode="rgb_array",
         scenario_order="cycle",
     )
@@ -100,7 +109,11 @@ def _cmd_render(args: cfg.Render) -> int:
             print(f"error: no scenario {args.scenario!r} in {args.file}", file=sys.stderr)
             return 2
     env = TrafficEnv(
-        scenarios[:1], controlled="sdc", npc_policy=args.npc_policy, render_mode="rgb_array"
+        scenarios[:1],
+        controlled="sdc",
+        npc_policy=args.npc_policy,
+        config=_video_config(),
+        render_mode="rgb_array",
     )
     n = _episode_video(env, Path(args.out), args.fps, None, f"render {scenarios[0].scenario_id}")
     print(f"wrote {args.out} ({n} frames)")

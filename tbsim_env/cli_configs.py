@@ -62,7 +62,8 @@ class Info:
 
 @dataclass(frozen=True, kw_only=True)
 class Render:
-    """Simulate one scenario and write a video.
+    """Simulate one scenario and write a video of all of it (the SDC follows its log to the
+    end; a collision or leaving the road is drawn, not the end of the video).
 
     Attributes:
         file: a scenario file (TFRecord, JSON, pickle).

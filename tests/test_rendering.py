@@ -545,3 +545,16 @@ def test_real_scenario_render_state_matches_log(one_scenario_path) -> None:
     differ = np.abs(from_state.astype(int) - from_log).max(axis=-1) > 0
     assert differ.mean() < 0.01
     assert (from_state != layer.image).any(axis=-1).mean() > 0.01
+
+
+def test_render_command_shows_the_whole_scenario_with_trafficbots(
+    one_scenario_path, tmp_path, capsys
+) -> None:
+    """On this scene a TrafficBots NPC runs into the log-following SDC within 3 s; the video
+    still covers all 8 s after the current step (81 frames), the collision drawn, not an end."""
+    from tbsim_env.cli import main
+
+    out = tmp_path / "r.gif"
+    rc = main(["render", str(one_scenario_path), "--npc-policy", "trafficbots", "--out", str(out)])
+    assert rc == 0 and out.exists()
+    assert "(81 frames)" in capsys.readouterr().out
