@@ -34,11 +34,14 @@ class PieceClusters:
             sentinel of ``MapContext.knn_xy``-style arrays) for empty member slots.
         center: [B, G, 2] float32 m, the mean of the members' anchor points (+inf: padding).
         radius: [B, G] float32 m, the largest member distance from the centre, rounded up.
+        member_xy: [B, G, S, 2] float32 m, the members' anchor points (+inf for empty slots),
+            so that a search gathers a cluster's points as one block.
     """
 
     members: torch.Tensor
     center: torch.Tensor
     radius: torch.Tensor
+    member_xy: torch.Tensor
 
     @property
     def num_clusters(self) -> int:
@@ -94,16 +97,21 @@ def build_piece_clusters(
             center[i, j] = mid
             radius[i, j] = np.float32(far) + np.float32(C.MAP_KNN_RADIUS_PAD)
     dev = xy.device
+    members_t = torch.from_numpy(members).to(dev)
+    inf = torch.full((b, 1, 2), float("inf"), device=dev)
+    points = torch.cat([xy.float().masked_fill(~valid[..., None], float("inf")), inf], 1)
+    member_xy = gather_rows(points, members_t.flatten(1)).view(b, g, size, 2)
     return PieceClusters(
-        members=torch.from_numpy(members).to(dev),
+        members=members_t,
         center=torch.from_numpy(center).to(dev),
         radius=torch.from_numpy(radius).to(dev),
+        member_xy=member_xy,
     )
 
 
 def candidate_pieces(
     clusters: PieceClusters, me_xy: torch.Tensor, searched: int
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The pieces of the ``searched`` clusters nearest (by lower bound) to each observer.
 
     Args:
@@ -113,7 +121,8 @@ def candidate_pieces(
 
     Returns:
         (candidates [B, Q, searched * S] int64 piece indices (``M`` for empty slots),
-        bound [B, Q] m: no piece outside the candidates is nearer; +inf when none is left).
+        bound [B, Q] m: no piece outside the candidates is nearer; +inf when none is left,
+        the candidates' anchor points [B, Q, searched * S, 2] m, +inf for empty slots).
     """
     d = torch.hypot(
         clusters.center[:, None, :, 0] - me_xy[:, :, None, 0],
@@ -121,8 +130,10 @@ def candidate_pieces(
     )
     lower = (d - clusters.radius[:, None]).clamp_min(0.0)  # [B, Q, G], +inf for padding
     lower, order = torch.topk(lower, searched + 1, dim=-1, largest=False, sorted=True)
-    members = gather_rows(clusters.members, order[..., :searched])  # [B, Q, searched, S]
-    return members.flatten(-2), lower[..., searched]
+    near = order[..., :searched]
+    members = gather_rows(clusters.members, near)  # [B, Q, searched, S]
+    xy = gather_rows(clusters.member_xy, near)  # [B, Q, searched, S, 2]
+    return members.flatten(-2), lower[..., searched], xy.flatten(-3, -2)
 
 
 def search_holds(kth: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:

@@ -90,8 +90,6 @@ class MapContext:
         tl_invalid: [B, T, 1, L] bool, derived: not ``tl_valid``, step-major.
         knn_xy: [B, 1, M + L, 2] float32, derived: the positions the nearest-token searches
             measure to (piece starts, +inf for padding pieces, then light poses).
-        piece_xy: [B, M + 1, 2] float32, derived: piece starts, +inf for padding pieces and
-            for the sentinel index M.
         clusters: derived: the valid pieces grouped for the clustered nearest-piece search
             (``tbsim_env.map_knn``).
     """
@@ -109,7 +107,6 @@ class MapContext:
     tl_tokens: torch.Tensor
     tl_invalid: torch.Tensor
     knn_xy: torch.Tensor
-    piece_xy: torch.Tensor
     clusters: PieceClusters
 
 
@@ -216,7 +213,6 @@ def build_map_context(
     )
     tl_tokens = _TL_EYE.to(dev)[t["tl_state"]]  # [B, L, T, NUM_TL_STATES]
     map_xy = t["pose"][..., :2].masked_fill(~t["valid"][..., None], float("inf"))
-    sentinel = torch.full((b, 1, 2), float("inf"), device=dev)
     return MapContext(
         **t,
         tokens=tokens,
@@ -224,7 +220,6 @@ def build_map_context(
         tl_tokens=_dense(tl_tokens.transpose(1, 2)),
         tl_invalid=_dense(~t["tl_valid"].transpose(1, 2)[:, :, None]),
         knn_xy=_dense(torch.cat([map_xy, t["tl_pose"][..., :2]], 1)[:, None]),
-        piece_xy=torch.cat([map_xy, sentinel], 1),
         clusters=build_piece_clusters(t["pose"][..., :2], t["valid"]),
     )
 
@@ -344,8 +339,7 @@ def _nearest_pieces(
     clustered = clustered and me_xy.shape[1] >= C.MAP_KNN_MIN_OBSERVERS
     if not clustered or torch.compiler.is_compiling():
         return _all_pieces(ctx.knn_xy[:, :, :m], me_xy, k, within)
-    cand, bound = candidate_pieces(ctx.clusters, me_xy, searched)
-    xy = gather_rows(ctx.piece_xy, cand)  # [B, Q, C, 2]
+    cand, bound, xy = candidate_pieces(ctx.clusters, me_xy, searched)  # xy [B, Q, C, 2]
     dx = xy[..., 0] - me_xy[..., 0:1]
     dy = xy[..., 1] - me_xy[..., 1:2]
     idx, top = _nearest(torch.sqrt(dx * dx + dy * dy), None, k, within, ids=(cand, m))

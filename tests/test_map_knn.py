@@ -41,6 +41,12 @@ def _observers(ctx, gen: torch.Generator, q: int = 300) -> torch.Tensor:
     return torch.stack(rows)
 
 
+def _piece_xy(ctx) -> torch.Tensor:
+    """[B, M + 1, 2] piece anchor points, +inf for padding pieces and the sentinel index M."""
+    xy = ctx.pose[..., :2].masked_fill(~ctx.valid[..., None], float("inf"))
+    return torch.cat([xy, torch.full_like(xy[:, :1], float("inf"))], 1)
+
+
 def _full(ctx, me_xy: torch.Tensor, k: int):
     """The plain search over every piece (distances as the observation computes them)."""
     m = ctx.pose.shape[1]
@@ -67,8 +73,9 @@ def test_the_clustered_search_holds_near_the_map_and_not_far_away(contexts):
     assert ctx.clusters.num_clusters > C.MAP_KNN_CLUSTERS, "the real maps use the clustered path"
     gen = torch.Generator().manual_seed(1)
     me = _observers(ctx, gen)
-    cand, bound = candidate_pieces(ctx.clusters, me, C.MAP_KNN_CLUSTERS)
-    xy = torch.stack([ctx.piece_xy[b, cand[b]] for b in range(len(cand))])
+    cand, bound, cand_xy = candidate_pieces(ctx.clusters, me, C.MAP_KNN_CLUSTERS)
+    xy = torch.stack([_piece_xy(ctx)[b, cand[b]] for b in range(len(cand))])
+    assert torch.equal(xy, cand_xy)  # the clusters' own copy of the anchor points
     dx, dy = xy[..., 0] - me[..., 0:1], xy[..., 1] - me[..., 1:2]
     d = torch.sqrt(dx * dx + dy * dy)
     m = ctx.pose.shape[1]
@@ -100,8 +107,11 @@ def test_clusters_are_compact_and_cover_every_valid_piece(contexts):
     members, center, radius = ctx.clusters.members, ctx.clusters.center, ctx.clusters.radius
     m = ctx.pose.shape[1]
     real = members < m
-    xy = ctx.piece_xy.gather(1, members.flatten(1)[..., None].expand(-1, -1, 2)).view(
-        *members.shape, 2
+    xy = (
+        _piece_xy(ctx)
+        .gather(1, members.flatten(1)[..., None].expand(-1, -1, 2))
+        .view(*members.shape, 2)
     )
+    assert torch.equal(xy, ctx.clusters.member_xy)
     gap = torch.linalg.vector_norm(xy - center[:, :, None], dim=-1)
     assert (gap[real] <= radius[:, :, None].expand_as(gap)[real]).all()
