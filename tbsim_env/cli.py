@@ -58,11 +58,13 @@ def _video_config():
     return EnvConfig(termination=TerminationConfig(collision=False, offroad=False, goal=False))
 
 
-def _episode_video(env, out: Path, fps: int, steps: int | None, desc: str) -> int:
+def _episode_video(
+    env, out: Path, fps: int, steps: int | None, desc: str, scenario_index: int = 0
+) -> int:
     from tbsim_env.env.parallel_env import episode_length
     from tbsim_env.rendering import write_video
 
-    env.reset()
+    env.reset(options={"scenario_index": scenario_index})
     frames = [env.render()]
     n = steps or episode_length(env)
     for _ in tqdm(range(n), desc=desc, unit="step"):
@@ -88,9 +90,9 @@ def _cmd_demo(args: cfg.Demo) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     stem, suffix = out.with_suffix(""), out.suffix or ".mp4"
     for k in range(min(args.scenarios, len(env.scenarios))):
-        env._episode = k - 1  # cycle to scenario k on the next reset
         path = out if args.scenarios == 1 else Path(f"{stem}_{k}{suffix}")
-        n = _episode_video(env, path, args.fps, args.steps, f"demo {env.scenarios[k].scenario_id}")
+        desc = f"demo {env.scenarios[k].scenario_id}"
+        n = _episode_video(env, path, args.fps, args.steps, desc, scenario_index=k)
         print(
             f"wrote {path} ({n} frames): SDC follows its log via expert actions, "
             f"NPCs: {args.npc_policy}"

@@ -558,3 +558,18 @@ def test_render_command_shows_the_whole_scenario_with_trafficbots(
     rc = main(["render", str(one_scenario_path), "--npc-policy", "trafficbots", "--out", str(out)])
     assert rc == 0 and out.exists()
     assert "(81 frames)" in capsys.readouterr().out
+
+
+def test_demo_command_writes_one_video_per_embedded_scene(tmp_path, capsys) -> None:
+    """The README's first command (``tbsim demo``), short: each video starts on its own scene."""
+    import imageio.v2 as iio2
+
+    from tbsim_env.cli import main
+
+    out = tmp_path / "demo.gif"
+    assert main(["demo", "--out", str(out), "--scenarios", "2", "--steps", "4"]) == 0
+    printed = capsys.readouterr().out
+    videos = [tmp_path / "demo_0.gif", tmp_path / "demo_1.gif"]
+    assert all(v.exists() for v in videos) and printed.count("(5 frames)") == 2
+    first = [iio2.mimread(str(v))[0] for v in videos]
+    assert not np.array_equal(first[0], first[1])  # two different scenes
