@@ -28,8 +28,13 @@ from tests.test_preprocess_support import assert_tokens_equivariant
 
 YAW, SHIFT = 1.1, (3000.0, -1500.0)
 """The move of the issue's reproduction: 1.1 rad about the origin, then (3000, -1500) m."""
-TOLERANCE = 0.05
-"""Metres an agent-rollout may part from its counterpart over the whole future."""
+TOLERANCE = 0.1
+"""Metres an agent-rollout may part from its counterpart over the whole future. Moved 3.3 km,
+the scene's float32 coordinates round by ~1e-4 m, and the closed loop amplifies that: with the
+shipped weights up to 7 cm on the generated scene here (0.5 m on the t-junction 10003, where a
+stop-or-go decision tips), while a move of 0.4 m (rounding ~1e-5 m) stays under 1 mm. A frame
+dependence of a discrete choice (the defects this guards against: 69% of the real scene's
+agent-rollouts within 5 cm) parts them by metres."""
 MIN_FRACTION = 0.99
 """Share of agent-rollouts that must stay within ``TOLERANCE``."""
 SAMPLES, KEPT = 16, 4
