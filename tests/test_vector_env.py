@@ -439,14 +439,10 @@ def test_trafficbots_restarts_from_its_scene_caches_exactly(scenes):
     """A bound TrafficBots policy keeps each scene's tokens and destination distribution; the
     rollouts across slot restarts are those of a policy that computes them every time."""
 
-    class Forget(dict):
-        def __setitem__(self, key, value) -> None:  # never remembers a scene
-            pass
-
     def run(cache: bool) -> tuple[list[torch.Tensor], int]:
         venv = BatchedTrafficEnv(scenes, 2, controlled="sdc", npc_policy="trafficbots", seed=4)
         if not cache:
-            venv.npc_policy.destination_cache = Forget()
+            venv.npc_policy.scene_cache.clear()  # preprocess and predict on every restart
         venv.reset()
         poses, restarts = [], 0
         for _ in range(100):

@@ -54,6 +54,23 @@ class TrafficBotsPolicyState:
     tl_pred: torch.Tensor
 
 
+@dataclass
+class SceneCache:
+    """What a bound policy keeps of one scenario (it depends on the scene only).
+
+    Attributes:
+        scenario: the scenario object (entries are keyed by its ``id``).
+        tokens: its preprocessed ``SceneTokens``.
+        dest_logits, dest_usable: the destination predictor's output for it, [1, N, M] and
+            [1, N] (None until its first start).
+    """
+
+    scenario: Scenario
+    tokens: SceneTokens
+    dest_logits: torch.Tensor | None = None
+    dest_usable: torch.Tensor | None = None
+
+
 def _match(keys: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     """Row of ``table`` [B, S] equal to each of ``keys`` [B, K] (-1 when absent or key < 0)."""
     eq = (keys[:, :, None] == table[:, None, :]) & (keys[:, :, None] >= 0)
@@ -73,12 +90,9 @@ class TrafficBotsPolicy:
             one batch row at a time into a state of fixed shapes (``BatchedTrafficEnv``) use
             ``for_scenarios``, which fixes the rows to those of their whole scenario set.
         min_rows: (agents, map pieces, TL tokens) rows that a trimmed batch keeps at least.
-        token_cache: preprocessed tokens of scenarios this policy will start from
-            (``for_scenarios`` fills it), so that a restart does not preprocess the scene
-            again: ``id(scenario)`` -> (the scenario, its ``SceneTokens``). The destination
-            predictor's output of these scenes is kept too, once computed (it depends on the
-            scene only), so that a restart only samples (``destination_cache``: ``id(scenario)``
-            -> (the scenario, logits [1, N, M], usable [1, N])).
+        scene_cache: what a restart needs of each scenario this policy will start from
+            (``for_scenarios`` fills it): ``id(scenario)`` -> ``SceneCache``, so that a restart
+            neither preprocesses the scene again nor reruns the destination predictor.
     """
 
     name = "trafficbots"
@@ -90,21 +104,18 @@ class TrafficBotsPolicy:
         token_config: TokenConfig | None = None,
         trim: bool = False,
         min_rows: tuple[int, int, int] | None = None,
-        token_cache: dict[int, tuple[Scenario, SceneTokens]] | None = None,
+        scene_cache: dict[int, SceneCache] | None = None,
     ) -> None:
         self.model = model.eval()
         self.token_config = token_config or TokenConfig()
         self.trim = trim
         self.min_rows = min_rows
-        self.token_cache = token_cache or {}
-        self.destination_cache: dict[int, tuple[Scenario, torch.Tensor, torch.Tensor]] = {}
+        self.scene_cache = scene_cache or {}
 
-    def _tokens(self, scenario: Scenario) -> SceneTokens:
-        """The scenario's tokens: cached (the same object was bound), else preprocessed."""
-        hit = self.token_cache.get(id(scenario))
-        if hit is not None and hit[0] is scenario:
-            return hit[1]
-        return preprocess_scenario(scenario, self.token_config)
+    def _cached(self, scenario: Scenario) -> SceneCache | None:
+        """The cache entry of this very scenario object, if it was bound."""
+        hit = self.scene_cache.get(id(scenario))
+        return hit if hit is not None and hit.scenario is scenario else None
 
     def for_scenarios(self, scenarios: Sequence[Scenario]) -> TrafficBotsPolicy:
         """This policy with state shapes fixed for any batch drawn from ``scenarios``.
@@ -124,11 +135,11 @@ class TrafficBotsPolicy:
         cache = {}
         for sc in tqdm(scenarios, desc="token rows", disable=len(scenarios) < 256, leave=False):
             tokens = preprocess_scenario(sc, self.token_config)
-            cache[id(sc)] = (sc, tokens)
+            cache[id(sc)] = SceneCache(sc, tokens)
             used = TokenBatch.from_tokens(tokens).rows_used()
             rows = [max(a, b) for a, b in zip(rows, used, strict=True)]
         return TrafficBotsPolicy(
-            self.model, self.token_config, trim=True, min_rows=tuple(rows), token_cache=cache
+            self.model, self.token_config, trim=True, min_rows=tuple(rows), scene_cache=cache
         )
 
     @classmethod
@@ -150,23 +161,29 @@ class TrafficBotsPolicy:
         dev = state.device
         if dev != self.model.device:
             raise ValueError(f"simulator on {dev} but the TrafficBots model on {self.model.device}")
-        tokens = [self._tokens(sc) for sc in scenarios]
+        cached = [self._cached(sc) for sc in scenarios]
+        tokens = [
+            c.tokens if c is not None else preprocess_scenario(sc, self.token_config)
+            for c, sc in zip(cached, scenarios)
+        ]
         batch = TokenBatch.from_tokens(tokens, device=self.model.device)
         if self.trim:
             batch = batch.trim(self.min_rows)
         n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
-        known = [self.destination_cache.get(id(sc)) for sc in scenarios]
         dest = None
-        if all(k is not None and k[0] is sc for k, sc in zip(known, scenarios)):
-            dest = (torch.cat([k[1] for k in known]), torch.cat([k[2] for k in known]))
+        if all(c is not None and c.dest_logits is not None for c in cached):
+            dest = (
+                torch.cat([c.dest_logits for c in cached]),
+                torch.cat([c.dest_usable for c in cached]),
+            )
         ctx = self.model.prepare(
             batch, 1, generator, latent="prior", dest="sample", destinations=dest
         )
         if dest is None:
-            for i, sc in enumerate(scenarios):
-                if id(sc) in self.token_cache:
-                    rows = (ctx.dest_logits[i : i + 1].clone(), ctx.dest_usable[i : i + 1].clone())
-                    self.destination_cache[id(sc)] = (sc, *rows)
+            for i, c in enumerate(cached):
+                if c is not None:
+                    c.dest_logits = ctx.dest_logits[i : i + 1].clone()
+                    c.dest_usable = ctx.dest_usable[i : i + 1].clone()
         tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])  # trimmed rows
         slot = _match(torch.as_tensor(tok_track, device=dev), state.agents.track_index)
         lane_ids = []

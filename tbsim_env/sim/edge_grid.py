@@ -120,13 +120,6 @@ def build_edge_grid(
     )
 
 
-def _table_rows(table: Shared, row: torch.Tensor, cell: torch.Tensor) -> torch.Tensor:
-    """``table[row[b], cell[b, k]]`` [B, K, ...] of a shared [K', G, ...] table."""
-    t = table.value
-    flat = (cell + (row * t.shape[1]).unsqueeze(-1)).reshape(-1)
-    return t.flatten(0, 1).index_select(0, flat).view(*cell.shape, *t.shape[2:])
-
-
 def _cell_of(grid: EdgeGrid, xy: torch.Tensor) -> torch.Tensor:
     """[B, K] flat cell index of points [B, K, 2] (clamped into the grid)."""
     ij = torch.floor((xy - grid.lower[:, None]) / grid.cell).long()
@@ -155,7 +148,7 @@ def grid_signed_distance(
         may be wrong there).
     """
     cell = _cell_of(grid, points)  # [B, K]
-    cand = _table_rows(grid.cells, grid.row, cell)  # [B, K, Cc]
+    cand = gather_rows(grid.cells.value, cell, grid.row)  # [B, K, Cc]
     a = gather_rows(edges.start, cand)  # [B, K, Cc, 2]
     ab = gather_rows(edges.end, cand) - a
     t, dist = segment_projection(points.unsqueeze(-2), a, ab)
@@ -165,8 +158,8 @@ def grid_signed_distance(
     best = cand.gather(-1, local)[..., 0].long()  # [B, K]
     sign = joint_sign(points, edges, best, t_best)
     out = torch.where(edges.valid.any(-1, keepdim=True), sign * d, C.NO_EDGE_DISTANCE)
-    centre = _table_rows(grid.center, grid.row, cell)
-    bound = _table_rows(grid.bound, grid.row, cell)
+    centre = gather_rows(grid.center.value, cell, grid.row)
+    bound = gather_rows(grid.bound.value, cell, grid.row)
     slack = bound - torch.hypot(points[..., 0] - centre[..., 0], points[..., 1] - centre[..., 1])
     return out, d > slack
 

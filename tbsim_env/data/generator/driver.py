@@ -843,7 +843,7 @@ class _Traffic:
         is_stop = st.j_kind[r] == STOP
         zone = waiting & is_stop & (to_line < STOP_ZONE_M)
         self.stop_t = np.where(zone & (self.v < STOPPED_SPEED) & (self.stop_t < 0), t, self.stop_t)
-        first = self._first_in_queue(waiting)
+        first = self._first_in_queue(waiting, front)
         dwell = (t - self.stop_t) * DT >= fleet.reaction
         ready = first & is_stop & (self.stop_t >= 0) & dwell & (to_line < STOP_ZONE_M)
         major = first & ~is_stop
@@ -855,12 +855,12 @@ class _Traffic:
         creep = hold & is_stop & (to_line < STOP_ZONE_M) & (self.v < CREEP_SPEED)
         return stop_at, creep
 
-    def _first_in_queue(self, waiting: np.ndarray) -> np.ndarray:
-        """[N] bool, the waiting vehicle nearest the line on each inbound lane."""
+    def _first_in_queue(self, waiting: np.ndarray, front: np.ndarray) -> np.ndarray:
+        """[N] bool, the waiting vehicle nearest the line (largest ``front`` [N]) on each
+        inbound lane."""
         first = np.zeros(self.n, bool)
         wi = np.flatnonzero(waiting)
         if wi.size:
-            front = self.s + 0.5 * self.length
             order = wi[np.lexsort((-front[wi], self.st.j_in[self.r[wi]]))]
             lanes_o = self.st.j_in[self.r[order]]
             first[order[np.concatenate([[True], lanes_o[1:] != lanes_o[:-1]])]] = True
