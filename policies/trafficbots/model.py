@@ -223,14 +223,7 @@ class TrafficBots(nn.Module):
         if destinations is not None and not self.training:
             dest_logits, dest_usable = destinations
         else:
-            dest_logits, dest_usable = self.dest_predictor(
-                dest_hist_valid,
-                batch.ag_pose[..., :n_hist, :],
-                batch.ag_motion[..., :n_hist, :],
-                attr,
-                batch.ag_type,
-                mp,
-            )
+            dest_logits, dest_usable = self._predict_destinations(batch, dest_hist_valid, attr, mp)
         post_mean = post_log_std = post_valid = None
         if latent != "prior" or with_posterior:
             post_mean, post_log_std, post_valid = self.posterior(
@@ -304,6 +297,15 @@ class TrafficBots(nn.Module):
             eps = randn(shape, generator, batch.device)[:, :n_ag]
             z = z + post_log_std.exp().repeat_interleave(n, 0) * eps
         return z, post_valid.repeat_interleave(n, 0)
+
+    def _predict_destinations(
+        self, batch: TokenBatch, hist_valid: torch.Tensor, attr: torch.Tensor, mp: MapTokens
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The destination predictor on the history (``hist_valid`` [B, N, n_history]):
+        (logits [B, N, M], usable [B, N])."""
+        h = self.cfg.n_history
+        pose, motion = batch.ag_pose[..., :h, :], batch.ag_motion[..., :h, :]
+        return self.dest_predictor(hist_valid, pose, motion, attr, batch.ag_type, mp)
 
     def _sample_destinations(
         self,
