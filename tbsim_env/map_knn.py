@@ -110,7 +110,10 @@ def build_piece_clusters(
 
 
 def candidate_pieces(
-    clusters: PieceClusters, me_xy: torch.Tensor, searched: int
+    clusters: PieceClusters,
+    me_xy: torch.Tensor,
+    searched: int,
+    rows: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The pieces of the ``searched`` clusters nearest (by lower bound) to each observer.
 
@@ -118,21 +121,26 @@ def candidate_pieces(
         clusters: the batch's clusters (more than ``searched`` of them).
         me_xy: [B, Q, 2] observer positions.
         searched: clusters searched per observer.
+        rows: optional [B] int64: observer row b searches the clusters of row ``rows[b]``
+            (observers gathered from several rows; ``torch_utils.gather_rows``).
 
     Returns:
         (candidates [B, Q, searched * S] int64 piece indices (``M`` for empty slots),
         bound [B, Q] m: no piece outside the candidates is nearer; +inf when none is left,
         the candidates' anchor points [B, Q, searched * S, 2] m, +inf for empty slots).
     """
+    center, radius = clusters.center, clusters.radius
+    if rows is not None:
+        center, radius = center.index_select(0, rows), radius.index_select(0, rows)
     d = torch.hypot(
-        clusters.center[:, None, :, 0] - me_xy[:, :, None, 0],
-        clusters.center[:, None, :, 1] - me_xy[:, :, None, 1],
+        center[:, None, :, 0] - me_xy[:, :, None, 0],
+        center[:, None, :, 1] - me_xy[:, :, None, 1],
     )
-    lower = (d - clusters.radius[:, None]).clamp_min(0.0)  # [B, Q, G], +inf for padding
+    lower = (d - radius[:, None]).clamp_min(0.0)  # [B, Q, G], +inf for padding
     lower, order = torch.topk(lower, searched + 1, dim=-1, largest=False, sorted=True)
     near = order[..., :searched]
-    members = gather_rows(clusters.members, near)  # [B, Q, searched, S]
-    xy = gather_rows(clusters.member_xy, near)  # [B, Q, searched, S, 2]
+    members = gather_rows(clusters.members, near, rows)  # [B, Q, searched, S]
+    xy = gather_rows(clusters.member_xy, near, rows)  # [B, Q, searched, S, 2]
     return members.flatten(-2), lower[..., searched], xy.flatten(-3, -2)
 
 

@@ -322,33 +322,41 @@ def _nearest(
 
 
 def _nearest_pieces(
-    ctx: MapContext, me_xy: torch.Tensor, k: int, within: float
+    ctx: MapContext,
+    me_xy: torch.Tensor,
+    k: int,
+    within: float,
+    rows: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The k nearest map pieces of each observer ``me_xy`` [B, Q, 2]: (indices, distances)
-    [B, Q, k], equal to ``_nearest`` over every piece.
+    [B, Q, k], equal to ``_nearest`` over every piece. With ``rows`` [B] int64, observer row b
+    is in the scene of context row ``rows[b]``.
 
     Eagerly, maps with more pieces than the clustered search measures use it (``map_knn``)
-    when a row has ``MAP_KNN_MIN_OBSERVERS`` observers or more; the observers it does not
-    hold for (~1% on the real samples) are searched in full. A compiled graph cannot size
-    tensors by that; it searches every piece (fused, that costs less there than the gathers
-    of the clustered search).
+    when there are ``MAP_KNN_MIN_OBSERVERS`` observers per context row or more; the observers
+    it does not hold for (~1% on the real samples) are searched in full. A compiled graph
+    cannot size tensors by that; it searches every piece (fused, that costs less there than
+    the gathers of the clustered search).
     """
     searched, size = C.MAP_KNN_CLUSTERS, ctx.clusters.members.shape[-1]
     m = ctx.pose.shape[1]
     clustered = ctx.clusters.num_clusters > searched and m > 2 * searched * size
-    clustered = clustered and me_xy.shape[1] >= C.MAP_KNN_MIN_OBSERVERS
+    observers = me_xy.shape[0] * me_xy.shape[1]
+    clustered = clustered and observers >= C.MAP_KNN_MIN_OBSERVERS * ctx.pose.shape[0]
     if not clustered or torch.compiler.is_compiling():
-        return _all_pieces(ctx.knn_xy[:, :, :m], me_xy, k, within)
-    cand, bound, xy = candidate_pieces(ctx.clusters, me_xy, searched)  # xy [B, Q, C, 2]
+        pieces = ctx.knn_xy[:, :, :m]
+        return _all_pieces(pieces if rows is None else pieces[rows], me_xy, k, within)
+    cand, bound, xy = candidate_pieces(ctx.clusters, me_xy, searched, rows)  # xy [B, Q, C, 2]
     dx = xy[..., 0] - me_xy[..., 0:1]
     dy = xy[..., 1] - me_xy[..., 1:2]
     idx, top = _nearest(torch.sqrt(dx * dx + dy * dy), None, k, within, ids=(cand, m))
-    rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
-    if len(rows):  # the few observers it does not hold for: every piece
-        pieces, observer = ctx.knn_xy[rows, :, :m], me_xy[rows, cols, None]
+    fail_rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
+    if len(fail_rows):  # the few observers it does not hold for: every piece
+        scene = fail_rows if rows is None else rows[fail_rows]
+        pieces, observer = ctx.knn_xy[scene, :, :m], me_xy[fail_rows, cols, None]
         full_idx, full_top = _all_pieces(pieces, observer, k, within)
-        idx = idx.index_put((rows, cols), full_idx[:, 0])
-        top = top.index_put((rows, cols), full_top[:, 0])
+        idx = idx.index_put((fail_rows, cols), full_idx[:, 0])
+        top = top.index_put((fail_rows, cols), full_top[:, 0])
     return idx, top
 
 
@@ -376,7 +384,7 @@ class IndexedObservation:
         agent_tokens: [B, R, H * 5 + H + 7] float32, agent tokens this step: the history in
             the agent's own current frame, the history mask, its attributes (length, width,
             type one-hot, speed). A row per agent slot (R = N), or per observer and seen
-            neighbour (R = Q (1 + Ka), ``observe_indexed(compact_agents=True)``).
+            neighbour (R = Q (1 + Ka), when that is fewer: ``observe_indexed``).
         map_tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, map pieces (nodes in the
             piece frame, node mask, class one-hot); fixed for an episode.
         light_tokens: [B, L, NUM_TL_STATES] float32, traffic-light state one-hot this step.
@@ -427,6 +435,79 @@ def agent_tokens(
     return torch.cat([hist.flatten(-2), valid, static, speed_now[..., None]], -1)
 
 
+def _seen_tokens(
+    state: SimState,
+    ctx: MapContext,
+    observers: torch.Tensor,
+    dist: torch.Tensor,
+    cfg: ObsConfig,
+    rows: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The tokens observers see, before masking: (index [B, Q, Ka + Km + Kt] int64 (agent
+    slots, map pieces, lights, nearest first), relative poses [B, Q, K, 3], mask [B, Q, K]
+    float32: 1 within the radius).
+
+    Args:
+        observers: [B, Q] int64 agent slots; dist: [B, Q, N] their centre distances to every
+            slot.
+        rows: optional [B] int64: observer row b is in state / context row ``rows[b]``
+            (observers gathered from several rows); row b itself by default.
+    """
+    valid = state.valid if rows is None else state.valid.index_select(0, rows)
+    me = gather_rows(state.pose, observers, rows)  # [B, Q, 3]
+    # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
+    itself = cached_arange(state.num_agents, state.device) == observers.unsqueeze(-1)
+    a_idx, a_top = _nearest(dist, valid.unsqueeze(1) <= itself, cfg.num_agents, cfg.agent_radius)
+    m_idx, m_top = _nearest_pieces(ctx, me[..., :2], cfg.num_map, cfg.map_radius, rows)
+    # x and y apart (no [B, Q, L, 2] difference): the same values, a third of the time.
+    light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
+    tl_invalid = _lights_at(ctx, state.step)[0]  # [B, 1, L]
+    if rows is not None:
+        light_xy, tl_invalid = light_xy[rows], tl_invalid[rows]
+    dx = light_xy[..., 0] - me[:, :, None, 0]  # [B, Q, L]
+    dy = light_xy[..., 1] - me[:, :, None, 1]
+    tl_dist = torch.sqrt(dx * dx + dy * dy)
+    t_idx, t_top = _nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
+
+    sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
+    radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]
+    radii += (cfg.traffic_light_radius,) * sizes[2]
+    top = torch.cat([a_top, m_top, t_top], -1)  # [B, Q, Ka + Km + Kt]
+    poses = [
+        gather_rows(state.pose, a_idx, rows),
+        gather_rows(ctx.pose, m_idx, rows),
+        gather_rows(ctx.tl_pose, t_idx, rows),
+    ]
+    rel = relative_pose(me[:, :, None], torch.cat(poses, 2))
+    index = torch.cat([a_idx, m_idx, t_idx], -1)
+    return index, rel, (top <= const(radii, top)).float()
+
+
+def _seen_by_listed(
+    state: SimState,
+    ctx: MapContext,
+    observers: torch.Tensor,
+    dist: torch.Tensor,
+    cfg: ObsConfig,
+    listed: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``_seen_tokens`` of the ``listed`` [B, Q] observers only, gathered from every row into
+    one list and scattered back; the others get index 0, pose 0 and mask 0."""
+    b, q = listed.nonzero(as_tuple=True)
+    index, rel, mask = _seen_tokens(
+        state, ctx, observers[b, q].unsqueeze(1), dist[b, q].unsqueeze(1), cfg, rows=b
+    )
+    shape = observers.shape
+    out = (
+        index.new_zeros(*shape, index.shape[-1]),
+        rel.new_zeros(*shape, *rel.shape[-2:]),
+        mask.new_zeros(*shape, mask.shape[-1]),
+    )
+    for full, part in zip(out, (index, rel, mask), strict=True):
+        full[b, q] = part[:, 0]
+    return out
+
+
 def observe_indexed(
     state: SimState,
     history: History,
@@ -435,9 +516,14 @@ def observe_indexed(
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
     agent_distance: torch.Tensor | None = None,
-    compact_agents: bool = False,
+    observer_mask: torch.Tensor | None = None,
 ) -> IndexedObservation:
     """Observations of the ``observers`` agents, by token index (see ``IndexedObservation``).
+
+    When the observers see fewer agent slots than there are (Q (1 + Ka) < N), only the seen
+    slots get agent tokens: ``agent_tokens`` then has a row per observer and neighbour instead
+    of per slot (``ego`` and the agent part of ``index`` refer to those rows); ``densify``
+    gives the same dense observation either way.
 
     Args:
         state: current state.
@@ -450,65 +536,44 @@ def observe_indexed(
         agent_distance: optional [B, Q, N] centre distances of the observers to every agent
             slot at the current poses (``StepMetrics.agent_distance`` with the observers as
             query); computed when None.
-        compact_agents: when the observers see fewer slots than there are (Q (1 + Ka) < N),
-            compute the agent tokens of the seen slots only: ``agent_tokens`` then has a row
-            per observer and neighbour instead of per slot (``ego`` and the agent part of
-            ``index`` refer to those rows), for ``densify``, which gives the same dense
-            observation either way.
+        observer_mask: optional [B, Q] bool, the observers to describe (the env's active
+            agents); the others see no token (index 0, pose 0, mask 0). Eagerly on the CPU,
+            the searches then run on the listed observers only: with every agent controlled,
+            agents that have left would otherwise cost as much as those still driving.
     """
     static = agent_static_features(state) if agent_static is None else agent_static
-    me = gather_rows(state.pose, observers)  # [B, Q, 3]
-    me_xy = me[:, :, None, :2]  # [B, Q, 1, 2]
-
-    # Nearest agents (other than the observer), map pieces and traffic lights.
-    n = state.num_agents
     dist = agent_distance  # [B, Q, N]
     if dist is None:
-        dist = agent_distances(me, state.pose)
-    # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
-    itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
-    not_other = state.valid.unsqueeze(1) <= itself
-    a_idx, a_top = _nearest(dist, not_other, cfg.num_agents, cfg.agent_radius)
-    m_idx, m_top = _nearest_pieces(ctx, me[..., :2], cfg.num_map, cfg.map_radius)
-    # x and y apart (no [B, Q, L, 2] difference): the same values, a third of the time.
-    light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
-    dx = light_xy[..., 0] - me_xy[..., 0]  # [B, Q, L]
-    dy = light_xy[..., 1] - me_xy[..., 1]
-    tl_invalid, tl_tokens = _lights_at(ctx, state.step)  # [B, 1, L], [B, L, F]
-    tl_dist = torch.sqrt(dx * dx + dy * dy)
-    t_idx, t_top = _nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
-
-    # Poses of all selected tokens relative to the observer, zero where masked.
-    sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
-    radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]
-    radii += (cfg.traffic_light_radius,) * sizes[2]
-    top = torch.cat([a_top, m_top, t_top], -1)  # [B, Q, Ka + Km + Kt]
-    mask = (top <= const(radii, top)).float()
-    poses = [
-        gather_rows(state.pose, a_idx),
-        gather_rows(ctx.pose, m_idx),
-        gather_rows(ctx.tl_pose, t_idx),
-    ]
-    rel = relative_pose(me[:, :, None], torch.cat(poses, 2))
+        dist = agent_distances(gather_rows(state.pose, observers), state.pose)
     q, ka = observers.shape[1], cfg.num_agents
-    if compact_agents and q * (1 + ka) < n:
+    compact = q * (1 + ka) < state.num_agents
+    # Compact tokens follow the observers' rows; on a GPU, observers outside the mask cost
+    # idle lanes rather than time, and listing the others would cost a host sync per step.
+    listing = state.device.type == "cpu" and not (compact or torch.compiler.is_compiling())
+    if observer_mask is None or not listing or bool(observer_mask.all()):
+        index, rel, mask = _seen_tokens(state, ctx, observers, dist, cfg)
+        if observer_mask is not None:
+            mask = mask * observer_mask.unsqueeze(-1)
+    else:
+        index, rel, mask = _seen_by_listed(state, ctx, observers, dist, cfg, observer_mask)
+    if compact:
         # Tokens of the seen slots only, each observer's own row and then its neighbours'.
-        slots = torch.cat([observers.unsqueeze(-1), a_idx], -1).flatten(1)  # [B, Q (1 + Ka)]
-        tokens = agent_tokens(state, history, static, slots)
+        slots = torch.cat([observers.unsqueeze(-1), index[..., :ka]], -1).flatten(1)
+        tokens = agent_tokens(state, history, static, slots)  # [B, Q (1 + Ka), F]
         observers = cached_arange(q, state.device).expand_as(observers) * (1 + ka)
-        a_idx = observers.unsqueeze(-1) + 1 + cached_arange(ka, state.device)
+        a_rows = observers.unsqueeze(-1) + 1 + cached_arange(ka, state.device)
+        index = torch.cat([a_rows, index[..., ka:]], -1)
     else:
         tokens = agent_tokens(state, history, static)
-    index = torch.cat([a_idx, m_idx, t_idx], -1)
     return IndexedObservation(
         agent_tokens=tokens,
         map_tokens=ctx.tokens,
-        light_tokens=tl_tokens,
+        light_tokens=_lights_at(ctx, state.step)[1],
         ego=observers,
         index=torch.where(mask > 0, index, torch.zeros_like(index)),
         pose=rel * mask[..., None],
         mask=mask,
-        sizes=sizes,
+        sizes=(cfg.num_agents, cfg.num_map, cfg.num_traffic_lights),
     )
 
 
@@ -572,9 +637,7 @@ def observe(
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module docstring.
     """
-    ind = observe_indexed(
-        state, history, ctx, observers, cfg, agent_static, agent_distance, compact_agents=True
-    )
+    ind = observe_indexed(state, history, ctx, observers, cfg, agent_static, agent_distance)
     return densify(ind, cfg.tokens.piece_segments)
 
 

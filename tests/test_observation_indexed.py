@@ -94,3 +94,26 @@ def test_the_observation_spec_builds_the_space_the_keys_and_the_readme_table():
         assert space.contains(agent_obs)
     readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
     assert observation_table() in readme, "README's observation table differs from OBS_KEYS"
+
+
+@pytest.mark.parametrize("which", ["real", "generated"])
+def test_observer_mask_describes_listed_observers_as_without_it(which, request):
+    """Masked-out observers see nothing; the listed ones (searched as a gathered list) see
+    exactly what they see when every observer is described."""
+    scenes = request.getfixturevalue("real") if which == "real" else default_scenarios(3)
+    full, state, cfg = _observe(scenes)
+    listed = state.valid & (
+        torch.rand(state.valid.shape, generator=torch.Generator().manual_seed(0)) < 0.6
+    )
+    assert 0 < listed.sum() < listed.numel()
+    ctx = build_map_context(scenes, state.origin, cfg)
+    if which == "real":  # the clustered map search runs on the gathered list
+        assert ctx.clusters.num_clusters > 16
+    hist = init_history(state, cfg.history)
+    part = observe_indexed(state, hist, ctx, full.ego, cfg, observer_mask=listed)
+    for key in ("index", "pose", "mask"):
+        a, b = getattr(full, key), getattr(part, key)
+        assert torch.equal(a[listed], b[listed]), key
+        assert not b[~listed].any(), key
+    assert full.mask[listed].sum() > 100
+    assert torch.equal(full.agent_tokens, part.agent_tokens)

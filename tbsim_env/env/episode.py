@@ -357,7 +357,7 @@ def step(
         config.obs,
         setup.static,
         metrics.agent_distance,
-        compact_agents=True,
+        observer_mask=active,
     )
     stale = None
     if torch.compiler.is_compiling():
@@ -411,7 +411,7 @@ def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation
         setup.query,
         config.obs,
         setup.static,
-        compact_agents=True,
+        observer_mask=state.alive,
     )
     return densify(obs, config.obs.tokens.piece_segments) if config.dense else obs
 

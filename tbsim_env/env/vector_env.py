@@ -473,8 +473,9 @@ class BatchedTrafficEnv:
                 "light_tokens": obs.light_tokens,
                 "ego": obs.ego.clone(),
                 "index": obs.index,
-                "pose": obs.pose * m[..., None, None],
-                "mask": obs.mask * m[..., None],
+                # The core saw ``mask`` (``observer_mask``): others see no token already.
+                "pose": obs.pose,
+                "mask": obs.mask,
                 "observer_mask": m,
                 **extra,
             }
