@@ -46,7 +46,9 @@ def take_rows(tree: Any, rows: torch.Tensor) -> Any:
     raise TypeError(f"cannot take rows of {type(tree).__name__}; use tensors and dataclasses")
 
 
-def with_rows(dst: Any, rows: torch.Tensor, src: Any, strict: bool = True) -> Any:
+def with_rows(
+    dst: Any, rows: torch.Tensor, src: Any, strict: bool = True, in_place: bool = False
+) -> Any:
     """``dst`` with the rows ``rows`` of every tensor replaced by ``src``'s (a new tree).
 
     Args:
@@ -55,6 +57,10 @@ def with_rows(dst: Any, rows: torch.Tensor, src: Any, strict: bool = True) -> An
         src: the same structure with R rows.
         strict: raise on non-tensor leaves (other than None); when False they are kept as
             in ``dst`` (batch-wide metadata such as a policy's step counter).
+        in_place: write the rows into ``dst``'s tensors (each that owns its whole storage;
+            any other is copied) instead of copying every tensor: the cost of the R rows, not
+            of the batch. Only for a tree whose owner alone holds its tensors (the batched
+            env's own episode, whose restart would otherwise copy every table of the batch).
 
     Raises:
         ValueError: a tensor's trailing shape differs between the trees.
@@ -70,23 +76,32 @@ def with_rows(dst: Any, rows: torch.Tensor, src: Any, strict: bool = True) -> An
         if not isinstance(src, torch.Tensor) or dst.shape[1:] != src.shape[1:]:
             got = tuple(src.shape) if isinstance(src, torch.Tensor) else type(src).__name__
             raise ValueError(f"with_rows: {tuple(dst.shape)} rows cannot take {got}")
+        if in_place and _owns_storage(dst):
+            return dst.index_copy_(0, rows, src.to(dst.dtype))
         return dst.index_copy(0, rows, src.to(dst.dtype))
     if dataclasses.is_dataclass(dst) and not isinstance(dst, type):
         if type(src) is not type(dst):
             raise TypeError(f"with_rows: {type(dst).__name__} vs {type(src).__name__}")
         fields = {
-            f.name: with_rows(getattr(dst, f.name), rows, getattr(src, f.name), strict)
+            f.name: with_rows(getattr(dst, f.name), rows, getattr(src, f.name), strict, in_place)
             for f in dataclasses.fields(dst)
         }
         return dataclasses.replace(dst, **fields)
     if isinstance(dst, dict):
-        return {k: with_rows(dst[k], rows, src[k], strict) for k in dst}
+        return {k: with_rows(dst[k], rows, src[k], strict, in_place) for k in dst}
     if isinstance(dst, (list, tuple)):
-        items = [with_rows(a, rows, b, strict) for a, b in zip(dst, src, strict=True)]
+        items = [with_rows(a, rows, b, strict, in_place) for a, b in zip(dst, src, strict=True)]
         return _rebuild(dst, items)
     if not strict and type(src) is type(dst):
         return dst
     raise TypeError(f"cannot put rows into {type(dst).__name__}; use tensors and dataclasses")
+
+
+def _owns_storage(x: torch.Tensor) -> bool:
+    """``x`` is its storage's only tensor shape: contiguous, from offset 0, to the end (not a
+    view into a larger tensor, not an expanded one), so writing into it touches nothing else."""
+    whole = x.numel() * x.element_size() == x.untyped_storage().nbytes()
+    return whole and x.storage_offset() == 0 and x.is_contiguous()
 
 
 def _rebuild(seq: list | tuple, items: list) -> list | tuple:

@@ -279,6 +279,25 @@ def test_take_and_with_rows_round_trip(scenes):
         take_rows(object(), rows)
 
 
+def test_with_rows_in_place_writes_owned_tensors_only(scenes):
+    """In place, the rows go into tensors that own their storage (the same values as the new
+    tree); a view into a larger tensor or an expanded one is copied, never written through."""
+    venv = BatchedTrafficEnv(scenes, 3, seed=0)
+    venv.reset(scenario_indices=[0, 1, 2])
+    state = take_rows(venv.sim_state, torch.arange(3))  # tensors of our own
+    rows, fresh = torch.tensor([2, 0]), take_rows(state, torch.tensor([1, 1]))
+    expected = with_rows(state, rows, fresh)
+    pose = state.log.pose
+    merged = with_rows(state, rows, fresh, in_place=True)
+    assert merged.log.pose is pose and torch.equal(pose, expected.log.pose)
+    assert torch.equal(merged.pose, expected.pose) and torch.equal(merged.valid, expected.valid)
+    base = torch.zeros(4, 3)
+    for view in (base[1:3], base[:1].expand(2, 3)):
+        out = with_rows(view, torch.tensor([0]), torch.ones(1, 3), in_place=True)
+        assert out.data_ptr() != view.data_ptr() and out[0].eq(1).all()
+    assert not base.any(), "a view was written through"
+
+
 def test_trimmed_trafficbots_npcs_match_the_padded_ones_across_slot_restarts(scenes):
     """``BatchedTrafficEnv`` runs a trimming TrafficBots policy on the token rows its bank uses
     (``for_scenarios``): fixed state shapes through restarts into differently sized scenes,

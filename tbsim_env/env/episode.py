@@ -264,17 +264,20 @@ def reset_rows(
     rows: torch.Tensor,
     ks: torch.Tensor,
     config: StepConfig,
+    in_place: bool = False,
 ) -> EpisodeState:
     """``state`` with the rows ``rows`` [R] (distinct) restarted on the bank rows ``ks`` [R]; the
     other rows and ``policy_state`` are unchanged (restarting the policy is the caller's: it needs
-    the scenarios and the random generator)."""
+    the scenarios and the random generator). ``in_place``: write the new rows into ``state``'s
+    tensors (``rows.with_rows``), for a caller that alone holds them."""
     fresh, _ = start(bank, ks, config)
     if rows.numel() == state.batch_size:  # every row (``rows`` are distinct): no merge
         if bool((rows != cached_arange(state.batch_size, rows.device)).any()):
             fresh = take_rows(fresh, torch.argsort(rows))
         return dataclasses.replace(fresh, policy_state=state.policy_state)
     body = dataclasses.replace(state, policy_state=None)
-    return dataclasses.replace(with_rows(body, rows, fresh), policy_state=state.policy_state)
+    merged = with_rows(body, rows, fresh, in_place=in_place)
+    return dataclasses.replace(merged, policy_state=state.policy_state)
 
 
 # ---------------------------------------------------------------------- stepping

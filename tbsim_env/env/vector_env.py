@@ -250,7 +250,9 @@ class BatchedTrafficEnv:
     # ------------------------------------------------------------------ state
     @property
     def episode(self) -> EpisodeState:
-        """The current ``EpisodeState`` of the B slots (immutable; ``step`` replaces it)."""
+        """The current ``EpisodeState`` of the B slots (``step`` replaces it). Its tensors are
+        the env's: restarting a slot writes the new episode's rows into them, so clone what
+        must outlive a step (``rows.take_rows``)."""
         if self._episode is None:
             raise RuntimeError("call reset() first")
         return self._episode
@@ -334,7 +336,8 @@ class BatchedTrafficEnv:
     def _restart(self, state: EpisodeState, rows: torch.Tensor) -> EpisodeState:
         """``state`` with new episodes in the slots ``rows`` [R] (everything else untouched)."""
         ks = self._draw(len(rows))
-        state = ep.reset_rows(self.bank, state, rows, ks, self._step_config)
+        # In place: a restart costs the restarted rows, not a copy of every table of the batch.
+        state = ep.reset_rows(self.bank, state, rows, ks, self._step_config, in_place=True)
         policy_state = state.policy_state
         if self._has_npc:
             fresh = self._policy_start(take_rows(state.sim, rows), ks)
