@@ -491,21 +491,28 @@ def _seen_by_listed(
     cfg: ObsConfig,
     listed: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``_seen_tokens`` of the ``listed`` [B, Q] observers only, gathered from every row into
-    one list and scattered back; the others get index 0, pose 0 and mask 0."""
+    """``_masked(_seen_tokens(...))`` of the ``listed`` [B, Q] observers only, gathered from
+    every row into one list and scattered back; the others get index 0, pose 0 and mask 0."""
     b, q = listed.nonzero(as_tuple=True)
-    index, rel, mask = _seen_tokens(
-        state, ctx, observers[b, q].unsqueeze(1), dist[b, q].unsqueeze(1), cfg, rows=b
+    index, rel, mask = _masked(
+        *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), dist[b, q].unsqueeze(1), cfg, b)
     )
-    shape = observers.shape
-    out = (
-        index.new_zeros(*shape, index.shape[-1]),
-        rel.new_zeros(*shape, *rel.shape[-2:]),
-        mask.new_zeros(*shape, mask.shape[-1]),
-    )
-    for full, part in zip(out, (index, rel, mask), strict=True):
-        full[b, q] = part[:, 0]
-    return out
+    # Each element written once: the listed rows copied, the others zero-filled.
+    flat = b * observers.shape[1] + q
+    unlisted = (~listed).flatten().nonzero().squeeze(-1)
+    out = []
+    for part in (index, rel, mask):
+        full = part.new_empty(listed.numel(), *part.shape[2:])
+        full.index_copy_(0, flat, part[:, 0]).index_fill_(0, unlisted, 0)
+        out.append(full.view(*listed.shape, *part.shape[2:]))
+    return out[0], out[1], out[2]
+
+
+def _masked(
+    index: torch.Tensor, rel: torch.Tensor, mask: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``_seen_tokens``' output with index and pose zero where the mask is."""
+    return torch.where(mask > 0, index, torch.zeros_like(index)), rel * mask[..., None], mask
 
 
 def observe_indexed(
@@ -550,28 +557,30 @@ def observe_indexed(
     # Compact tokens follow the observers' rows; on a GPU, observers outside the mask cost
     # idle lanes rather than time, and listing the others would cost a host sync per step.
     listing = state.device.type == "cpu" and not (compact or torch.compiler.is_compiling())
-    if observer_mask is None or not listing or bool(observer_mask.all()):
+    if observer_mask is not None and listing and not bool(observer_mask.all()):
+        index, rel, mask = _seen_by_listed(state, ctx, observers, dist, cfg, observer_mask)
+        tokens = agent_tokens(state, history, static)
+    else:
         index, rel, mask = _seen_tokens(state, ctx, observers, dist, cfg)
         if observer_mask is not None:
             mask = mask * observer_mask.unsqueeze(-1)
-    else:
-        index, rel, mask = _seen_by_listed(state, ctx, observers, dist, cfg, observer_mask)
-    if compact:
-        # Tokens of the seen slots only, each observer's own row and then its neighbours'.
-        slots = torch.cat([observers.unsqueeze(-1), index[..., :ka]], -1).flatten(1)
-        tokens = agent_tokens(state, history, static, slots)  # [B, Q (1 + Ka), F]
-        observers = cached_arange(q, state.device).expand_as(observers) * (1 + ka)
-        a_rows = observers.unsqueeze(-1) + 1 + cached_arange(ka, state.device)
-        index = torch.cat([a_rows, index[..., ka:]], -1)
-    else:
-        tokens = agent_tokens(state, history, static)
+        if compact:
+            # Tokens of the seen slots only, each observer's own row and then its neighbours'.
+            slots = torch.cat([observers.unsqueeze(-1), index[..., :ka]], -1).flatten(1)
+            tokens = agent_tokens(state, history, static, slots)  # [B, Q (1 + Ka), F]
+            observers = cached_arange(q, state.device).expand_as(observers) * (1 + ka)
+            a_rows = observers.unsqueeze(-1) + 1 + cached_arange(ka, state.device)
+            index = torch.cat([a_rows, index[..., ka:]], -1)
+        else:
+            tokens = agent_tokens(state, history, static)
+        index, rel, mask = _masked(index, rel, mask)
     return IndexedObservation(
         agent_tokens=tokens,
         map_tokens=ctx.tokens,
         light_tokens=_lights_at(ctx, state.step)[1],
         ego=observers,
-        index=torch.where(mask > 0, index, torch.zeros_like(index)),
-        pose=rel * mask[..., None],
+        index=index,
+        pose=rel,
         mask=mask,
         sizes=(cfg.num_agents, cfg.num_map, cfg.num_traffic_lights),
     )

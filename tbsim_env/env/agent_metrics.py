@@ -184,11 +184,11 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
 
 def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
-    a, ab = route.segment_start, route.segments
-    q = xy.unsqueeze(-2)
-    t = (((q - a) * ab).sum(-1) / route.segment_length2).clamp(0.0, 1.0)
-    foot = q - (a + t.unsqueeze(-1) * ab)
-    d = torch.hypot(foot[..., 0], foot[..., 1])
+    # x and y apart (``segment_projection``'s layout): no sums over a dim of 2.
+    (ax, ay), (bx, by) = route.segment_start.unbind(-1), route.segments.unbind(-1)
+    qx, qy = xy.unsqueeze(-2).unbind(-1)
+    t = (((qx - ax) * bx + (qy - ay) * by) / route.segment_length2).clamp(0.0, 1.0)
+    d = torch.hypot(qx - (ax + t * bx), qy - (ay + t * by))
     best = d.argmin(-1, keepdim=True)
     along = t.gather(-1, best) * route.segment_length.gather(-1, best)
     return (route.segment_arc.gather(-1, best) + along).squeeze(-1)
