@@ -94,3 +94,23 @@ def test_no_edges_and_fewer_segments_than_candidates():
     grid = build_edge_grid([(np.zeros((0, 2)), np.zeros((0, 2)))])
     out, stale = grid_exact_signed_distance(pts, dataclasses.replace(empty, grid=grid))
     assert (out == -1.0e10).all() and not stale.any()
+
+
+def test_points_gathered_from_several_rows_read_their_own_scenes_edges():
+    """``rows``: a list of points from several scenes (as the env lists the agents still
+    present) gets exactly the distances of the per-scene layout, recomputed points included."""
+    from tbsim_env.data.generator import default_scenarios
+    from tbsim_env.sim.build import build_sim_state
+
+    edges = build_sim_state(default_scenarios(3)).road_edges
+    assert edges.grid is not None
+    g = torch.Generator().manual_seed(2)
+    e = edges.start.shape[1]
+    near = edges.start + torch.randn(3, e, 2, generator=g)
+    pts = torch.cat([near, torch.randn(3, 20, 2, generator=g) * 3000], 1)  # far: recomputed
+    full, _ = grid_exact_signed_distance(pts, edges)
+    b = torch.randint(0, 3, (500,), generator=g)
+    k = torch.randint(0, pts.shape[1], (500,), generator=g)
+    listed, stale = grid_exact_signed_distance(pts[b, k][:, None], edges, rows=b)
+    assert torch.equal(listed[:, 0], full[b, k]) and not stale.any()
+    assert (full[:, :e] < 0).any() and (full[:, :e] > 0).any()

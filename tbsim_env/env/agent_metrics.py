@@ -23,7 +23,7 @@ from tbsim_env.sim.collision import (
 )
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import box_offroad_distance
-from tbsim_env.sim.state import SimState
+from tbsim_env.sim.state import RoadEdges, SimState
 from tbsim_env.torch_utils import cached_arange, const, gather_rows
 
 
@@ -89,7 +89,8 @@ class StepMetrics:
     Attributes:
         collision: bool, overlaps another present agent.
         offroad: bool, a box corner is beyond a road edge.
-        offroad_distance: m, signed (positive off-road).
+        offroad_distance: m, signed (positive off-road); 0 for an agent no longer present
+            (it left the scene), which is then not off-road either.
         progress: m, arc length of the projection on the logged route (history included:
             where the log ends at the start, e.g. a history-only scene, it stays at the
             route's end and gains nothing).
@@ -215,7 +216,7 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
         query, pose, size, state.pose, all_size, state.valid, route.near_limit, trig, gap
     )
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
-    off_d, stale = box_offroad_distance(corners, state.road_edges)
+    off_d, stale = _offroad(corners, state.road_edges, present)
     log_valid, log_xy = _log_at(route, state.step)
     xy = pose[..., :2]
     log_gap = torch.linalg.vector_norm(xy - log_xy, dim=-1) * log_valid
@@ -231,6 +232,27 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
         offroad_stale=(stale & present) if torch.compiler.is_compiling() else None,
     )
     return metrics
+
+
+def _offroad(
+    corners: tuple[torch.Tensor, torch.Tensor], edges: RoadEdges, present: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``box_offroad_distance`` of the query boxes; eagerly on the CPU with a grid, of the
+    ``present`` [B, Q] ones only (the others, agents that left, get 0: on no side).
+
+    With every agent controlled, agents that have left would otherwise cost as much as those
+    still driving; on a GPU they cost idle lanes rather than time, and listing the others
+    would cost a host sync.
+    """
+    listing = corners[0].device.type == "cpu" and edges.grid is not None
+    if not listing or torch.compiler.is_compiling() or bool(present.all()):
+        return box_offroad_distance(corners, edges)
+    b, q = present.nonzero(as_tuple=True)
+    part, stale = box_offroad_distance(
+        (corners[0][b, q][:, None], corners[1][b, q][:, None]), edges, b
+    )
+    out = part.new_zeros(present.shape).index_put_((b, q), part[:, 0])
+    return out, torch.zeros_like(present)
 
 
 def _log_at(route: Route, step: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

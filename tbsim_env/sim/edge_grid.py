@@ -120,12 +120,15 @@ def build_edge_grid(
     )
 
 
-def _cell_of(grid: EdgeGrid, xy: torch.Tensor) -> torch.Tensor:
-    """[B, K] flat cell index of points [B, K, 2] (clamped into the grid)."""
-    ij = torch.floor((xy - grid.lower[:, None]) / grid.cell).long()
-    hi = grid.shape[:, None] - 1
-    ij = torch.minimum(ij.clamp_min(0), hi)
-    return ij[..., 0] * grid.shape[:, None, 1] + ij[..., 1]
+def _cell_of(grid: EdgeGrid, xy: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+    """[B, K] flat cell index of points [B, K, 2] (clamped into the grid) of the grid rows
+    ``rows`` [B] (each row its own by default)."""
+    lower, cell, shape = grid.lower, grid.cell, grid.shape
+    if rows is not None:
+        lower, cell, shape = lower[rows], cell[rows], shape[rows]
+    ij = torch.floor((xy - lower[:, None]) / cell).long()
+    ij = torch.minimum(ij.clamp_min(0), shape[:, None] - 1)
+    return ij[..., 0] * shape[:, None, 1] + ij[..., 1]
 
 
 def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -133,47 +136,57 @@ def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 
 def grid_signed_distance(
-    points: torch.Tensor, edges: RoadEdges, grid: EdgeGrid
+    points: torch.Tensor, edges: RoadEdges, grid: EdgeGrid, rows: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Signed road-edge distance of points over their cell's candidates (WOSAC sign rule).
 
     Args:
         points: [B, K, 2] m.
-        edges: road-edge segments of the B scenarios.
+        edges: road-edge segments of the scenarios.
         grid: their ``EdgeGrid``.
+        rows: optional [B] int64: point row b lies in the scenario of edge row ``rows[b]``
+            (points gathered from several rows); row b itself by default.
 
     Returns:
         (signed distance [B, K] m, positive off-road, ``NO_EDGE_DISTANCE`` without edges;
         stale [B, K] bool: the nearest segment may be outside the cell's list, so the value
         may be wrong there).
     """
-    cell = _cell_of(grid, points)  # [B, K]
-    cand = gather_rows(grid.cells.value, cell, grid.row)  # [B, K, Cc]
-    a = gather_rows(edges.start, cand)  # [B, K, Cc, 2]
-    ab = gather_rows(edges.end, cand) - a
+    cell = _cell_of(grid, points, rows)  # [B, K]
+    table = grid.row if rows is None else grid.row[rows]
+    cand = gather_rows(grid.cells.value, cell, table)  # [B, K, Cc]
+    a = gather_rows(edges.start, cand, rows)  # [B, K, Cc, 2]
+    ab = gather_rows(edges.end, cand, rows) - a
     t, dist = segment_projection(points.unsqueeze(-2), a, ab)
     local = dist.argmin(-1, keepdim=True)
     d = dist.gather(-1, local)[..., 0]
     t_best = t.gather(-1, local)[..., 0]
     best = cand.gather(-1, local)[..., 0].long()  # [B, K]
-    sign = joint_sign(points, edges, best, t_best)
-    out = torch.where(edges.valid.any(-1, keepdim=True), sign * d, C.NO_EDGE_DISTANCE)
-    centre = gather_rows(grid.center.value, cell, grid.row)
-    bound = gather_rows(grid.bound.value, cell, grid.row)
+    sign = joint_sign(points, edges, best, t_best, rows)
+    has_edge = edges.valid.any(-1, keepdim=True)
+    has_edge = has_edge if rows is None else has_edge[rows]
+    out = torch.where(has_edge, sign * d, C.NO_EDGE_DISTANCE)
+    centre = gather_rows(grid.center.value, cell, table)
+    bound = gather_rows(grid.bound.value, cell, table)
     slack = bound - torch.hypot(points[..., 0] - centre[..., 0], points[..., 1] - centre[..., 1])
     return out, d > slack
 
 
 def joint_sign(
-    points: torch.Tensor, edges: RoadEdges, best: torch.Tensor, t_best: torch.Tensor
+    points: torch.Tensor,
+    edges: RoadEdges,
+    best: torch.Tensor,
+    t_best: torch.Tensor,
+    rows: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """+1 / -1 side of ``points`` [B, K, 2] relative to their nearest segment ``best`` [B, K]
-    (projection parameter ``t_best``), with the convexity rule at polyline joints."""
-    prev = gather_rows(edges.prev_index, best)
-    nxt = gather_rows(edges.next_index, best)
+    (projection parameter ``t_best``), with the convexity rule at polyline joints. ``rows``:
+    as ``grid_signed_distance``'s."""
+    prev = gather_rows(edges.prev_index, best, rows)
+    nxt = gather_rows(edges.next_index, best, rows)
     seg = torch.stack([best, prev, nxt], -1)  # [B, K, 3]
-    sa = gather_rows(edges.start, seg)  # [B, K, 3, 2]
-    sab = gather_rows(edges.end, seg) - sa
+    sa = gather_rows(edges.start, seg, rows)  # [B, K, 3, 2]
+    sab = gather_rows(edges.end, seg, rows) - sa
     n = torch.sign(_cross(points.unsqueeze(-2) - sa, sab))  # [B, K, 3]
     n_this, n_prev, n_next = n.unbind(-1)
     convex_prev = _cross(sab[..., 1, :], sab[..., 0, :]) > 0

@@ -77,26 +77,29 @@ def _signed_and_unsigned(
 
 
 def grid_exact_signed_distance(
-    points: torch.Tensor, edges: RoadEdges
+    points: torch.Tensor, edges: RoadEdges, rows: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Signed road-edge distance of points [B, K, 2] through the edges' grid.
 
     The points the grid cannot vouch for are recomputed over every segment of their scenario:
     eagerly all of them; under ``torch.compile`` (no data-dependent shapes) a fixed budget of
-    ``OFFROAD_RECOMPUTE_BUDGET`` points, the stale ones first.
+    ``OFFROAD_RECOMPUTE_BUDGET`` points, the stale ones first. ``rows`` (eager only): point
+    row b lies in the scenario of edge row ``rows[b]`` (``edge_grid.grid_signed_distance``).
 
     Returns:
         (signed distance [B, K] m, unresolved [B, K] bool: stale points beyond the budget,
         whose distance may be wrong; never set eagerly).
     """
     if edges.grid is None:
-        out = signed_distance_to_edges(points, edges)
+        out = signed_distance_to_edges(points, edges if rows is None else _edge_rows(edges, rows))
         return out, torch.zeros(out.shape, dtype=torch.bool, device=out.device)
-    out, stale = grid_signed_distance(points, edges, edges.grid)
+    out, stale = grid_signed_distance(points, edges, edges.grid, rows)
     if not torch.compiler.is_compiling():
         if bool(stale.any()):
             bi, ki = stale.nonzero(as_tuple=True)
-            out = out.index_put((bi, ki), _recompute(points, edges, bi, ki))
+            scene = bi if rows is None else rows[bi]
+            exact = signed_distance_to_edges(points[bi, ki][:, None], _edge_rows(edges, scene))
+            out = out.index_put((bi, ki), exact[:, 0])
         return out, torch.zeros_like(stale)
     k = points.shape[1]
     flat = stale.reshape(-1)
@@ -111,29 +114,35 @@ def _recompute(
     points: torch.Tensor, edges: RoadEdges, bi: torch.Tensor, ki: torch.Tensor
 ) -> torch.Tensor:
     """[P] signed distance of the points ``(bi, ki)`` [P] over every segment of their row."""
-    sub = RoadEdges(
-        start=edges.start[bi],
-        end=edges.end[bi],
-        valid=edges.valid[bi],
-        prev_index=edges.prev_index[bi],
-        next_index=edges.next_index[bi],
+    return signed_distance_to_edges(points[bi, ki][:, None], _edge_rows(edges, bi))[:, 0]
+
+
+def _edge_rows(edges: RoadEdges, rows: torch.Tensor) -> RoadEdges:
+    """The segments of the edge rows ``rows`` [P] (no grid)."""
+    return RoadEdges(
+        start=edges.start[rows],
+        end=edges.end[rows],
+        valid=edges.valid[rows],
+        prev_index=edges.prev_index[rows],
+        next_index=edges.next_index[rows],
     )
-    return signed_distance_to_edges(points[bi, ki][:, None], sub)[:, 0]
 
 
 def box_offroad_distance(
-    corners: tuple[torch.Tensor, torch.Tensor], edges: RoadEdges
+    corners: tuple[torch.Tensor, torch.Tensor], edges: RoadEdges, rows: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Max signed road-edge distance over the 4 box corners (positive: a corner is off-road).
 
     Args:
         corners: (x, y) [B, K, 4] box corners (``box_corner_xy``), m.
-        edges: road edges of the B scenarios.
+        edges: road edges of the scenarios.
+        rows: optional [B] int64 (eager only): box row b lies in the scenario of edge row
+            ``rows[b]``; row b itself by default.
 
     Returns:
         ([B, K] m, unresolved [B, K] bool: see ``grid_exact_signed_distance``).
     """
     b, k = corners[0].shape[:2]
     points = torch.stack(corners, -1).reshape(b, k * 4, 2)
-    dist, stale = grid_exact_signed_distance(points, edges)
+    dist, stale = grid_exact_signed_distance(points, edges, rows)
     return dist.view(b, k, 4).amax(-1), stale.view(b, k, 4).any(-1)
