@@ -152,7 +152,12 @@ def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
         sc = load_scenarios(Path(args.data) / entry["file"])[0]
         seed = scenario_seed(args.seed, sc.scenario_id)
         r = trafficbots_rollouts(
-            model, sc, num_rollouts=args.keep, num_samples=args.samples, seed=seed
+            model,
+            sc,
+            num_rollouts=args.keep,
+            num_samples=args.samples,
+            seed=seed,
+            road_edge_weight=args.road_edge_weight,
         )
         s = score_scenario(sc, r, "wosac2025")
         scores.append(dataclasses.asdict(s))
@@ -226,6 +231,12 @@ def main() -> None:
     p.add_argument("--samples", type=int, default=16)
     p.add_argument("--keep", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--road-edge-weight",
+        type=float,
+        default=0.0,
+        help="also rank the sampled rollouts by agents that leave the road (spec w_road_edge)",
+    )
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument("--out")
     p.add_argument("--checkpoint", help="checkpoint base path (default: the shipped weights)")
