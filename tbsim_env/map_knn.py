@@ -31,7 +31,8 @@ class PieceClusters:
 
     Attributes:
         members: [B, G, S] int64 piece indices, ``M`` (one past the last piece: the
-            sentinel of ``MapContext.knn_xy``-style arrays) for empty member slots.
+            sentinel of ``MapContext.knn_xy``-style arrays) for empty member slots; S is the
+            largest cluster of the batch (at most the build's ``size``).
         center: [B, G, 2] float32 m, the mean of the members' anchor points (+inf: padding).
         radius: [B, G] float32 m, the largest member distance from the centre, rounded up.
         member_xy: [B, G, S, 2] float32 m, the members' anchor points (+inf for empty slots),
@@ -85,7 +86,10 @@ def build_piece_clusters(
     b, m = valid_np.shape
     scenes = [scene_clusters(xy_np[i], valid_np[i], size) for i in range(b)]
     g = max(max((len(s) for s in scenes), default=0), 1)
-    members = np.full((b, g, size), m, np.int64)
+    # Member slots: the largest leaf (median splits leave most leaves well under ``size``;
+    # every padded slot would be measured and ranked by each search).
+    width = max((len(ids) for leaves in scenes for ids in leaves), default=1)
+    members = np.full((b, g, width), m, np.int64)
     center = np.full((b, g, 2), np.inf, np.float32)
     radius = np.zeros((b, g), np.float32)
     for i, leaves in enumerate(scenes):
@@ -100,7 +104,7 @@ def build_piece_clusters(
     members_t = torch.from_numpy(members).to(dev)
     inf = torch.full((b, 1, 2), float("inf"), device=dev)
     points = torch.cat([xy.float().masked_fill(~valid[..., None], float("inf")), inf], 1)
-    member_xy = gather_rows(points, members_t.flatten(1)).view(b, g, size, 2)
+    member_xy = gather_rows(points, members_t.flatten(1)).view(b, g, width, 2)
     return PieceClusters(
         members=members_t,
         center=torch.from_numpy(center).to(dev),
