@@ -442,22 +442,32 @@ def _seen_tokens(
     dist: torch.Tensor,
     cfg: ObsConfig,
     rows: torch.Tensor | None = None,
+    columns: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The tokens observers see, before masking: (index [B, Q, Ka + Km + Kt] int64 (agent
     slots, map pieces, lights, nearest first), relative poses [B, Q, K, 3], mask [B, Q, K]
     float32: 1 within the radius).
 
     Args:
-        observers: [B, Q] int64 agent slots; dist: [B, Q, N] their centre distances to every
-            slot.
+        observers: [B, Q] int64 agent slots; dist: [B, Q, C] their centre distances to every
+            slot (C = N), or to the ``columns``.
         rows: optional [B] int64: observer row b is in state / context row ``rows[b]``
             (observers gathered from several rows); row b itself by default.
+        columns: optional (slot [B, Q, C] int64, usable [B, Q, C] bool): the slot of each
+            column of ``dist`` and whether it holds a valid agent (the others are padding);
+            the same neighbours as over every slot, ranked by slot.
     """
-    valid = state.valid if rows is None else state.valid.index_select(0, rows)
+    n, ka = state.num_agents, cfg.num_agents
     me = gather_rows(state.pose, observers, rows)  # [B, Q, 3]
-    # Not another valid agent: invalid (valid <= itself is ~valid | itself), or the observer.
-    itself = cached_arange(state.num_agents, state.device) == observers.unsqueeze(-1)
-    a_idx, a_top = _nearest(dist, valid.unsqueeze(1) <= itself, cfg.num_agents, cfg.agent_radius)
+    if columns is None:
+        valid = state.valid if rows is None else state.valid.index_select(0, rows)
+        # Not another valid agent: invalid (valid <= itself is ~valid | itself), or itself.
+        itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
+        a_idx, a_top = _nearest(dist, valid.unsqueeze(1) <= itself, ka, cfg.agent_radius)
+    else:
+        slot, usable = columns
+        skip = ~usable | (slot == observers.unsqueeze(-1))
+        a_idx, a_top = _nearest(dist, skip, ka, cfg.agent_radius, ids=(slot, n))
     m_idx, m_top = _nearest_pieces(ctx, me[..., :2], cfg.num_map, cfg.map_radius, rows)
     # x and y apart (no [B, Q, L, 2] difference): the same values, a third of the time.
     light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
@@ -494,8 +504,18 @@ def _seen_by_listed(
     """``_masked(_seen_tokens(...))`` of the ``listed`` [B, Q] observers only, gathered from
     every row into one list and scattered back; the others get index 0, pose 0 and mask 0."""
     b, q = listed.nonzero(as_tuple=True)
+    # Neighbours among each row's valid slots only (real scenes keep a slot for every track
+    # of the log, most of them absent at any one step): the slots in order, padding after.
+    valid = state.valid
+    count = valid.sum(1)
+    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)[:, : int(count.max())]
+    usable = cached_arange(order.shape[1], valid.device) < count.unsqueeze(1)
+    slot = order[b]  # [R, C]
+    flat = (b * observers.shape[1] + q).unsqueeze(1) * state.num_agents + slot
+    columns = (slot.unsqueeze(1), usable[b].unsqueeze(1))
+    near = dist.reshape(-1)[flat].unsqueeze(1)  # [R, 1, C]
     index, rel, mask = _masked(
-        *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), dist[b, q].unsqueeze(1), cfg, b)
+        *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), near, cfg, b, columns)
     )
     # Each element written once: the listed rows copied, the others zero-filled.
     flat = b * observers.shape[1] + q
