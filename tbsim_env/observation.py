@@ -510,20 +510,18 @@ def _seen_by_listed(
     count = valid.sum(1)
     order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)[:, : int(count.max())]
     usable = cached_arange(order.shape[1], valid.device) < count.unsqueeze(1)
-    slot = order[b]  # [R, C]
+    slot = order.index_select(0, b)  # [R, C]
     flat = (b * observers.shape[1] + q).unsqueeze(1) * state.num_agents + slot
-    columns = (slot.unsqueeze(1), usable[b].unsqueeze(1))
-    near = dist.reshape(-1)[flat].unsqueeze(1)  # [R, 1, C]
+    columns = (slot.unsqueeze(1), usable.index_select(0, b).unsqueeze(1))
+    near = dist.reshape(-1).index_select(0, flat.flatten()).view(-1, 1, slot.shape[1])
     index, rel, mask = _masked(
         *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), near, cfg, b, columns)
     )
-    # Each element written once: the listed rows copied, the others zero-filled.
     flat = b * observers.shape[1] + q
-    unlisted = (~listed).flatten().nonzero().squeeze(-1)
     out = []
     for part in (index, rel, mask):
-        full = part.new_empty(listed.numel(), *part.shape[2:])
-        full.index_copy_(0, flat, part[:, 0]).index_fill_(0, unlisted, 0)
+        full = part.new_zeros(listed.numel(), *part.shape[2:])
+        full.index_copy_(0, flat, part[:, 0])
         out.append(full.view(*listed.shape, *part.shape[2:]))
     return out[0], out[1], out[2]
 
