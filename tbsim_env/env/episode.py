@@ -268,15 +268,23 @@ def reset_rows(
 ) -> EpisodeState:
     """``state`` with the rows ``rows`` [R] (distinct) restarted on the bank rows ``ks`` [R]; the
     other rows and ``policy_state`` are unchanged (restarting the policy is the caller's: it needs
-    the scenarios and the random generator). ``in_place``: write the new rows into ``state``'s
-    tensors (``rows.with_rows``), for a caller that alone holds them."""
-    fresh, _ = start(bank, ks, config)
+    the scenarios and the random generator). ``in_place``: as ``merge_rows``."""
+    return merge_rows(state, rows, start(bank, ks, config)[0], in_place)
+
+
+def merge_rows(
+    state: EpisodeState, rows: torch.Tensor, fresh: EpisodeState, in_place: bool = False
+) -> EpisodeState:
+    """``state`` with the rows ``rows`` [R] (distinct) replaced by the R rows of ``fresh``
+    (``start``'s episodes); ``state.policy_state`` is kept. ``in_place``: write the rows into
+    ``state``'s tensors (``rows.with_rows``), for a caller that alone holds them."""
     if rows.numel() == state.batch_size:  # every row (``rows`` are distinct): no merge
         if bool((rows != cached_arange(state.batch_size, rows.device)).any()):
             fresh = take_rows(fresh, torch.argsort(rows))
         return dataclasses.replace(fresh, policy_state=state.policy_state)
     body = dataclasses.replace(state, policy_state=None)
-    merged = with_rows(body, rows, fresh, in_place=in_place)
+    new = dataclasses.replace(fresh, policy_state=None)
+    merged = with_rows(body, rows, new, in_place=in_place)
     return dataclasses.replace(merged, policy_state=state.policy_state)
 
 
@@ -468,6 +476,7 @@ __all__ = [
     "npc_actions",
     "observe_state",
     "remove_agents",
+    "merge_rows",
     "reset_rows",
     "slot_actions",
     "start",

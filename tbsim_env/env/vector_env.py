@@ -56,7 +56,7 @@ from tbsim_env.observation import (
     densify,
     observation_shapes,
 )
-from tbsim_env.rows import take_rows, with_rows
+from tbsim_env.rows import with_rows
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import to_local
 from tbsim_env.sim.state import SimState
@@ -333,20 +333,24 @@ class BatchedTrafficEnv:
             sim, [self.scenarios[int(k)] for k in ks], self._generator
         )
 
-    def _restart(self, state: EpisodeState, rows: torch.Tensor) -> EpisodeState:
-        """``state`` with new episodes in the slots ``rows`` [R] (everything else untouched)."""
+    def _restart(
+        self, state: EpisodeState, rows: torch.Tensor
+    ) -> tuple[EpisodeState, EpisodeState]:
+        """(``state`` with new episodes in the slots ``rows`` [R], everything else untouched;
+        the R new episodes alone, without policy state)."""
         ks = self._draw(len(rows))
+        fresh, _ = ep.start(self.bank, ks, self._step_config)
         # In place: a restart costs the restarted rows, not a copy of every table of the batch.
-        state = ep.reset_rows(self.bank, state, rows, ks, self._step_config, in_place=True)
+        state = ep.merge_rows(state, rows, fresh, in_place=True)
         policy_state = state.policy_state
         if self._has_npc:
-            fresh = self._policy_start(take_rows(state.sim, rows), ks)
-            policy_state = with_rows(policy_state, rows, fresh, strict=False)
+            started = self._policy_start(fresh.sim, ks)
+            policy_state = with_rows(policy_state, rows, started, strict=False)
         elif bool(self.bank.setup.npc[ks].any()):
             # No slot had NPCs so far: start the policy on the whole batch.
             self._has_npc = True
             policy_state = self._policy_start(state.sim, state.scenario)
-        return dataclasses.replace(state, policy_state=policy_state)
+        return dataclasses.replace(state, policy_state=policy_state), fresh
 
     def reset_slots(self, slots: Sequence[int] | torch.Tensor) -> dict[str, torch.Tensor]:
         """Start new episodes (drawn from the seeded generator) in some slots now, as the
@@ -368,7 +372,7 @@ class BatchedTrafficEnv:
                 f"slots must be distinct indices in [0, {self.batch_size}), got {rows.tolist()}"
             )
         with torch_threads(self.torch_threads), torch.no_grad():
-            self._episode = self._restart(self.episode, rows)
+            self._episode = self._restart(self.episode, rows)[0]
             return self._observe(self.episode)
 
     # ------------------------------------------------------------------ step
@@ -440,8 +444,8 @@ class BatchedTrafficEnv:
         )
         if bool(out.done.any()):
             rows = out.done.nonzero(as_tuple=True)[0]
-            state = self._restart(state, rows)
-            sub = self._observe(take_rows(dataclasses.replace(state, policy_state=None), rows))
+            state, fresh = self._restart(state, rows)
+            sub = self._observe(fresh)
             obs = {k: v.index_copy(0, rows, sub[k]) for k, v in obs.items()}
         self._episode = state
         infos["agent_mask"] = state.alive.clone()
