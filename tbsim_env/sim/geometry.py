@@ -95,10 +95,9 @@ def segment_projection(
         (t [...]: the projection parameter along ab, not clamped, 0 for a zero-length
         segment; distance [...] m from q to the nearest point of the segment).
     """
-    # x and y apart: no sums over a dim of 2 (the same values, 1.7x faster on the CPU).
-    (qx, qy), (ax, ay), (bx, by) = q.unbind(-1), a.unbind(-1), ab.unbind(-1)
-    len2 = bx * bx + by * by
-    t = ((qx - ax) * bx + (qy - ay) * by) / len2.clamp_min(1e-12)
+    # On [..., 2] tensors: x and y apart is faster eagerly but a third slower compiled.
+    len2 = (ab * ab).sum(-1)
+    t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
     t = torch.where(len2 > 0, t, torch.zeros_like(t))
-    tc = t.clamp(0.0, 1.0)
-    return t, torch.hypot(qx - (ax + tc * bx), qy - (ay + tc * by))
+    offset = q - (a + t.clamp(0.0, 1.0).unsqueeze(-1) * ab)
+    return t, torch.hypot(offset[..., 0], offset[..., 1])
