@@ -35,7 +35,7 @@ from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.knn import nearest_k
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, const, gather_rows
+from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed
 
 
 @dataclass(frozen=True)
@@ -499,11 +499,12 @@ def _seen_by_listed(
     observers: torch.Tensor,
     dist: torch.Tensor,
     cfg: ObsConfig,
-    listed: torch.Tensor,
+    pairs: tuple[torch.Tensor, torch.Tensor],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``_masked(_seen_tokens(...))`` of the ``listed`` [B, Q] observers only, gathered from
-    every row into one list and scattered back; the others get index 0, pose 0 and mask 0."""
-    b, q = listed.nonzero(as_tuple=True)
+    """``_masked(_seen_tokens(...))`` of the observers ``pairs`` (rows [R], columns [R] of
+    ``observers``) only, gathered from every row into one list and scattered back; the others
+    get index 0, pose 0 and mask 0."""
+    b, q = pairs
     # Neighbours among each row's valid slots only (real scenes keep a slot for every track
     # of the log, most of them absent at any one step): the slots in order, padding after.
     valid = state.valid
@@ -520,9 +521,9 @@ def _seen_by_listed(
     flat = b * observers.shape[1] + q
     out = []
     for part in (index, rel, mask):
-        full = part.new_zeros(listed.numel(), *part.shape[2:])
+        full = part.new_zeros(observers.numel(), *part.shape[2:])
         full.index_copy_(0, flat, part[:, 0])
-        out.append(full.view(*listed.shape, *part.shape[2:]))
+        out.append(full.view(*observers.shape, *part.shape[2:]))
     return out[0], out[1], out[2]
 
 
@@ -562,9 +563,8 @@ def observe_indexed(
             slot at the current poses (``StepMetrics.agent_distance`` with the observers as
             query); computed when None.
         observer_mask: optional [B, Q] bool, the observers to describe (the env's active
-            agents); the others see no token (index 0, pose 0, mask 0). Eagerly on the CPU,
-            the searches then run on the listed observers only: with every agent controlled,
-            agents that have left would otherwise cost as much as those still driving.
+            agents); the others see no token (index 0, pose 0, mask 0). Where that pays
+            (``torch_utils.listed``), the searches run on the described observers only.
     """
     static = agent_static_features(state) if agent_static is None else agent_static
     dist = agent_distance  # [B, Q, N]
@@ -572,11 +572,10 @@ def observe_indexed(
         dist = agent_distances(gather_rows(state.pose, observers), state.pose)
     q, ka = observers.shape[1], cfg.num_agents
     compact = q * (1 + ka) < state.num_agents
-    # Compact tokens follow the observers' rows; on a GPU, observers outside the mask cost
-    # idle lanes rather than time, and listing the others would cost a host sync per step.
-    listing = state.device.type == "cpu" and not (compact or torch.compiler.is_compiling())
-    if observer_mask is not None and listing and not bool(observer_mask.all()):
-        index, rel, mask = _seen_by_listed(state, ctx, observers, dist, cfg, observer_mask)
+    # Compact tokens follow the observers' rows: those are never listed.
+    pairs = None if compact or observer_mask is None else listed(observer_mask)
+    if pairs is not None:
+        index, rel, mask = _seen_by_listed(state, ctx, observers, dist, cfg, pairs)
         tokens = agent_tokens(state, history, static)
     else:
         index, rel, mask = _seen_tokens(state, ctx, observers, dist, cfg)

@@ -118,3 +118,16 @@ def gather_rows(
     else:
         flat = (index + _row_offsets(b, n, index.dim(), x.device)).reshape(-1)
     return flat_x.index_select(0, flat).view(*index.shape, *x.shape[2:])
+
+
+def listed(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """(rows, cols) of the True entries of ``mask`` [B, Q] when computing on those alone pays:
+    eagerly on the CPU and some entry is False. None otherwise: use the dense [B, Q] layout.
+
+    With every agent controlled, agents that have left the scene would otherwise cost as much
+    as those still driving. On a GPU they cost idle lanes rather than time, while listing the
+    others costs a host sync; a compiled graph cannot size tensors by data.
+    """
+    if mask.device.type != "cpu" or torch.compiler.is_compiling() or bool(mask.all()):
+        return None
+    return mask.nonzero(as_tuple=True)

@@ -24,7 +24,7 @@ from tbsim_env.sim.collision import (
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import box_offroad_distance
 from tbsim_env.sim.state import RoadEdges, SimState
-from tbsim_env.torch_utils import cached_arange, const, gather_rows
+from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed
 
 
 @dataclass(frozen=True)
@@ -237,20 +237,14 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
 def _offroad(
     corners: tuple[torch.Tensor, torch.Tensor], edges: RoadEdges, present: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``box_offroad_distance`` of the query boxes; eagerly on the CPU with a grid, of the
-    ``present`` [B, Q] ones only (the others, agents that left, get 0: on no side).
-
-    With every agent controlled, agents that have left would otherwise cost as much as those
-    still driving; on a GPU they cost idle lanes rather than time, and listing the others
-    would cost a host sync.
-    """
-    listing = corners[0].device.type == "cpu" and edges.grid is not None
-    if not listing or torch.compiler.is_compiling() or bool(present.all()):
+    """``box_offroad_distance`` of the query boxes; of the ``present`` [B, Q] ones only where
+    that pays (``torch_utils.listed``; with a grid): the others, agents that left, get 0."""
+    pairs = listed(present) if edges.grid is not None else None
+    if pairs is None:
         return box_offroad_distance(corners, edges)
-    b, q = present.nonzero(as_tuple=True)
-    part, stale = box_offroad_distance(
-        (corners[0][b, q][:, None], corners[1][b, q][:, None]), edges, b
-    )
+    b, q = pairs
+    boxes = (corners[0][b, q].unsqueeze(1), corners[1][b, q].unsqueeze(1))  # [R, 1, 4]
+    part, _ = box_offroad_distance(boxes, edges, b)  # eagerly never stale
     out = part.new_zeros(present.shape).index_put_((b, q), part[:, 0])
     return out, torch.zeros_like(present)
 

@@ -276,15 +276,15 @@ def merge_rows(
     state: EpisodeState, rows: torch.Tensor, fresh: EpisodeState, in_place: bool = False
 ) -> EpisodeState:
     """``state`` with the rows ``rows`` [R] (distinct) replaced by the R rows of ``fresh``
-    (``start``'s episodes); ``state.policy_state`` is kept. ``in_place``: write the rows into
-    ``state``'s tensors (``rows.with_rows``), for a caller that alone holds them."""
+    (``start``'s episodes, policy state None); ``state.policy_state`` is kept. ``in_place``:
+    write the rows into ``state``'s tensors (``rows.with_rows``), for a caller that alone holds
+    them."""
     if rows.numel() == state.batch_size:  # every row (``rows`` are distinct): no merge
         if bool((rows != cached_arange(state.batch_size, rows.device)).any()):
             fresh = take_rows(fresh, torch.argsort(rows))
         return dataclasses.replace(fresh, policy_state=state.policy_state)
     body = dataclasses.replace(state, policy_state=None)
-    new = dataclasses.replace(fresh, policy_state=None)
-    merged = with_rows(body, rows, new, in_place=in_place)
+    merged = with_rows(body, rows, fresh, in_place=in_place)
     return dataclasses.replace(merged, policy_state=state.policy_state)
 
 

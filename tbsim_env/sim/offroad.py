@@ -97,9 +97,7 @@ def grid_exact_signed_distance(
     if not torch.compiler.is_compiling():
         if bool(stale.any()):
             bi, ki = stale.nonzero(as_tuple=True)
-            scene = bi if rows is None else rows[bi]
-            exact = signed_distance_to_edges(points[bi, ki][:, None], _edge_rows(edges, scene))
-            out = out.index_put((bi, ki), exact[:, 0])
+            out = out.index_put((bi, ki), _recompute(points, edges, bi, ki, rows))
         return out, torch.zeros_like(stale)
     k = points.shape[1]
     flat = stale.reshape(-1)
@@ -111,10 +109,16 @@ def grid_exact_signed_distance(
 
 
 def _recompute(
-    points: torch.Tensor, edges: RoadEdges, bi: torch.Tensor, ki: torch.Tensor
+    points: torch.Tensor,
+    edges: RoadEdges,
+    bi: torch.Tensor,
+    ki: torch.Tensor,
+    rows: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """[P] signed distance of the points ``(bi, ki)`` [P] over every segment of their row."""
-    return signed_distance_to_edges(points[bi, ki][:, None], _edge_rows(edges, bi))[:, 0]
+    """[P] signed distance of the points ``(bi, ki)`` [P] over every segment of their scene
+    (edge row ``bi``, or ``rows[bi]`` with a row map)."""
+    scene = bi if rows is None else rows[bi]
+    return signed_distance_to_edges(points[bi, ki][:, None], _edge_rows(edges, scene))[:, 0]
 
 
 def _edge_rows(edges: RoadEdges, rows: torch.Tensor) -> RoadEdges:
