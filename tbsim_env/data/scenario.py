@@ -491,13 +491,7 @@ class Scenario:
         if t.num_tracks == 0:
             fail("field 'tracks' is empty (a scenario needs at least one track)")
         n_t = self.timestamps.shape[0]
-        if n_t < 2:
-            fail(f"field 'timestamps_seconds' has {n_t} entries; need at least 2 steps")
-        if not np.isfinite(self.timestamps).all():
-            fail("field 'timestamps_seconds' has a non-finite value")
-        if not (np.diff(self.timestamps) > 0).all():
-            step = int(np.argmax(np.diff(self.timestamps) <= 0)) + 1
-            fail(f"field 'timestamps_seconds' is not increasing at step {step}")
+        self._validate_timestamps(fail)
         a = t.num_tracks
         expect = {
             "id": (a,),
@@ -552,6 +546,17 @@ class Scenario:
         if extent:
             fail(extent)
         return self
+
+    def _validate_timestamps(self, fail) -> None:
+        """At least two steps, finite and increasing."""
+        n_t = self.timestamps.shape[0]
+        if n_t < 2:
+            fail(f"field 'timestamps_seconds' has {n_t} entries; need at least 2 steps")
+        if not np.isfinite(self.timestamps).all():
+            fail("field 'timestamps_seconds' has a non-finite value")
+        if not (np.diff(self.timestamps) > 0).all():
+            step = int(np.argmax(np.diff(self.timestamps) <= 0)) + 1
+            fail(f"field 'timestamps_seconds' is not increasing at step {step}")
 
     def _validate_roles(self, fail) -> None:
         """Tracks to predict, their difficulties and the objects of interest."""

@@ -227,6 +227,32 @@ def walk_time_left(net: RoadNetwork, times: np.ndarray, offset_s: float) -> np.n
     return out
 
 
+def _signal_timed(
+    net: RoadNetwork,
+    order: list,
+    arrive: np.ndarray,
+    offset_s: float,
+    rng: np.random.Generator,
+) -> tuple[list, np.ndarray]:
+    """At a signalised junction: the crossings whose walk window opens first in the logged
+    window go first, their pedestrians arriving up to 5 s before it opens; the others 1 s
+    later than drawn. Returns (crossing order, arrival times s)."""
+    plan = net.signals
+    onsets = [
+        (ph * plan.phase_s - offset_s + m * plan.cycle_s, ph)
+        for ph in range(plan.num_phases)
+        for m in range(-2, 3)
+    ]
+    t_on, ph_on = min((t, ph) for t, ph in onsets if t >= -7.0)
+    walk = _walk_phases(net)
+    served = [c for c in order if ph_on in walk[c]]
+    order = served + [c for c in order if c not in served]
+    arrive = np.where(
+        np.isin(order, served), t_on + rng.uniform(-5.0, 1.5, len(order)), arrive + 1.0
+    )
+    return order, arrive
+
+
 def plan_crossings(
     net: RoadNetwork,
     n: int,
@@ -257,19 +283,7 @@ def plan_crossings(
     order = list(rng.permutation(len(net.crossings)))
     arrive = rng.uniform(-4.0, 5.0, len(order))
     if net.signals is not None:
-        plan = net.signals
-        onsets = [
-            (ph * plan.phase_s - offset_s + m * plan.cycle_s, ph)
-            for ph in range(plan.num_phases)
-            for m in range(-2, 3)
-        ]
-        t_on, ph_on = min((t, ph) for t, ph in onsets if t >= -7.0)
-        walk = _walk_phases(net)
-        served = [c for c in order if ph_on in walk[c]]
-        order = served + [c for c in order if c not in served]
-        arrive = np.where(
-            np.isin(order, served), t_on + rng.uniform(-5.0, 1.5, len(order)), arrive + 1.0
-        )
+        order, arrive = _signal_timed(net, order, arrive, offset_s, rng)
     chosen = np.asarray(order[:n], np.int64)
     side = rng.choice([-1.0, 1.0], size=n)
     along = rng.uniform(0.0, 1.0, n)

@@ -409,6 +409,20 @@ def _drive(
     return log, offset_s, crossing
 
 
+def _check_request(
+    layout: str, num_vehicles: int | None, num_pedestrians: int | None, num_crossing: int | None
+) -> None:
+    """Raise ``ValueError`` for an unknown layout or negative counts (``generate_scenario``)."""
+    if layout not in LAYOUT_BUILDERS:
+        raise ValueError(f"unknown layout {layout!r}; valid layouts are {', '.join(LAYOUTS)}")
+    if (
+        (num_vehicles is not None and num_vehicles < 1)
+        or (num_pedestrians is not None and num_pedestrians < 0)
+        or (num_crossing is not None and num_crossing < 0)
+    ):
+        raise ValueError("num_vehicles must be >= 1, num_pedestrians and num_crossing >= 0")
+
+
 def generate_scenario(
     layout: str = "intersection",
     seed: int = 0,
@@ -444,14 +458,7 @@ def generate_scenario(
     Raises:
         ValueError: unknown layout or negative counts.
     """
-    if layout not in LAYOUT_BUILDERS:
-        raise ValueError(f"unknown layout {layout!r}; valid layouts are {', '.join(LAYOUTS)}")
-    if (
-        (num_vehicles is not None and num_vehicles < 1)
-        or (num_pedestrians is not None and num_pedestrians < 0)
-        or (num_crossing is not None and num_crossing < 0)
-    ):
-        raise ValueError("num_vehicles must be >= 1, num_pedestrians and num_crossing >= 0")
+    _check_request(layout, num_vehicles, num_pedestrians, num_crossing)
     traffic = TRAFFIC[layout]
     cfg = behaviour.driver(traffic.driver)
     rng = _rng(layout, seed)
