@@ -7,7 +7,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from policies.trafficbots.attention import DecoderLayer
+from policies.trafficbots.attention import DecoderLayer, Neighbours
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import pose_encoding, relative_pose, rpe
 from policies.trafficbots.knn import knn_relative
@@ -169,6 +169,8 @@ class AgentEncoder(nn.Module):
         ctx_mask = torch.cat([m_mask, t_mask], dim=2)  # [B, N, Km + Kt]
         ctx_rpe = rpe(torch.cat([m_rel, t_rel], dim=2), cfg)
         s_rpe = rpe(s_rel, cfg)
+        own = Neighbours(s_idx, s_mask, s_rpe)
+        near = Neighbours(ctx_idx, ctx_mask, ctx_rpe)
         for layer in self.layers:
-            x = layer(x, ag_valid, s_idx, s_mask, s_rpe, ctx, ctx_idx, ctx_mask, ctx_rpe)
+            x = layer(x, ag_valid, own, ctx, near)
         return x, ag_pose, ag_valid

@@ -4,6 +4,7 @@ pre-LayerNorm transformer layers built on it (spec sections 2.5 and 3)."""
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -11,6 +12,20 @@ from torch import nn
 
 from tbsim_env import constants as C
 from tbsim_env.torch_utils import gather_rows
+
+
+class Neighbours(NamedTuple):
+    """Each token's neighbour rows in a source and their relative pose encodings.
+
+    Attributes:
+        idx: [B, N, K] int64 rows of the source.
+        mask: [B, N, K] bool, valid neighbours.
+        rpe: [B, N, K, rpe_dim] relative pose encodings.
+    """
+
+    idx: torch.Tensor
+    mask: torch.Tensor
+    rpe: torch.Tensor
 
 
 class KnarpeAttention(nn.Module):
@@ -256,33 +271,26 @@ class DecoderLayer(nn.Module):
         self,
         x: torch.Tensor,
         valid: torch.Tensor,
-        self_idx: torch.Tensor,
-        self_mask: torch.Tensor,
-        self_rpe: torch.Tensor,
+        own: Neighbours,
         ctx: torch.Tensor,
-        ctx_idx: torch.Tensor,
-        ctx_mask: torch.Tensor,
-        ctx_rpe: torch.Tensor,
+        ctx_nb: Neighbours,
     ) -> torch.Tensor:
         """One layer.
 
         Args:
             x: [B, N, d] tokens.
             valid: [B, N] bool.
-            self_idx: [B, N, Ks] same-type neighbour rows.
-            self_mask: [B, N, Ks] bool.
-            self_rpe: [B, N, Ks, rpe_dim].
+            own: same-type neighbours (rows of ``x``), K = Ks.
             ctx: [B, S, d] other-type source tokens (not normalised).
-            ctx_idx: [B, N, Kc] their rows that are each token's neighbours.
-            ctx_mask: [B, N, Kc] bool.
-            ctx_rpe: [B, N, Kc, rpe_dim].
+            ctx_nb: each token's neighbours among the ``ctx`` rows, K = Kc.
 
         Returns:
             [B, N, d], zero for invalid tokens.
         """
         h = self.norm_self(x)
-        x = x + self.dropout(self.self_attn(h, h, self_idx, self_rpe, self_mask))
+        x = x + self.dropout(self.self_attn(h, h, own.idx, own.rpe, own.mask))
         ctx = self.norm_ctx(ctx)  # per row, so the same as normalising the gathered rows
-        x = x + self.dropout(self.cross_attn(self.norm1(x), ctx, ctx_idx, ctx_rpe, ctx_mask))
+        cross = self.cross_attn(self.norm1(x), ctx, ctx_nb.idx, ctx_nb.rpe, ctx_nb.mask)
+        x = x + self.dropout(cross)
         x = x + self.ffn(self.norm2(x))
         return x * valid[..., None]

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from policies.trafficbots.attention import DecoderLayer
+from policies.trafficbots.attention import DecoderLayer, Neighbours
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import rpe
 from policies.trafficbots.knn import knn_relative
@@ -145,18 +145,10 @@ class TLEncoder(nn.Module):
         )  # [B, L, W, 5 + n_time]
         x = self.input_mlp(x) + ctx.lane_feat[:, :, None]
         x = self.pointnet(x, step_valid & ctx.valid[..., None]) * ctx.valid[..., None]
+        own = Neighbours(ctx.self_idx, ctx.self_mask, ctx.self_rpe)
+        near_map = Neighbours(ctx.map_idx, ctx.map_mask, ctx.map_rpe)
         for layer in self.layers:
-            x = layer(
-                x,
-                ctx.valid,
-                ctx.self_idx,
-                ctx.self_mask,
-                ctx.self_rpe,
-                ctx.map_feat,
-                ctx.map_idx,
-                ctx.map_mask,
-                ctx.map_rpe,
-            )
+            x = layer(x, ctx.valid, own, ctx.map_feat, near_map)
         return x
 
 
