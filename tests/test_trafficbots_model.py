@@ -20,6 +20,7 @@ from policies.trafficbots import (
     rollout,
     sample_rollouts,
 )
+from policies.trafficbots.model import PrepareMode
 from policies.trafficbots.synthetic import make_synthetic_tokens
 from tbsim_env.data.tokens import SceneTokens
 
@@ -75,7 +76,7 @@ def transform_tokens(tok: SceneTokens, yaw: float, shift: tuple[float, float]) -
 def _run(model: TrafficBots, tok: SceneTokens, seed: int, n_steps: int):
     batch = TokenBatch.from_tokens(tok)
     with torch.no_grad():
-        ctx = model.prepare(batch, 1, torch.Generator().manual_seed(seed), dest="gt")
+        ctx = model.prepare(batch, 1, torch.Generator().manual_seed(seed), PrepareMode(dest="gt"))
         return rollout(model, ctx, batch, gt_steps=11, n_steps=n_steps, disable_outside_map=False)
 
 

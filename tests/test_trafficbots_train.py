@@ -13,6 +13,7 @@ import tbsim_env  # noqa: F401  (first: avoids the policies <-> tbsim_env.env im
 
 from policies.trafficbots import TokenBatch, TrafficBots, TrafficBotsConfig, rollout, training_step
 from policies.trafficbots.losses import imitation_loss
+from policies.trafficbots.model import PrepareMode
 from policies.trafficbots.synthetic import make_synthetic_tokens
 
 
@@ -76,7 +77,8 @@ def test_gradient_routing_and_bptt(batch) -> None:
     torch.manual_seed(1)
     model = TrafficBots(TrafficBotsConfig.small()).train()
     gen = torch.Generator().manual_seed(1)
-    ctx = model.prepare(batch, 1, gen, latent="posterior", dest="gt", tl_valid_from="full")
+    mode = PrepareMode(latent="posterior", dest="gt", tl_valid_from="full")
+    ctx = model.prepare(batch, 1, gen, mode)
     forced = torch.zeros_like(batch.ag_valid[..., 0])
     forced[0, 1] = True
     actions = []  # record each step's action tensor (the graph leaves of the BPTT chain)

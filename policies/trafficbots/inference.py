@@ -68,7 +68,7 @@ def sample_rollouts(
     was_training = model.training
     model.eval()
     try:
-        ctx = model.prepare(sim, n, generator, latent="prior", dest="sample")
+        ctx = model.prepare(sim, n, generator)
         traj = rollout(model, ctx, sim, gt_steps=model.cfg.n_history)
     finally:
         model.train(was_training)

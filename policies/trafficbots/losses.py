@@ -12,7 +12,7 @@ import torch.nn.functional as F
 
 from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.latent import kl_std_normal
-from policies.trafficbots.model import TrafficBots, rand
+from policies.trafficbots.model import PrepareMode, TrafficBots, rand
 from policies.trafficbots.rollout import Trajectory, rollout
 from tbsim_env import constants as C
 
@@ -163,16 +163,14 @@ def training_step(
     """
     dev = batch.device
     use_prior = bool(rand((), generator, dev) < prior_prob)
-    ctx = model.prepare(
-        batch,
-        1,
-        generator,
+    mode = PrepareMode(
         latent="prior" if use_prior else "posterior",
         dest="gt",
         tl_valid_from="full",
         with_posterior=True,
         input_dropout_p=input_dropout_p,
     )
+    ctx = model.prepare(batch, 1, generator, mode)
     n_sc, n_ag = batch.ag_type.shape
     u = rand((n_sc, batch.draw_sizes[0]), generator, dev)[:, :n_ag]  # as ``prepare`` draws
     force = u < teacher_forcing_p

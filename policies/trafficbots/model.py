@@ -57,6 +57,31 @@ def rand(
 
 
 @dataclass(frozen=True)
+class PrepareMode:
+    """How ``TrafficBots.prepare`` draws a rollout's latent and destinations.
+
+    Attributes:
+        latent: z from the N(0, I) prior, a posterior sample or the posterior mean.
+        dest: sample destinations from the predictor or use the ground-truth labels.
+        tl_valid_from: TL token validity from history steps (inference) or all steps.
+        with_posterior: compute the posterior even when z comes from the prior (for KL).
+        input_dropout_p: training-mode input dropout of spec 1.9 (``dropout_p_history``): map
+            nodes 1..P-1 are hidden from the map encoder and history steps 0..9 from the
+            destination predictor, each with this probability. Ignored in eval mode.
+    """
+
+    latent: Literal["prior", "posterior", "posterior_mean"] = "prior"
+    dest: Literal["sample", "gt"] = "sample"
+    tl_valid_from: Literal["history", "full"] = "history"
+    with_posterior: bool = False
+    input_dropout_p: float = 0.0
+
+
+INFERENCE = PrepareMode()
+"""Spec inference: z from the prior, sampled destinations, TL validity from the history."""
+
+
+@dataclass(frozen=True)
 class RolloutContext:
     """Per-rollout constants, batch B' = B scenes * n_rollouts (scene-major).
 
@@ -182,12 +207,7 @@ class TrafficBots(nn.Module):
         batch: TokenBatch,
         n_rollouts: int = 1,
         generator: torch.Generator | None = None,
-        *,
-        latent: Literal["prior", "posterior", "posterior_mean"] = "prior",
-        dest: Literal["sample", "gt"] = "sample",
-        tl_valid_from: Literal["history", "full"] = "history",
-        with_posterior: bool = False,
-        input_dropout_p: float = 0.0,
+        mode: PrepareMode = INFERENCE,
         destinations: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> RolloutContext:
         """Per-scenario precomputation and per-rollout sampling (spec 5.1, 6.1, 7.1).
@@ -196,13 +216,7 @@ class TrafficBots(nn.Module):
             batch: B scenes.
             n_rollouts: rollouts per scene; map/TL tensors are repeated (scene-major).
             generator: random source for z and destination samples.
-            latent: z from the N(0, I) prior, a posterior sample or the posterior mean.
-            dest: sample destinations from the predictor or use the ground truth labels.
-            tl_valid_from: TL token validity from history steps (inference) or all steps.
-            with_posterior: compute the posterior even when z comes from the prior (for KL).
-            input_dropout_p: training-mode input dropout of spec 1.9 (``dropout_p_history``):
-                map nodes 1..P-1 are hidden from the map encoder and history steps 0..9 from
-                the destination predictor, each with this probability. Ignored in eval mode.
+            mode: how the latent and destinations are drawn (``PrepareMode``).
             destinations: the destination predictor's (logits [B, N, M], usable [B, N]) for
                 these scenes, computed before (it depends on the scene only; eval mode):
                 skips the predictor, the largest part of ``prepare`` at inference.
@@ -213,11 +227,13 @@ class TrafficBots(nn.Module):
         cfg = self.cfg
         n_hist = cfg.n_history
         enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
-        if self.training and input_dropout_p > 0.0:
-            enc_node_valid, dest_hist_valid = self._input_dropout(batch, generator, input_dropout_p)
+        if self.training and mode.input_dropout_p > 0.0:
+            enc_node_valid, dest_hist_valid = self._input_dropout(
+                batch, generator, mode.input_dropout_p
+            )
         mp = self.map_encoder(batch.mp_pose, enc_node_valid, batch.mp_cls)
         mp = dataclasses.replace(mp, node_valid=batch.mp_valid)  # true nodes for the rules
-        tl_src = batch.tl_valid if tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
+        tl_src = batch.tl_valid if mode.tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
         tl = tl_context(cfg, batch.tl_piece, tl_src.any(-1), mp)
         attr = agent_attributes(batch.ag_type, batch.ag_size)
         if destinations is not None and not self.training:
@@ -225,7 +241,7 @@ class TrafficBots(nn.Module):
         else:
             dest_logits, dest_usable = self._predict_destinations(batch, dest_hist_valid, attr, mp)
         post_mean = post_log_std = post_valid = None
-        if latent != "prior" or with_posterior:
+        if mode.latent != "prior" or mode.with_posterior:
             post_mean, post_log_std, post_valid = self.posterior(
                 batch.ag_valid, batch.ag_pose, batch.ag_motion, attr, batch.tl_state, mp, tl
             )
@@ -233,8 +249,8 @@ class TrafficBots(nn.Module):
         n = n_rollouts
         h_valid = batch.ag_valid[..., :n_hist]
         post = (post_mean, post_log_std, post_valid)
-        z, z_valid = self._sample_latent(batch, n, generator, latent, post, h_valid)
-        if dest == "gt":
+        z, z_valid = self._sample_latent(batch, n, generator, mode.latent, post, h_valid)
+        if mode.dest == "gt":
             dest_idx = batch.ag_dest.repeat_interleave(n, 0)
             dest_valid = (batch.ag_valid.any(-1) & (batch.ag_dest >= 0)).repeat_interleave(n, 0)
         else:

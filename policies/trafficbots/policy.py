@@ -176,9 +176,7 @@ class TrafficBotsPolicy:
                 torch.cat([c.dest_logits for c in cached]),
                 torch.cat([c.dest_usable for c in cached]),
             )
-        ctx = self.model.prepare(
-            batch, 1, generator, latent="prior", dest="sample", destinations=dest
-        )
+        ctx = self.model.prepare(batch, 1, generator, destinations=dest)
         if dest is None:
             for i, c in enumerate(cached):
                 if c is not None:
