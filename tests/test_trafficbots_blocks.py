@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -373,3 +374,70 @@ def test_collision_flags_broad_phase_is_exact() -> None:
     got = collision_flags(pose, valid, size, start, steps_per_chunk=5)
     assert 0 < int(want.sum()) < want.numel()
     assert torch.equal(got, want)
+
+
+def _tl_case(seed: int):
+    """A small TL encoder and a batch of 4 scenes, two of them without a valid TL token."""
+    from policies.trafficbots.map_encoder import MapTokens
+    from policies.trafficbots.tl_encoder import TLEncoder, tl_context
+    from tbsim_env.constants import NUM_TL_STATES
+
+    cfg = TrafficBotsConfig.small()
+    gen = torch.Generator().manual_seed(seed)
+    n_b, n_map, n_tl, d = 4, 30, 6, cfg.hidden_dim
+    pose = torch.cat([torch.rand(n_b, n_map, 2, generator=gen) * 80, torch.rand(n_b, n_map, 1)], -1)
+    mp = MapTokens(
+        feat=torch.randn(n_b, n_map, d, generator=gen),
+        pose=pose,
+        valid=torch.ones(n_b, n_map, dtype=torch.bool),
+        node_pose=pose[:, :, None].expand(-1, -1, 2, -1),
+        node_valid=torch.ones(n_b, n_map, 2, dtype=torch.bool),
+        cls=torch.zeros(n_b, n_map, dtype=torch.long),
+    )
+    piece = torch.randint(0, n_map, (n_b, n_tl), generator=gen)
+    tl_valid = torch.rand(n_b, n_tl, generator=gen) < 0.7
+    tl_valid[1] = False
+    tl_valid[3] = False
+    ctx = tl_context(cfg, piece, tl_valid, mp)
+    enc = TLEncoder(cfg, cfg.n_history).eval()
+    state = torch.randint(0, NUM_TL_STATES, (n_b, n_tl, cfg.n_history), generator=gen)
+    step_valid = torch.rand(n_b, n_tl, cfg.n_history, generator=gen) < 0.9
+    return enc, state, step_valid, ctx
+
+
+def _tl_reference(enc, state, step_valid, ctx) -> torch.Tensor:
+    """The TL encoder as spec 3.2 writes it: the MLP on every step's one-hot inputs, PointNet
+    over the window, decoder layers, on every scene."""
+    import torch.nn.functional as F
+
+    from policies.trafficbots.attention import Neighbours
+    from tbsim_env.constants import NUM_TL_STATES
+
+    one_hot = F.one_hot(state, NUM_TL_STATES).float()
+    time_1h = torch.eye(enc.n_time).expand(*state.shape, -1)
+    x = enc.input_mlp(torch.cat([one_hot, time_1h], -1)) + ctx.lane_feat[:, :, None]
+    x = enc.pointnet(x, step_valid & ctx.valid[..., None]) * ctx.valid[..., None]
+    own = Neighbours(ctx.self_idx, ctx.self_mask, ctx.self_rpe)
+    near = Neighbours(ctx.map_idx, ctx.map_mask, ctx.map_rpe)
+    for layer in enc.layers:
+        x = layer(x, ctx.valid, own, ctx.map_feat, near)
+    return x
+
+
+def test_tl_encoder_skips_scenes_without_signals_and_tabulates_its_input() -> None:
+    enc, state, step_valid, ctx = _tl_case(0)
+    with torch.no_grad():
+        got = enc(state, step_valid, ctx)
+        want = _tl_reference(enc, state, step_valid, ctx)
+        empty = dataclasses.replace(ctx, valid=torch.zeros_like(ctx.valid))
+        none_lit = enc(state, step_valid, empty)
+    assert got[1].abs().sum() == 0 and got[3].abs().sum() == 0
+    assert got[0].abs().sum() > 0 and got[2].abs().sum() > 0
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-5)
+    assert none_lit.abs().sum() == 0  # no scene with a signal: zeros
+    # Training runs every scene (dropout draws must not depend on which scenes have lights).
+    enc.train()
+    for m in enc.modules():
+        if isinstance(m, torch.nn.Dropout):
+            m.p = 0.0
+    torch.testing.assert_close(enc(state, step_valid, ctx), want, rtol=0, atol=1e-5)

@@ -11,7 +11,6 @@ import dataclasses
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import nn
 
 from policies.trafficbots.attention import DecoderLayer, Neighbours
@@ -22,6 +21,7 @@ from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
 from tbsim_env.constants import NUM_TL_STATES
+from tbsim_env.torch_utils import listed
 
 
 def _rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -63,6 +63,15 @@ class TLContext:
         return TLContext(
             **{
                 f.name: getattr(self, f.name).repeat_interleave(n, dim=0)
+                for f in dataclasses.fields(self)
+            }
+        )
+
+    def rows(self, rows: torch.Tensor) -> TLContext:
+        """The context of the batch rows ``rows`` [B'] int64."""
+        return TLContext(
+            **{
+                f.name: getattr(self, f.name).index_select(0, rows)
                 for f in dataclasses.fields(self)
             }
         )
@@ -126,6 +135,10 @@ class TLEncoder(nn.Module):
     ) -> torch.Tensor:
         """Encode.
 
+        In inference, eagerly on the CPU, only the scenes with a valid TL token are encoded
+        (``torch_utils.listed``): every token of the others is 0 anyway, and generated or real
+        batches often mix scenes with and without signals.
+
         Args:
             state: [B, L, W] int64 ``TLState`` per window step (W <= n_time, newest last).
             step_valid: [B, L, W] bool, the window step exists.
@@ -134,22 +147,46 @@ class TLEncoder(nn.Module):
         Returns:
             [B, L, d] TL token features (0 for invalid tokens).
         """
-        n_win = state.shape[-1]
-        time_1h = torch.eye(self.n_time, device=state.device)[self.n_time - n_win :]  # [W, n_time]
-        x = torch.cat(
-            [
-                F.one_hot(state.clamp(0, NUM_TL_STATES - 1), NUM_TL_STATES).float(),
-                time_1h.expand(*state.shape, -1),
-            ],
-            dim=-1,
-        )  # [B, L, W, 5 + n_time]
-        x = self.input_mlp(x) + ctx.lane_feat[:, :, None]
+        lit = None if self.training else listed(ctx.valid.any(-1, keepdim=True))
+        if lit is None:
+            return self._encode(state, step_valid, ctx)
+        rows = lit[0]
+        out = ctx.lane_feat.new_zeros(ctx.lane_feat.shape)  # [B, L, d]
+        if rows.numel():
+            out[rows] = self._encode(state[rows], step_valid[rows], ctx.rows(rows))
+        return out
+
+    def _encode(
+        self, state: torch.Tensor, step_valid: torch.Tensor, ctx: TLContext
+    ) -> torch.Tensor:
+        """``forward`` on every row of the batch."""
+        x = self._step_features(state) + ctx.lane_feat[:, :, None]
         x = self.pointnet(x, step_valid & ctx.valid[..., None]) * ctx.valid[..., None]
         own = Neighbours(ctx.self_idx, ctx.self_mask, ctx.self_rpe)
         near_map = Neighbours(ctx.map_idx, ctx.map_mask, ctx.map_rpe)
         for layer in self.layers:
             x = layer(x, ctx.valid, own, ctx.map_feat, near_map)
         return x
+
+    def _step_features(self, state: torch.Tensor) -> torch.Tensor:
+        """``MLP([one_hot(state), one_hot(time)])`` per window step: [B, L, W] -> [B, L, W, d].
+
+        Both inputs are categorical, so the MLP runs on the NUM_TL_STATES x W table of their
+        pairs and each step picks its row (the same values, without a [B, L, W] MLP).
+        """
+        n_win = state.shape[-1]
+        time_1h = torch.eye(self.n_time, device=state.device)[self.n_time - n_win :]  # [W, n_time]
+        state_1h = torch.eye(NUM_TL_STATES, device=state.device)
+        pairs = torch.cat(
+            [
+                state_1h[:, None].expand(-1, n_win, -1),
+                time_1h[None].expand(NUM_TL_STATES, -1, -1),
+            ],
+            dim=-1,
+        )  # [S, W, S + n_time]
+        table = self.input_mlp(pairs)  # [S, W, d]
+        steps = torch.arange(n_win, device=state.device)
+        return table[state.clamp(0, NUM_TL_STATES - 1), steps]
 
 
 class TLStateHead(nn.Module):
