@@ -2,7 +2,8 @@
 
 The environments keep an episode as a frozen dataclass of ``[B, ...]`` tensors; starting new
 episodes in some rows is ``with_rows(state, rows, fresh)`` and looking at some rows is
-``take_rows(state, rows)``. Both are pure: they return new trees and modify nothing.
+``take_rows(state, rows)``; ``cat_rows(trees)`` stacks the rows of several trees (per-scene
+caches into a batch). All three are pure: they return new trees and modify nothing.
 ``sim.state.Shared`` tables (per-scenario tables that rows read through a row map) pass
 through both unchanged.
 """
@@ -10,6 +11,7 @@ through both unchanged.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -44,6 +46,41 @@ def take_rows(tree: Any, rows: torch.Tensor) -> Any:
     if isinstance(tree, (list, tuple)):
         return _rebuild(tree, [take_rows(v, rows) for v in tree])
     raise TypeError(f"cannot take rows of {type(tree).__name__}; use tensors and dataclasses")
+
+
+def cat_rows(trees: Sequence[Any]) -> Any:
+    """One tree of the same structure whose tensors are the trees' tensors concatenated along
+    the leading batch dimension, in order (e.g. cached per-scene tensors into a batch).
+
+    Args:
+        trees: one or more trees of the same structure (as ``take_rows``'s).
+
+    Raises:
+        ValueError: no trees.
+        TypeError: a leaf is neither a tensor nor None, or the structures differ.
+    """
+    if not trees:
+        raise ValueError("cat_rows needs at least one tree")
+    first = trees[0]
+    if first is None or isinstance(first, Shared):
+        return first
+    if isinstance(first, torch.Tensor):
+        return torch.cat(list(trees))
+    if any(type(t) is not type(first) for t in trees):
+        raise TypeError(f"cat_rows: trees of types {sorted({type(t).__name__ for t in trees})}")
+    if dataclasses.is_dataclass(first) and not isinstance(first, type):
+        return dataclasses.replace(
+            first,
+            **{
+                f.name: cat_rows([getattr(t, f.name) for t in trees])
+                for f in dataclasses.fields(first)
+            },
+        )
+    if isinstance(first, dict):
+        return {k: cat_rows([t[k] for t in trees]) for k in first}
+    if isinstance(first, (list, tuple)):
+        return _rebuild(first, [cat_rows(list(items)) for items in zip(*trees, strict=True)])
+    raise TypeError(f"cannot concatenate rows of {type(first).__name__}")
 
 
 def with_rows(
@@ -109,4 +146,4 @@ def _rebuild(seq: list | tuple, items: list) -> list | tuple:
     return type(seq)(*items) if hasattr(seq, "_fields") else type(seq)(items)
 
 
-__all__ = ["take_rows", "with_rows"]
+__all__ = ["cat_rows", "take_rows", "with_rows"]

@@ -17,7 +17,7 @@ from tbsim_env.env.vector_env import (
     route_features,
 )
 from tbsim_env.errors import ActionError
-from tbsim_env.rows import take_rows, with_rows
+from tbsim_env.rows import cat_rows, take_rows, with_rows
 
 
 @pytest.fixture(scope="module")
@@ -279,6 +279,23 @@ def test_take_and_with_rows_round_trip(scenes):
         take_rows(object(), rows)
 
 
+def test_cat_rows_inverts_taking_rows(scenes):
+    venv = BatchedTrafficEnv(scenes, 3, seed=0)
+    venv.reset(scenario_indices=[0, 1, 2])
+    state = venv.sim_state
+    parts = [take_rows(state, torch.tensor([i])) for i in (2, 0, 1)]
+    whole = take_rows(state, torch.tensor([2, 0, 1]))
+    joined = cat_rows(parts)
+    assert type(joined) is type(state) and joined.batch_size == 3
+    assert torch.equal(joined.log.pose, whole.log.pose) and torch.equal(joined.pose, whole.pose)
+    nested = cat_rows([{"a": (torch.ones(1), None)}, {"a": (torch.zeros(2), None)}])
+    assert nested["a"][0].tolist() == [1.0, 0.0, 0.0] and nested["a"][1] is None
+    with pytest.raises(ValueError, match="at least one"):
+        cat_rows([])
+    with pytest.raises(TypeError):
+        cat_rows([state, state.pose])
+
+
 def test_with_rows_in_place_writes_owned_tensors_only(scenes):
     """In place, the rows go into tensors that own their storage (the same values as the new
     tree); a view into a larger tensor or an expanded one is copied, never written through."""
@@ -455,8 +472,9 @@ def test_reset_slots_restarts_only_those_slots(scenes):
 
 
 def test_trafficbots_restarts_from_its_scene_caches_exactly(scenes):
-    """A bound TrafficBots policy keeps each scene's tokens and destination distribution; the
-    rollouts across slot restarts are those of a policy that computes them every time."""
+    """A bound TrafficBots policy keeps each scene's tokens and encoding (map, TL, destination
+    distribution); the rollouts across slot restarts are those of a policy that computes them
+    every time."""
 
     def run(cache: bool) -> tuple[list[torch.Tensor], int]:
         venv = BatchedTrafficEnv(scenes, 2, controlled="sdc", npc_policy="trafficbots", seed=4)

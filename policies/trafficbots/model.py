@@ -35,6 +35,7 @@ from policies.trafficbots.rules import (
 )
 from policies.trafficbots.tl_encoder import TLContext, TLEncoder, TLStateHead, tl_context
 from tbsim_env import constants as C
+from tbsim_env.rows import take_rows
 from tbsim_env.sim.dynamics import squash_action
 from tbsim_env.sim.geometry import wrap_angle
 
@@ -82,6 +83,27 @@ INFERENCE = PrepareMode()
 
 
 @dataclass(frozen=True)
+class SceneEncoding:
+    """What ``prepare`` derives from the scenes alone, batch B (one row per scene).
+
+    In eval mode it is a function of the scene (and the ``PrepareMode``'s TL validity rule),
+    so callers that start many rollouts from a fixed set of scenes compute it once per scene
+    and pass it back to ``prepare`` (``TrafficBotsPolicy``'s restart cache).
+
+    Attributes:
+        mp: encoded map.
+        tl: static TL tensors.
+        dest_logits: [B, N, M] destination logits.
+        dest_usable: [B, N] bool.
+    """
+
+    mp: MapTokens
+    tl: TLContext
+    dest_logits: torch.Tensor
+    dest_usable: torch.Tensor
+
+
+@dataclass(frozen=True)
 class RolloutContext:
     """Per-rollout constants, batch B' = B scenes * n_rollouts (scene-major).
 
@@ -118,6 +140,13 @@ class RolloutContext:
     post_log_std: torch.Tensor | None = None
     post_valid: torch.Tensor | None = None
     hold: torch.Tensor | None = None
+
+    def scene(self) -> SceneEncoding:
+        """The ``SceneEncoding`` of these rollouts' scenes (row i: scene i)."""
+        n = self.n_rollouts
+        rows = torch.arange(0, self.ag_type.shape[0], n, device=self.ag_type.device)
+        mp, tl = (self.mp, self.tl) if n == 1 else take_rows((self.mp, self.tl), rows)
+        return SceneEncoding(mp, tl, self.dest_logits, self.dest_usable)
 
 
 @dataclass(frozen=True)
@@ -208,7 +237,7 @@ class TrafficBots(nn.Module):
         n_rollouts: int = 1,
         generator: torch.Generator | None = None,
         mode: PrepareMode = INFERENCE,
-        destinations: tuple[torch.Tensor, torch.Tensor] | None = None,
+        scene: SceneEncoding | None = None,
     ) -> RolloutContext:
         """Per-scenario precomputation and per-rollout sampling (spec 5.1, 6.1, 7.1).
 
@@ -217,45 +246,33 @@ class TrafficBots(nn.Module):
             n_rollouts: rollouts per scene; map/TL tensors are repeated (scene-major).
             generator: random source for z and destination samples.
             mode: how the latent and destinations are drawn (``PrepareMode``).
-            destinations: the destination predictor's (logits [B, N, M], usable [B, N]) for
-                these scenes, computed before (it depends on the scene only; eval mode):
-                skips the predictor, the largest part of ``prepare`` at inference.
+            scene: these scenes' ``SceneEncoding``, computed before in eval mode with the
+                same ``mode`` (``RolloutContext.scene``): skips the map encoder, the TL
+                precompute and the destination predictor, all of ``prepare``'s network work
+                at inference. Ignored in training mode.
 
         Returns:
             ``RolloutContext`` with batch B * n_rollouts.
         """
-        cfg = self.cfg
-        n_hist = cfg.n_history
-        enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
-        if self.training and mode.input_dropout_p > 0.0:
-            enc_node_valid, dest_hist_valid = self._input_dropout(
-                batch, generator, mode.input_dropout_p
-            )
-        mp = self.map_encoder(batch.mp_pose, enc_node_valid, batch.mp_cls)
-        mp = dataclasses.replace(mp, node_valid=batch.mp_valid)  # true nodes for the rules
-        tl_src = batch.tl_valid if mode.tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
-        tl = tl_context(cfg, batch.tl_piece, tl_src.any(-1), mp)
+        if scene is None or self.training:
+            scene = self.encode_scene(batch, generator, mode)
+        mp, tl = scene.mp, scene.tl
         attr = agent_attributes(batch.ag_type, batch.ag_size)
-        if destinations is not None and not self.training:
-            dest_logits, dest_usable = destinations
-        else:
-            dest_logits, dest_usable = self._predict_destinations(batch, dest_hist_valid, attr, mp)
         post_mean = post_log_std = post_valid = None
         if mode.latent != "prior" or mode.with_posterior:
             post_mean, post_log_std, post_valid = self.posterior(
                 batch.ag_valid, batch.ag_pose, batch.ag_motion, attr, batch.tl_state, mp, tl
             )
-
         n = n_rollouts
-        h_valid = batch.ag_valid[..., :n_hist]
+        h_valid = batch.ag_valid[..., : self.cfg.n_history]
         post = (post_mean, post_log_std, post_valid)
         z, z_valid = self._sample_latent(batch, n, generator, mode.latent, post, h_valid)
         if mode.dest == "gt":
             dest_idx = batch.ag_dest.repeat_interleave(n, 0)
             dest_valid = (batch.ag_valid.any(-1) & (batch.ag_dest >= 0)).repeat_interleave(n, 0)
         else:
-            dest_idx = self._sample_destinations(batch, n, generator, dest_logits)
-            dest_valid = dest_usable.repeat_interleave(n, 0)
+            dest_idx = self._sample_destinations(batch, n, generator, scene.dest_logits)
+            dest_valid = scene.dest_usable.repeat_interleave(n, 0)
         return RolloutContext(
             mp=mp.repeat(n),
             tl=tl.repeat(n),
@@ -266,13 +283,35 @@ class TrafficBots(nn.Module):
             dest=dest_idx,
             dest_valid=dest_valid,
             n_rollouts=n,
-            dest_logits=dest_logits,
-            dest_usable=dest_usable,
+            dest_logits=scene.dest_logits,
+            dest_usable=scene.dest_usable,
             post_mean=post_mean,
             post_log_std=post_log_std,
             post_valid=post_valid,
             hold=self._hold_mask(batch, n),
         )
+
+    def encode_scene(
+        self,
+        batch: TokenBatch,
+        generator: torch.Generator | None = None,
+        mode: PrepareMode = INFERENCE,
+    ) -> SceneEncoding:
+        """Map encoder, TL precompute and destination predictor on B scenes (spec 5.1), with
+        ``mode``'s input dropout in training (drawn from ``generator``)."""
+        n_hist = self.cfg.n_history
+        enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
+        if self.training and mode.input_dropout_p > 0.0:
+            enc_node_valid, dest_hist_valid = self._input_dropout(
+                batch, generator, mode.input_dropout_p
+            )
+        mp = self.map_encoder(batch.mp_pose, enc_node_valid, batch.mp_cls)
+        mp = dataclasses.replace(mp, node_valid=batch.mp_valid)  # true nodes for the rules
+        tl_src = batch.tl_valid if mode.tl_valid_from == "full" else batch.tl_valid[..., :n_hist]
+        tl = tl_context(self.cfg, batch.tl_piece, tl_src.any(-1), mp)
+        attr = agent_attributes(batch.ag_type, batch.ag_size)
+        dest_logits, dest_usable = self._predict_destinations(batch, dest_hist_valid, attr, mp)
+        return SceneEncoding(mp, tl, dest_logits, dest_usable)
 
     def _input_dropout(
         self, batch: TokenBatch, generator: torch.Generator | None, p: float

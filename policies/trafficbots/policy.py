@@ -23,11 +23,12 @@ from tqdm import tqdm
 
 from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.checkpoint import load_checkpoint
-from policies.trafficbots.model import RolloutContext, RolloutState, TrafficBots
+from policies.trafficbots.model import RolloutContext, RolloutState, SceneEncoding, TrafficBots
 from tbsim_env.config import TokenConfig
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
+from tbsim_env.rows import cat_rows, take_rows
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import gather_rows
 
@@ -61,14 +62,13 @@ class SceneCache:
     Attributes:
         scenario: the scenario object (entries are keyed by its ``id``).
         tokens: its preprocessed ``SceneTokens``.
-        dest_logits, dest_usable: the destination predictor's output for it, [1, N, M] and
-            [1, N] (None until its first start).
+        encoding: the model's ``SceneEncoding`` of it (map, TL precompute, destination
+            distribution), batch 1 (None until its first start).
     """
 
     scenario: Scenario
     tokens: SceneTokens
-    dest_logits: torch.Tensor | None = None
-    dest_usable: torch.Tensor | None = None
+    encoding: SceneEncoding | None = None
 
 
 def _match(keys: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
@@ -92,7 +92,7 @@ class TrafficBotsPolicy:
         min_rows: (agents, map pieces, TL tokens) rows that a trimmed batch keeps at least.
         scene_cache: what a restart needs of each scenario this policy will start from
             (``for_scenarios`` fills it): ``id(scenario)`` -> ``SceneCache``, so that a restart
-            neither preprocesses the scene again nor reruns the destination predictor.
+            neither preprocesses the scene again nor reruns the network on it (``SceneEncoding``).
     """
 
     name = "trafficbots"
@@ -170,18 +170,15 @@ class TrafficBotsPolicy:
         if self.trim:
             batch = batch.trim(self.min_rows)
         n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
-        dest = None
-        if all(c is not None and c.dest_logits is not None for c in cached):
-            dest = (
-                torch.cat([c.dest_logits for c in cached]),
-                torch.cat([c.dest_usable for c in cached]),
-            )
-        ctx = self.model.prepare(batch, 1, generator, destinations=dest)
-        if dest is None:
+        scene = None
+        if all(c is not None and c.encoding is not None for c in cached):
+            scene = cat_rows([c.encoding for c in cached])
+        ctx = self.model.prepare(batch, 1, generator, scene=scene)
+        if scene is None:
+            encoding = ctx.scene()
             for i, c in enumerate(cached):
                 if c is not None:
-                    c.dest_logits = ctx.dest_logits[i : i + 1].clone()
-                    c.dest_usable = ctx.dest_usable[i : i + 1].clone()
+                    c.encoding = take_rows(encoding, torch.tensor([i], device=dev))
         tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])  # trimmed rows
         slot = _match(torch.as_tensor(tok_track, device=dev), state.agents.track_index)
         lane_ids = []
