@@ -420,7 +420,7 @@ def _tl_reference(enc, state, step_valid, ctx) -> torch.Tensor:
     own = Neighbours(ctx.self_idx, ctx.self_mask, ctx.self_rpe)
     near = Neighbours(ctx.map_idx, ctx.map_mask, ctx.map_rpe)
     for layer in enc.layers:
-        x = layer(x, ctx.valid, own, ctx.map_feat, near)
+        x = layer(x, ctx.valid, own, layer.context_kv(ctx.map_feat), near)
     return x
 
 
@@ -429,11 +429,13 @@ def test_tl_encoder_skips_scenes_without_signals_and_tabulates_its_input() -> No
     with torch.no_grad():
         got = enc(state, step_valid, ctx)
         want = _tl_reference(enc, state, step_valid, ctx)
+        cached = enc(state, step_valid, ctx, enc.map_kv(ctx.map_feat))
         empty = dataclasses.replace(ctx, valid=torch.zeros_like(ctx.valid))
         none_lit = enc(state, step_valid, empty)
     assert got[1].abs().sum() == 0 and got[3].abs().sum() == 0
     assert got[0].abs().sum() > 0 and got[2].abs().sum() > 0
     torch.testing.assert_close(got, want, rtol=0, atol=1e-5)
+    torch.testing.assert_close(cached, got, rtol=0, atol=0)
     assert none_lit.abs().sum() == 0  # no scene with a signal: zeros
     # Training runs every scene (dropout draws must not depend on which scenes have lights).
     enc.train()

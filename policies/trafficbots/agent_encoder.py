@@ -3,6 +3,8 @@ layers over agent neighbours and over the nearest map and TL tokens."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -114,6 +116,25 @@ class AgentInputEncoder(nn.Module):
         return feat, token_pose, token_valid
 
 
+class AgentContext(NamedTuple):
+    """What the agent tokens attend to besides each other, at one step.
+
+    Attributes:
+        mp: encoded map (features are not detached).
+        map_kv: each layer's ``context_kv`` of the map tokens, [B, M, 2d] per layer
+            (``AgentEncoder.map_kv``, computed once per rollout), or None to compute them.
+        tl_feat: [B, L, d] TL features of this step.
+        tl_pose: [B, L, 3].
+        tl_valid: [B, L] bool.
+    """
+
+    mp: MapTokens
+    map_kv: tuple[torch.Tensor, ...] | None
+    tl_feat: torch.Tensor
+    tl_pose: torch.Tensor
+    tl_valid: torch.Tensor
+
+
 class AgentEncoder(nn.Module):
     """Agent token encoder with decoder layers: agent self KNN; cross over map + TL KNN.
 
@@ -132,45 +153,49 @@ class AgentEncoder(nn.Module):
             for _ in range(cfg.agent_layers)
         )
 
+    def map_kv(self, map_feat: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Each layer's keys and values of the map tokens [B, M, d]: [B, M, 2d] per layer.
+
+        The map does not change during a rollout, so ``prepare`` computes these once
+        (``AgentContext.map_kv``) instead of every step.
+        """
+        return tuple(layer.context_kv(map_feat) for layer in self.layers)
+
     def forward(
         self,
         valid: torch.Tensor,
         pose: torch.Tensor,
         motion: torch.Tensor,
         attr: torch.Tensor,
-        mp: MapTokens,
-        tl_feat: torch.Tensor,
-        tl_pose: torch.Tensor,
-        tl_valid: torch.Tensor,
+        ctx: AgentContext,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Encode agents in context.
 
         Args:
             valid, pose, motion, attr: the window, as ``AgentInputEncoder.forward``.
-            mp: encoded map (features are not detached).
-            tl_feat: [B, L, d] TL features of this step.
-            tl_pose: [B, L, 3].
-            tl_valid: [B, L] bool.
+            ctx: the map and TL tokens of this step.
 
         Returns:
             (feat [B, N, d], token pose [B, N, 3], token valid [B, N]).
         """
-        cfg = self.cfg
+        cfg, mp = self.cfg, ctx.mp
         x, ag_pose, ag_valid = self.input(valid, pose, motion, attr)
         s_idx, s_mask, s_rel = knn_relative(ag_pose, ag_pose, ag_valid, cfg.ag_knn, cfg.ag_dist)
         m_idx, m_mask, m_rel = knn_relative(
             ag_pose, mp.pose, mp.valid, cfg.ag_map_knn, cfg.ag_map_dist
         )
         t_idx, t_mask, t_rel = knn_relative(
-            ag_pose, tl_pose, tl_valid, cfg.ag_tl_knn, cfg.ag_tl_dist
+            ag_pose, ctx.tl_pose, ctx.tl_valid, cfg.ag_tl_knn, cfg.ag_tl_dist
         )
-        ctx = torch.cat([mp.feat, tl_feat], dim=1)  # [B, M + L, d]
         ctx_idx = torch.cat([m_idx, t_idx + mp.feat.shape[1]], dim=2)  # [B, N, Km + Kt]
         ctx_mask = torch.cat([m_mask, t_mask], dim=2)  # [B, N, Km + Kt]
         ctx_rpe = rpe(torch.cat([m_rel, t_rel], dim=2), cfg)
         s_rpe = rpe(s_rel, cfg)
         own = Neighbours(s_idx, s_mask, s_rpe)
         near = Neighbours(ctx_idx, ctx_mask, ctx_rpe)
-        for layer in self.layers:
-            x = layer(x, ag_valid, own, ctx, near)
+        map_kv = ctx.map_kv if ctx.map_kv is not None else self.map_kv(mp.feat)
+        for layer, kv in zip(self.layers, map_kv, strict=True):
+            # Context rows: the map pieces, then the TL tokens.
+            ctx_kv = torch.cat([kv, layer.context_kv(ctx.tl_feat)], dim=1)  # [B, M + L, 2d]
+            x = layer(x, ag_valid, own, ctx_kv, near)
         return x, ag_pose, ag_valid

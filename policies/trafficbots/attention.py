@@ -69,6 +69,13 @@ class KnarpeAttention(nn.Module):
         nn.init.xavier_uniform_(self.out_proj.weight)
         nn.init.zeros_(self.out_proj.bias)
 
+    def project_source(self, src: torch.Tensor) -> torch.Tensor:
+        """Keys and values of source rows: [B, S, d] -> [B, S, 2d] (``W_k s_j + b_k``,
+        ``W_v s_j + b_v``). A source that does not change between calls (the map) can be
+        projected once and passed to ``attend`` each time."""
+        d = self.n_heads * self.head_dim
+        return F.linear(src, self.in_proj_weight[d:], self.in_proj_bias[d:])
+
     def forward(
         self,
         x: torch.Tensor,
@@ -78,12 +85,33 @@ class KnarpeAttention(nn.Module):
         mask: torch.Tensor,
         dense: bool | None = None,
     ) -> torch.Tensor:
-        """Attend.
+        """Attend (``attend`` on ``project_source(src)``).
 
         Args:
             x: [B, Q, d] query features.
             src: [B, S, d] source features; query i's neighbours are rows ``idx[:, i]``.
-            idx: [B, Q, K] int64 neighbour rows of ``src`` (any value where masked).
+            idx, rpe, mask, dense: as ``attend``.
+
+        Returns:
+            [B, Q, d].
+        """
+        return self.attend(x, self.project_source(src), idx, rpe, mask, dense)
+
+    def attend(
+        self,
+        x: torch.Tensor,
+        kv: torch.Tensor,
+        idx: torch.Tensor,
+        rpe: torch.Tensor,
+        mask: torch.Tensor,
+        dense: bool | None = None,
+    ) -> torch.Tensor:
+        """Attend over projected source rows.
+
+        Args:
+            x: [B, Q, d] query features.
+            kv: [B, S, 2d] ``project_source`` of the source rows.
+            idx: [B, Q, K] int64 neighbour rows of the source (any value where masked).
             rpe: [B, Q, K, rpe_dim] encoding of each neighbour's pose in the query frame.
             mask: [B, Q, K] bool valid neighbours.
             dense: score every source row and pick the neighbours' scores (True), or gather
@@ -95,7 +123,7 @@ class KnarpeAttention(nn.Module):
             [B, Q, d].
         """
         h, d = self.n_heads, x.shape[-1]
-        n_b, n_q, n_src, n_k = x.shape[0], x.shape[1], src.shape[1], idx.shape[-1]
+        n_b, n_q, n_src, n_k = x.shape[0], x.shape[1], kv.shape[1], idx.shape[-1]
         if dense is None:
             dense = h * n_src <= 2 * d * n_k
         # On a CPU the large per-batch intermediates ([B, h, Q, S] scores or [B, Q, K, 2d]
@@ -107,9 +135,9 @@ class KnarpeAttention(nn.Module):
         rows = max(1, C.CPU_ATTENTION_CHUNK_ELEMENTS // per_row)
         active_dropout = self.training and getattr(self.dropout, "p", 1.0) > 0
         if x.device.type != "cpu" or rows >= n_b or active_dropout:
-            return self._attend(x, src, idx, rpe, mask, dense)
+            return self._attend(x, kv, idx, rpe, mask, dense)
         chunks = [
-            self._attend(*(t[i : i + rows] for t in (x, src, idx, rpe, mask)), dense)
+            self._attend(*(t[i : i + rows] for t in (x, kv, idx, rpe, mask)), dense)
             for i in range(0, n_b, rows)
         ]
         return torch.cat(chunks)
@@ -117,17 +145,16 @@ class KnarpeAttention(nn.Module):
     def _attend(
         self,
         x: torch.Tensor,
-        src: torch.Tensor,
+        kv: torch.Tensor,
         idx: torch.Tensor,
         rpe: torch.Tensor,
         mask: torch.Tensor,
         dense: bool,
     ) -> torch.Tensor:
-        """``forward`` on one chunk of the batch (``dense`` decided)."""
+        """``attend`` on one chunk of the batch (``dense`` decided)."""
         h, c = self.n_heads, self.head_dim
         d = h * c
-        w_q, w_kv = self.in_proj_weight.split((d, 2 * d))
-        b_q, b_kv = self.in_proj_bias.split((d, 2 * d))
+        w_q, b_q = self.in_proj_weight[:d], self.in_proj_bias[:d]
         w_rk, w_rv = self.rpe_proj.weight.view(2, h, c, -1).unbind(0)  # [h, c, r] each
         # The key part of b_r adds q_i . b_rk to every logit of query i and head h alike, so
         # it cancels in the softmax; only the value part acts.
@@ -136,13 +163,13 @@ class KnarpeAttention(nn.Module):
         q_rpe = torch.einsum("bqhc,hcr->bqrh", q, w_rk)  # [B, Q, r, h]
         logits = rpe @ q_rpe  # [B, Q, K, h]
         if dense:
-            k_src, v_src = F.linear(src, w_kv, b_kv).unflatten(-1, (2, h, c)).unbind(-3)
+            k_src, v_src = kv.unflatten(-1, (2, h, c)).unbind(-3)
             scores = q.transpose(1, 2) @ k_src.permute(0, 2, 3, 1)  # [B, h, Q, S]
             pick = idx[:, None].expand(-1, h, -1, -1)  # [B, h, Q, K]
             logits = logits + scores.gather(-1, pick).permute(0, 2, 3, 1)
         else:
-            kv = gather_rows(F.linear(src, w_kv, b_kv), idx)  # [B, Q, K, 2d]
-            k, v = kv[..., :d], kv[..., d:]  # views, [B, Q, K, d]
+            kv_nb = gather_rows(kv, idx)  # [B, Q, K, 2d]
+            k, v = kv_nb[..., :d], kv_nb[..., d:]  # views, [B, Q, K, d]
             eye = torch.eye(h, dtype=x.dtype, device=x.device)
             q_blk = (q[..., None] * eye[:, None, :]).flatten(-3, -2)  # [B, Q, d, h] block diag
             logits = logits + k @ q_blk
@@ -253,7 +280,9 @@ class DecoderLayer(nn.Module):
     """Pre-LN self + cross layer ("dec_cross_attn"), used by the TL and agent encoders.
 
     The cross-attention context (other-type source tokens and each token's neighbour rows in
-    them) is fixed across layers; the same-type neighbours are rows of the current ``x``.
+    them) is fixed across layers; the same-type neighbours are rows of the current ``x``. The
+    layer takes the context as its keys and values (``context_kv``), so that a caller whose
+    context does not change between steps (the map) projects it once.
     """
 
     def __init__(self, dim: int, n_heads: int, ff_dim: int, rpe_dim: int, dropout: float) -> None:
@@ -272,7 +301,7 @@ class DecoderLayer(nn.Module):
         x: torch.Tensor,
         valid: torch.Tensor,
         own: Neighbours,
-        ctx: torch.Tensor,
+        ctx_kv: torch.Tensor,
         ctx_nb: Neighbours,
     ) -> torch.Tensor:
         """One layer.
@@ -281,16 +310,23 @@ class DecoderLayer(nn.Module):
             x: [B, N, d] tokens.
             valid: [B, N] bool.
             own: same-type neighbours (rows of ``x``), K = Ks.
-            ctx: [B, S, d] other-type source tokens (not normalised).
-            ctx_nb: each token's neighbours among the ``ctx`` rows, K = Kc.
+            ctx_kv: [B, S, 2d] ``context_kv`` of the other-type source tokens.
+            ctx_nb: each token's neighbours among the context rows, K = Kc.
 
         Returns:
             [B, N, d], zero for invalid tokens.
         """
         h = self.norm_self(x)
         x = x + self.dropout(self.self_attn(h, h, own.idx, own.rpe, own.mask))
-        ctx = self.norm_ctx(ctx)  # per row, so the same as normalising the gathered rows
-        cross = self.cross_attn(self.norm1(x), ctx, ctx_nb.idx, ctx_nb.rpe, ctx_nb.mask)
+        cross = self.cross_attn.attend(self.norm1(x), ctx_kv, ctx_nb.idx, ctx_nb.rpe, ctx_nb.mask)
         x = x + self.dropout(cross)
         x = x + self.ffn(self.norm2(x))
         return x * valid[..., None]
+
+    def context_kv(self, ctx: torch.Tensor) -> torch.Tensor:
+        """Cross-attention keys and values of context tokens: [B, S, d] -> [B, S, 2d].
+
+        Per row (LayerNorm, then the projection), so the rows of a concatenated context are
+        those of its parts.
+        """
+        return self.cross_attn.project_source(self.norm_ctx(ctx))

@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from policies.trafficbots.agent_encoder import AgentEncoder
+from policies.trafficbots.agent_encoder import AgentContext, AgentEncoder
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
@@ -68,10 +68,7 @@ class Posterior(nn.Module):
             ag_pose[..., steps, :],
             ag_motion[..., steps, :],
             ag_attr,
-            mp,
-            tl_feat,
-            tl_ctx.pose,
-            tl_ctx.valid,
+            AgentContext(mp, None, tl_feat, tl_ctx.pose, tl_ctx.valid),
         )
         mean = self.mean(feat)
         return mean, self.log_std.expand_as(mean), valid

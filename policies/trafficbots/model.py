@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from policies.trafficbots.action_head import ActionHead
-from policies.trafficbots.agent_encoder import AgentEncoder, agent_attributes
+from policies.trafficbots.agent_encoder import AgentContext, AgentEncoder, agent_attributes
 from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.config import InferenceConfig, TrafficBotsConfig
 from policies.trafficbots.destination import (
@@ -95,12 +95,16 @@ class SceneEncoding:
         tl: static TL tensors.
         dest_logits: [B, N, M] destination logits.
         dest_usable: [B, N] bool.
+        ag_map_kv: the agent encoder's keys and values of the map, [B, M, 2d] per layer.
+        tl_map_kv: the TL encoder's, likewise.
     """
 
     mp: MapTokens
     tl: TLContext
     dest_logits: torch.Tensor
     dest_usable: torch.Tensor
+    ag_map_kv: tuple[torch.Tensor, ...]
+    tl_map_kv: tuple[torch.Tensor, ...]
 
 
 @dataclass(frozen=True)
@@ -119,6 +123,8 @@ class RolloutContext:
         n_rollouts: rollouts per scene.
         dest_logits: [B, N, M] destination logits (per scene, not repeated).
         dest_usable: [B, N] bool.
+        ag_map_kv: [B', M, 2d] per agent-encoder layer, ``AgentEncoder.map_kv``, repeated.
+        tl_map_kv: [B', M, 2d] per TL-encoder layer, ``TLEncoder.map_kv``, repeated.
         post_mean: [B, N, Z] posterior mean, or None if the posterior was not computed.
         post_log_std: [B, N, Z] or None.
         post_valid: [B, N] bool or None.
@@ -136,6 +142,8 @@ class RolloutContext:
     n_rollouts: int
     dest_logits: torch.Tensor
     dest_usable: torch.Tensor
+    ag_map_kv: tuple[torch.Tensor, ...]
+    tl_map_kv: tuple[torch.Tensor, ...]
     post_mean: torch.Tensor | None = None
     post_log_std: torch.Tensor | None = None
     post_valid: torch.Tensor | None = None
@@ -145,8 +153,9 @@ class RolloutContext:
         """The ``SceneEncoding`` of these rollouts' scenes (row i: scene i)."""
         n = self.n_rollouts
         rows = torch.arange(0, self.ag_type.shape[0], n, device=self.ag_type.device)
-        mp, tl = (self.mp, self.tl) if n == 1 else take_rows((self.mp, self.tl), rows)
-        return SceneEncoding(mp, tl, self.dest_logits, self.dest_usable)
+        per_rollout = (self.mp, self.tl, self.ag_map_kv, self.tl_map_kv)
+        mp, tl, ag_kv, tl_kv = per_rollout if n == 1 else take_rows(per_rollout, rows)
+        return SceneEncoding(mp, tl, self.dest_logits, self.dest_usable, ag_kv, tl_kv)
 
 
 @dataclass(frozen=True)
@@ -285,6 +294,8 @@ class TrafficBots(nn.Module):
             n_rollouts=n,
             dest_logits=scene.dest_logits,
             dest_usable=scene.dest_usable,
+            ag_map_kv=tuple(kv.repeat_interleave(n, 0) for kv in scene.ag_map_kv),
+            tl_map_kv=tuple(kv.repeat_interleave(n, 0) for kv in scene.tl_map_kv),
             post_mean=post_mean,
             post_log_std=post_log_std,
             post_valid=post_valid,
@@ -311,7 +322,9 @@ class TrafficBots(nn.Module):
         tl = tl_context(self.cfg, batch.tl_piece, tl_src.any(-1), mp)
         attr = agent_attributes(batch.ag_type, batch.ag_size)
         dest_logits, dest_usable = self._predict_destinations(batch, dest_hist_valid, attr, mp)
-        return SceneEncoding(mp, tl, dest_logits, dest_usable)
+        ag_map_kv = self.agent_encoder.map_kv(mp.feat)
+        tl_map_kv = self.tl_encoder.map_kv(mp.feat)
+        return SceneEncoding(mp, tl, dest_logits, dest_usable, ag_map_kv, tl_map_kv)
 
     def _input_dropout(
         self, batch: TokenBatch, generator: torch.Generator | None, p: float
@@ -505,7 +518,7 @@ class TrafficBots(nn.Module):
         state = self.observe(state, ag_pose, ag_speed, ag_valid, tl_state)
         ag_pose = ag_pose.detach()
         vmask = ag_valid[..., None].to(ag_pose.dtype)
-        tl_feat = self.tl_encoder(state.hist_tl_state, state.hist_tl_present, ctx.tl)
+        tl_feat = self.tl_encoder(state.hist_tl_state, state.hist_tl_present, ctx.tl, ctx.tl_map_kv)
         tl_logits = self.tl_head(tl_feat)
         motion = state.hist_motion
         if not self.training and self.inference.clip_history_motion:
@@ -515,10 +528,7 @@ class TrafficBots(nn.Module):
             state.hist_pose,
             motion,
             ctx.ag_attr,
-            ctx.mp,
-            tl_feat,
-            ctx.tl.pose,
-            ctx.tl.valid,
+            AgentContext(ctx.mp, ctx.ag_map_kv, tl_feat, ctx.tl.pose, ctx.tl.valid),
         )
         reached = state.dest_reached | (
             destination_reached(ag_pose, ctx.dest, ctx.mp, cfg) & ctx.dest_valid & ag_valid

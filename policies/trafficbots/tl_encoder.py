@@ -130,8 +130,20 @@ class TLEncoder(nn.Module):
             for _ in range(cfg.tl_layers)
         )
 
+    def map_kv(self, map_feat: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Each layer's keys and values of the map tokens [B, M, d]: [B, M, 2d] per layer.
+
+        The map does not change during a rollout: ``prepare`` computes these once and
+        ``forward`` takes them instead of projecting the map every step.
+        """
+        return tuple(layer.context_kv(map_feat) for layer in self.layers)
+
     def forward(
-        self, state: torch.Tensor, step_valid: torch.Tensor, ctx: TLContext
+        self,
+        state: torch.Tensor,
+        step_valid: torch.Tensor,
+        ctx: TLContext,
+        map_kv: tuple[torch.Tensor, ...] | None = None,
     ) -> torch.Tensor:
         """Encode.
 
@@ -143,29 +155,37 @@ class TLEncoder(nn.Module):
             state: [B, L, W] int64 ``TLState`` per window step (W <= n_time, newest last).
             step_valid: [B, L, W] bool, the window step exists.
             ctx: static TL tensors.
+            map_kv: ``map_kv(ctx.map_feat)``, computed before (None: computed here).
 
         Returns:
             [B, L, d] TL token features (0 for invalid tokens).
         """
+        if map_kv is None:
+            map_kv = self.map_kv(ctx.map_feat)
         lit = None if self.training else listed(ctx.valid.any(-1, keepdim=True))
         if lit is None:
-            return self._encode(state, step_valid, ctx)
+            return self._encode(state, step_valid, ctx, map_kv)
         rows = lit[0]
         out = ctx.lane_feat.new_zeros(ctx.lane_feat.shape)  # [B, L, d]
         if rows.numel():
-            out[rows] = self._encode(state[rows], step_valid[rows], ctx.rows(rows))
+            kv = tuple(t.index_select(0, rows) for t in map_kv)
+            out[rows] = self._encode(state[rows], step_valid[rows], ctx.rows(rows), kv)
         return out
 
     def _encode(
-        self, state: torch.Tensor, step_valid: torch.Tensor, ctx: TLContext
+        self,
+        state: torch.Tensor,
+        step_valid: torch.Tensor,
+        ctx: TLContext,
+        map_kv: tuple[torch.Tensor, ...],
     ) -> torch.Tensor:
         """``forward`` on every row of the batch."""
         x = self._step_features(state) + ctx.lane_feat[:, :, None]
         x = self.pointnet(x, step_valid & ctx.valid[..., None]) * ctx.valid[..., None]
         own = Neighbours(ctx.self_idx, ctx.self_mask, ctx.self_rpe)
         near_map = Neighbours(ctx.map_idx, ctx.map_mask, ctx.map_rpe)
-        for layer in self.layers:
-            x = layer(x, ctx.valid, own, ctx.map_feat, near_map)
+        for layer, kv in zip(self.layers, map_kv, strict=True):
+            x = layer(x, ctx.valid, own, kv, near_map)
         return x
 
     def _step_features(self, state: torch.Tensor) -> torch.Tensor:
