@@ -1,7 +1,8 @@
 """The TrafficBots V1.5 network and its explicit-state single-step API (spec sections 3, 5).
 
-``prepare`` runs everything that is computed once per scenario (map encoding, TL precompute,
-destination distribution, posterior) and draws the per-rollout samples (z, destinations);
+``prepare`` runs everything that is computed once per scenario (``encode_scene``: map
+encoding, TL precompute, destination distribution, the encoders' attention keys and values of
+the map; the posterior) and draws the per-rollout samples (z, destinations);
 ``step`` consumes the current simulator state of every agent, updates the 11-step history held
 in an explicit ``RolloutState`` and returns physical actions. Nothing is cached on the module,
 so one model can drive any number of rollouts.
