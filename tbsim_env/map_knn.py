@@ -1,17 +1,18 @@
 """The nearest map pieces of many observers, without measuring every piece.
 
 A real WOMD scene keeps up to 1,024 map pieces and an observer sees its 64 nearest, so the plain
-search (``observation._nearest`` over every piece) measures and ranks ~15x more pieces than it
+search (``sim.knn.k_nearest`` over every piece) measures and ranks ~15x more pieces than it
 keeps; at all agents controlled it was the largest part of an env step. Here the pieces of a
 scene are grouped once into compact clusters (a k-d split of their anchor points into leaves
 of at most ``MAP_KNN_CLUSTER_SIZE``); per observer, the ``MAP_KNN_CLUSTERS`` clusters with the
 smallest lower bound on their pieces' distance are searched exactly.
 
-The result is the plain search's, exactly: no piece outside the searched clusters is nearer
-than the bound of the next cluster, and the search checks that its k-th distance stays below
-that bound (by ``MAP_KNN_MARGIN``, far more than float rounding, so ranking buckets cannot tie
-across it). For an observer where it does not hold (a sparse map beyond the clusters, or an
-observer far from every piece) the caller searches every piece (``observation``).
+``nearest_pieces`` is the search: the observations' nearest map pieces and TrafficBots' map
+neighbours of each agent. The result is the plain search's, exactly: no piece outside the
+searched clusters is nearer than the bound of the next cluster, and the search checks that its
+k-th distance stays below that bound (by ``MAP_KNN_MARGIN``, far more than float rounding, so
+ranking buckets cannot tie across it). For an observer where it does not hold (a sparse map
+beyond the clusters, or an observer far from every piece) it searches every piece.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 
 from tbsim_env import constants as C
+from tbsim_env.sim.knn import k_nearest
 from tbsim_env.torch_utils import gather_rows
 
 
@@ -148,6 +150,66 @@ def candidate_pieces(
     return members.flatten(-2), lower[..., searched], xy.flatten(-3, -2)
 
 
+def nearest_pieces(
+    points: torch.Tensor,
+    clusters: PieceClusters | None,
+    me_xy: torch.Tensor,
+    k: int,
+    within: float,
+    rows: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The k nearest map pieces of each observer ``me_xy`` [B, Q, 2]: (indices, distances)
+    [B, Q, k], ranked by ``sim.knn.k_nearest`` over every piece. With ``rows`` [B] int64,
+    observer row b is in the scene of map row ``rows[b]``.
+
+    Eagerly, maps with more pieces than the clustered search measures use it when there are
+    ``MAP_KNN_MIN_OBSERVERS`` observers per map row or more; the observers it does not hold
+    for (~1% on the real samples) are searched in full. A compiled graph cannot size tensors
+    by that; it searches every piece (fused, that costs less there than the gathers of the
+    clustered search).
+
+    Args:
+        points: [B', 1, M, 2] piece anchor points, +inf for invalid pieces.
+        clusters: their ``PieceClusters`` (None: search every piece).
+        me_xy: [B, Q, 2] observer positions.
+        k: pieces per observer.
+        within: the radius the caller masks beyond, metres (``k_nearest``).
+        rows: optional [B] int64 map row of each observer row (default: row b itself).
+    """
+    searched, m = C.MAP_KNN_CLUSTERS, points.shape[2]
+    observers = me_xy.shape[0] * me_xy.shape[1]
+    clustered = (
+        clusters is not None
+        and clusters.num_clusters > searched
+        and m > 2 * searched * clusters.members.shape[-1]
+        and observers >= C.MAP_KNN_MIN_OBSERVERS * points.shape[0]
+    )
+    if not clustered or torch.compiler.is_compiling():
+        return _all_pieces(points if rows is None else points[rows], me_xy, k, within)
+    cand, bound, xy = candidate_pieces(clusters, me_xy, searched, rows)  # xy [B, Q, C, 2]
+    dx = xy[..., 0] - me_xy[..., 0:1]
+    dy = xy[..., 1] - me_xy[..., 1:2]
+    idx, top = k_nearest(torch.sqrt(dx * dx + dy * dy), None, k, within, ids=(cand, m))
+    fail_rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
+    if len(fail_rows):  # the few observers it does not hold for: every piece
+        scene = fail_rows if rows is None else rows[fail_rows]
+        full_idx, full_top = _all_pieces(points[scene], me_xy[fail_rows, cols, None], k, within)
+        idx = idx.index_put((fail_rows, cols), full_idx[:, 0])
+        top = top.index_put((fail_rows, cols), full_top[:, 0])
+    return idx, top
+
+
+def _all_pieces(
+    points: torch.Tensor, me_xy: torch.Tensor, k: int, within: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``k_nearest`` over every piece ``points`` [R, 1, M, 2] (+inf for padding) of the
+    observers ``me_xy`` [R, Q, 2]: (indices, distances) [R, Q, k]."""
+    # x and y apart (no [R, Q, M, 2] difference): the same values, a third of the time.
+    dx = points[..., 0] - me_xy[..., 0:1]
+    dy = points[..., 1] - me_xy[..., 1:2]
+    return k_nearest(torch.sqrt(dx * dx + dy * dy), None, k, within)
+
+
 def search_holds(kth: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
     """[B, Q] bool: the candidates' k-th distance ``kth`` stays ``MAP_KNN_MARGIN`` below the
     ``bound`` on every other piece (or no other piece is left), so the candidates' k nearest
@@ -159,6 +221,7 @@ __all__ = [
     "PieceClusters",
     "build_piece_clusters",
     "candidate_pieces",
+    "nearest_pieces",
     "scene_clusters",
     "search_holds",
 ]

@@ -23,7 +23,7 @@ from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.map_knn import PieceClusters, build_piece_clusters, candidate_pieces, search_holds
+from tbsim_env.map_knn import PieceClusters, build_piece_clusters, nearest_pieces
 from tbsim_env.observation_spec import (
     ATTRIBUTE_FEATURES,
     HISTORY_FEATURES,
@@ -33,7 +33,7 @@ from tbsim_env.observation_spec import (
 )
 from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
-from tbsim_env.sim.knn import nearest_k
+from tbsim_env.sim.knn import k_nearest
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed
 
@@ -283,94 +283,6 @@ def agent_static_features(state: SimState) -> torch.Tensor:
     return torch.cat([state.agents.size[..., :2], onehot], dim=-1)
 
 
-def _nearest(
-    dist: torch.Tensor,
-    invalid: torch.Tensor | None,
-    k: int,
-    within: float,
-    ids: tuple[torch.Tensor, int] | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k], ranked
-    by ``sim.knn.nearest_k`` (1 cm buckets, ties to the lower index).
-
-    Args:
-        dist: [B, Q, M] distances (>= 0 or +inf); invalid: [B, Q, M] bool (broadcastable),
-            targets to skip (None: none, e.g. distances already +inf where invalid).
-        k: how many.
-        within: the radius the caller masks beyond, metres.
-        ids: optional ([B, Q, M] int64 target index of each column, number of targets): a
-            subset of the targets (e.g. ``map_knn`` candidates); the column by default.
-
-    Returns:
-        (indices, distances: +inf where there is no valid target; the index of such an
-        entry is arbitrary).
-    """
-    m = dist.shape[-1]
-    d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
-    # Fewer targets than k: pad with +inf. A compiled graph always pads (by k), so that scenes
-    # with fewer and with more than k targets share one graph instead of specialising on it.
-    pad = k if torch.compiler.is_compiling() else max(k - m, 0)
-    if pad:
-        d = torch.nn.functional.pad(d, (0, pad), value=float("inf"))
-    if ids is None:
-        pos = nearest_k(d, k, exact_within=within)
-        top = torch.gather(d, -1, pos)
-        return (pos.clamp(max=m - 1) if pad else pos), top
-    col = torch.nn.functional.pad(ids[0], (0, pad), value=0) if pad else ids[0]
-    pos = nearest_k(d, k, ids=col, num_ids=ids[1], exact_within=within)
-    return col.gather(-1, pos), torch.gather(d, -1, pos)
-
-
-def _nearest_pieces(
-    ctx: MapContext,
-    me_xy: torch.Tensor,
-    k: int,
-    within: float,
-    rows: torch.Tensor | None = None,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """The k nearest map pieces of each observer ``me_xy`` [B, Q, 2]: (indices, distances)
-    [B, Q, k], equal to ``_nearest`` over every piece. With ``rows`` [B] int64, observer row b
-    is in the scene of context row ``rows[b]``.
-
-    Eagerly, maps with more pieces than the clustered search measures use it (``map_knn``)
-    when there are ``MAP_KNN_MIN_OBSERVERS`` observers per context row or more; the observers
-    it does not hold for (~1% on the real samples) are searched in full. A compiled graph
-    cannot size tensors by that; it searches every piece (fused, that costs less there than
-    the gathers of the clustered search).
-    """
-    searched, size = C.MAP_KNN_CLUSTERS, ctx.clusters.members.shape[-1]
-    m = ctx.pose.shape[1]
-    clustered = ctx.clusters.num_clusters > searched and m > 2 * searched * size
-    observers = me_xy.shape[0] * me_xy.shape[1]
-    clustered = clustered and observers >= C.MAP_KNN_MIN_OBSERVERS * ctx.pose.shape[0]
-    if not clustered or torch.compiler.is_compiling():
-        pieces = ctx.knn_xy[:, :, :m]
-        return _all_pieces(pieces if rows is None else pieces[rows], me_xy, k, within)
-    cand, bound, xy = candidate_pieces(ctx.clusters, me_xy, searched, rows)  # xy [B, Q, C, 2]
-    dx = xy[..., 0] - me_xy[..., 0:1]
-    dy = xy[..., 1] - me_xy[..., 1:2]
-    idx, top = _nearest(torch.sqrt(dx * dx + dy * dy), None, k, within, ids=(cand, m))
-    fail_rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
-    if len(fail_rows):  # the few observers it does not hold for: every piece
-        scene = fail_rows if rows is None else rows[fail_rows]
-        pieces, observer = ctx.knn_xy[scene, :, :m], me_xy[fail_rows, cols, None]
-        full_idx, full_top = _all_pieces(pieces, observer, k, within)
-        idx = idx.index_put((fail_rows, cols), full_idx[:, 0])
-        top = top.index_put((fail_rows, cols), full_top[:, 0])
-    return idx, top
-
-
-def _all_pieces(
-    pieces_xy: torch.Tensor, me_xy: torch.Tensor, k: int, within: float
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``_nearest`` over every piece ``pieces_xy`` [R, 1, M, 2] (+inf for padding) of the
-    observers ``me_xy`` [R, Q, 2]: (indices, distances) [R, Q, k]."""
-    # x and y apart (no [R, Q, M, 2] difference): the same values, a third of the time.
-    dx = pieces_xy[..., 0] - me_xy[..., 0:1]
-    dy = pieces_xy[..., 1] - me_xy[..., 1:2]
-    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k, within)
-
-
 @dataclass(frozen=True)
 class IndexedObservation:
     """Pairwise-relative observations of Q observers per row, by reference to shared tokens.
@@ -463,12 +375,15 @@ def _seen_tokens(
         valid = state.valid if rows is None else state.valid.index_select(0, rows)
         # Not another valid agent: invalid (valid <= itself is ~valid | itself), or itself.
         itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
-        a_idx, a_top = _nearest(dist, valid.unsqueeze(1) <= itself, ka, cfg.agent_radius)
+        a_idx, a_top = k_nearest(dist, valid.unsqueeze(1) <= itself, ka, cfg.agent_radius)
     else:
         slot, usable = columns
         skip = ~usable | (slot == observers.unsqueeze(-1))
-        a_idx, a_top = _nearest(dist, skip, ka, cfg.agent_radius, ids=(slot, n))
-    m_idx, m_top = _nearest_pieces(ctx, me[..., :2], cfg.num_map, cfg.map_radius, rows)
+        a_idx, a_top = k_nearest(dist, skip, ka, cfg.agent_radius, ids=(slot, n))
+    pieces = ctx.knn_xy[:, :, : ctx.pose.shape[1]]  # [B, 1, M, 2]
+    m_idx, m_top = nearest_pieces(
+        pieces, ctx.clusters, me[..., :2], cfg.num_map, cfg.map_radius, rows
+    )
     # x and y apart (no [B, Q, L, 2] difference): the same values, a third of the time.
     light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
     tl_invalid = _lights_at(ctx, state.step)[0]  # [B, 1, L]
@@ -477,7 +392,7 @@ def _seen_tokens(
     dx = light_xy[..., 0] - me[:, :, None, 0]  # [B, Q, L]
     dy = light_xy[..., 1] - me[:, :, None, 1]
     tl_dist = torch.sqrt(dx * dx + dy * dy)
-    t_idx, t_top = _nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
+    t_idx, t_top = k_nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
 
     sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
     radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]

@@ -64,7 +64,7 @@ def test_compiled_env_matches_eager_on_three_scenario_shapes(scenes):
     # One graph for the first shape, then dynamic ones: the merge has a single traffic light,
     # and dynamo specialises dims of size 0 and 1, so it gets a graph of its own. No more: a
     # guard on a Python-side cache once made it recompile on every new key, and the padding
-    # of ``_nearest`` on whether a scene has fewer than k targets.
+    # of ``k_nearest`` on whether a scene has fewer than k targets.
     assert 1 <= counters["stats"]["unique_graphs"] - graphs <= 3
     assert len(compiled) == len(eager) > 150
     collided = 0

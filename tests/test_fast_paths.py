@@ -373,7 +373,7 @@ def test_nearest_breaks_ties_by_index_whatever_the_padding(within: float) -> Non
     """Lane pieces branching from one point are equally far; the pick must not depend on how
     far the distance row is padded (batched envs pad to the largest scene), on the device,
     or on the world frame's rounding (distances within one 1 cm bucket tie)."""
-    from tbsim_env.observation import _nearest as nearest
+    from tbsim_env.sim.knn import k_nearest as nearest
 
     gen = torch.Generator().manual_seed(0)
     d = torch.randint(0, 4, (2, 3, 40), generator=gen).float() * 0.7  # many exact ties

@@ -10,9 +10,10 @@ import torch
 from tbsim_env import constants as C
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
-from tbsim_env.map_knn import candidate_pieces, scene_clusters, search_holds
-from tbsim_env.observation import ObsConfig, _nearest, _nearest_pieces, build_map_context
+from tbsim_env.map_knn import candidate_pieces, nearest_pieces, scene_clusters, search_holds
+from tbsim_env.observation import ObsConfig, build_map_context
 from tbsim_env.sim.build import build_sim_state
+from tbsim_env.sim.knn import k_nearest
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +28,11 @@ def contexts(womd_dir):
         state = build_sim_state(scenes)
         out[name] = build_map_context(scenes, state.origin, ObsConfig())
     return out
+
+
+def _pieces(ctx, me, k, within):
+    """``nearest_pieces`` over a map context's pieces, as the observations search them."""
+    return nearest_pieces(ctx.knn_xy[:, :, : ctx.pose.shape[1]], ctx.clusters, me, k, within)
 
 
 def _observers(ctx, gen: torch.Generator, q: int = 300) -> torch.Tensor:
@@ -52,7 +58,7 @@ def _full(ctx, me_xy: torch.Tensor, k: int):
     m = ctx.pose.shape[1]
     dx = ctx.knn_xy[:, :, :m, 0] - me_xy[..., 0:1]
     dy = ctx.knn_xy[:, :, :m, 1] - me_xy[..., 1:2]
-    return _nearest(torch.sqrt(dx * dx + dy * dy), None, k, math.inf)  # the int64 key
+    return k_nearest(torch.sqrt(dx * dx + dy * dy), None, k, math.inf)  # the int64 key
 
 
 @pytest.mark.parametrize("name", ["real", "generated"])
@@ -61,7 +67,7 @@ def test_clustered_search_equals_the_full_search(contexts, name):
     gen = torch.Generator().manual_seed(0)
     me = _observers(ctx, gen)
     k = ObsConfig().num_map
-    idx, top = _nearest_pieces(ctx, me, k, ObsConfig().map_radius)
+    idx, top = _pieces(ctx, me, k, ObsConfig().map_radius)
     ref_idx, ref_top = _full(ctx, me, k)
     assert torch.equal(top, ref_top)
     finite = torch.isfinite(ref_top)
@@ -79,7 +85,7 @@ def test_the_clustered_search_holds_near_the_map_and_not_far_away(contexts):
     dx, dy = xy[..., 0] - me[..., 0:1], xy[..., 1] - me[..., 1:2]
     d = torch.sqrt(dx * dx + dy * dy)
     m = ctx.pose.shape[1]
-    _, top = _nearest(d, None, ObsConfig().num_map, ObsConfig().map_radius, ids=(cand, m))
+    _, top = k_nearest(d, None, ObsConfig().num_map, ObsConfig().map_radius, ids=(cand, m))
     holds = search_holds(top[..., -1], bound)
     assert holds[:, 5:].float().mean() > 0.95  # near the map: the clusters suffice
     # Where it holds, the candidates' k nearest are the true ones.
@@ -91,7 +97,7 @@ def test_a_search_of_too_few_clusters_falls_back_to_the_full_search(contexts, mo
     ctx = contexts["real"]
     monkeypatch.setattr(C, "MAP_KNN_CLUSTERS", 2)  # 32 candidates cannot hold 64 nearest
     me = _observers(ctx, torch.Generator().manual_seed(2), q=50)
-    idx, top = _nearest_pieces(ctx, me, ObsConfig().num_map, ObsConfig().map_radius)
+    idx, top = _pieces(ctx, me, ObsConfig().num_map, ObsConfig().map_radius)
     ref_idx, ref_top = _full(ctx, me, ObsConfig().num_map)
     assert torch.equal(top, ref_top) and torch.equal(idx, ref_idx)
 

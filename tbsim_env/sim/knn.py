@@ -78,4 +78,42 @@ def nearest_k(
     return torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
 
 
-__all__ = ["nearest_k"]
+def k_nearest(
+    dist: torch.Tensor,
+    invalid: torch.Tensor | None,
+    k: int,
+    within: float,
+    ids: tuple[torch.Tensor, int] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Indices [B, Q, k] of the k nearest valid targets and their distances [B, Q, k], ranked
+    by ``nearest_k`` (1 cm buckets, ties to the lower index).
+
+    Args:
+        dist: [B, Q, M] distances (>= 0 or +inf); invalid: [B, Q, M] bool (broadcastable),
+            targets to skip (None: none, e.g. distances already +inf where invalid).
+        k: how many.
+        within: the radius the caller masks beyond, metres.
+        ids: optional ([B, Q, M] int64 target index of each column, number of targets): a
+            subset of the targets (e.g. ``map_knn`` candidates); the column by default.
+
+    Returns:
+        (indices, distances: +inf where there is no valid target; the index of such an
+        entry is arbitrary, but a valid target index).
+    """
+    m = dist.shape[-1]
+    d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
+    # Fewer targets than k: pad with +inf. A compiled graph always pads (by k), so that scenes
+    # with fewer and with more than k targets share one graph instead of specialising on it.
+    pad = k if torch.compiler.is_compiling() else max(k - m, 0)
+    if pad:
+        d = torch.nn.functional.pad(d, (0, pad), value=float("inf"))
+    if ids is None:
+        pos = nearest_k(d, k, exact_within=within)
+        top = torch.gather(d, -1, pos)
+        return (pos.clamp(max=m - 1) if pad else pos), top
+    col = torch.nn.functional.pad(ids[0], (0, pad), value=0) if pad else ids[0]
+    pos = nearest_k(d, k, ids=col, num_ids=ids[1], exact_within=within)
+    return col.gather(-1, pos), torch.gather(d, -1, pos)
+
+
+__all__ = ["k_nearest", "nearest_k"]
