@@ -74,8 +74,25 @@ def scene_clusters(xy: np.ndarray, valid: np.ndarray, size: int) -> list[np.ndar
     return _kd_leaves(xy.astype(np.float64), ids, size) if len(ids) else []
 
 
+def clusters_pay(num_pieces: int, width: int = C.MAP_KNN_CLUSTER_SIZE) -> bool:
+    """Whether the clustered search measures fewer pieces than the plain one on a map of
+    ``num_pieces`` pieces with clusters of ``width`` member slots (half of them at most)."""
+    return num_pieces > 2 * C.MAP_KNN_CLUSTERS * width
+
+
+def max_clusters(num_pieces: int, size: int = C.MAP_KNN_CLUSTER_SIZE) -> int:
+    """The most clusters ``scene_clusters`` makes of at most ``num_pieces`` valid pieces."""
+    if num_pieces <= size:
+        return 1
+    half = num_pieces // 2
+    return max_clusters(half, size) + max_clusters(num_pieces - half, size)
+
+
 def build_piece_clusters(
-    xy: torch.Tensor, valid: torch.Tensor, size: int = C.MAP_KNN_CLUSTER_SIZE
+    xy: torch.Tensor,
+    valid: torch.Tensor,
+    size: int = C.MAP_KNN_CLUSTER_SIZE,
+    fixed_shape: bool = False,
 ) -> PieceClusters:
     """``PieceClusters`` of a batch of maps.
 
@@ -83,6 +100,9 @@ def build_piece_clusters(
         xy: [B, M, 2] float32 piece anchor points.
         valid: [B, M] bool.
         size: members per cluster at most.
+        fixed_shape: pad to ``max_clusters(M, size)`` clusters of ``size`` slots (the same
+            shapes for every map of M pieces, so that single maps' clusters can be cached and
+            joined into batches) instead of the batch's largest.
     """
     xy_np, valid_np = xy.detach().cpu().numpy(), valid.detach().cpu().numpy()
     b, m = valid_np.shape
@@ -91,6 +111,8 @@ def build_piece_clusters(
     # Member slots: the largest leaf (median splits leave most leaves well under ``size``;
     # every padded slot would be measured and ranked by each search).
     width = max((len(ids) for leaves in scenes for ids in leaves), default=1)
+    if fixed_shape:
+        g, width = max_clusters(m, size), size
     members = np.full((b, g, width), m, np.int64)
     center = np.full((b, g, 2), np.inf, np.float32)
     radius = np.zeros((b, g), np.float32)
@@ -181,7 +203,7 @@ def nearest_pieces(
     clustered = (
         clusters is not None
         and clusters.num_clusters > searched
-        and m > 2 * searched * clusters.members.shape[-1]
+        and clusters_pay(m, clusters.members.shape[-1])
         and observers >= C.MAP_KNN_MIN_OBSERVERS * points.shape[0]
     )
     if not clustered or torch.compiler.is_compiling():
@@ -221,6 +243,8 @@ __all__ = [
     "PieceClusters",
     "build_piece_clusters",
     "candidate_pieces",
+    "clusters_pay",
+    "max_clusters",
     "nearest_pieces",
     "scene_clusters",
     "search_holds",

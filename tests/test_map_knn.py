@@ -121,3 +121,57 @@ def test_clusters_are_compact_and_cover_every_valid_piece(contexts):
     assert torch.equal(xy, ctx.clusters.member_xy)
     gap = torch.linalg.vector_norm(xy - center[:, :, None], dim=-1)
     assert (gap[real] <= radius[:, :, None].expand_as(gap)[real]).all()
+
+
+@pytest.fixture(scope="module")
+def token_batches(womd_dir):
+    """The real samples as TrafficBots token batches: each scene alone and both together,
+    trimmed to the same rows."""
+    from policies.trafficbots import TokenBatch
+    from tbsim_env.data.preprocess import preprocess_scenario
+
+    wod = womd_dir / "waymo-open-dataset"
+    scenes = [
+        *load_scenarios(wod / "motion_data_one_scenario.tfrecord"),
+        *load_scenarios(wod / "womd_scenario_input.tfrecord"),
+    ]
+    tokens = [preprocess_scenario(s) for s in scenes]
+    rows = TokenBatch.from_tokens(tokens).rows_used()
+    both = TokenBatch.from_tokens(tokens).trim(rows)
+    return both, [TokenBatch.from_tokens([t]).trim(rows) for t in tokens]
+
+
+def test_trafficbots_map_neighbours_from_clusters_equal_every_piece(token_batches):
+    """TrafficBots' agents find the same map neighbours (rows, mask, relative poses) through
+    the clusters of its scene encoding as over every piece; single scenes' clusters join into
+    the batch's (fixed shapes)."""
+    from policies.trafficbots import TrafficBots, TrafficBotsConfig
+    from policies.trafficbots.knn import knn_relative
+    from tbsim_env.rows import cat_rows
+
+    both, singles = token_batches
+    model = TrafficBots(TrafficBotsConfig.small()).eval()
+    with torch.no_grad():
+        enc = model.encode_scene(both)
+        joined = cat_rows([model.encode_scene(b) for b in singles])
+    clusters = enc.map_clusters
+    assert clusters is not None and clusters.num_clusters > C.MAP_KNN_CLUSTERS
+    for a, b in zip(
+        (clusters.members, clusters.center, clusters.radius),
+        (joined.map_clusters.members, joined.map_clusters.center, joined.map_clusters.radius),
+        strict=True,
+    ):
+        assert torch.equal(a, b)
+    # Queries: every agent's poses over its history, and points around the map.
+    gen = torch.Generator().manual_seed(3)
+    mp = enc.mp
+    near = mp.pose[:, torch.randint(mp.pose.shape[1], (200,), generator=gen)].clone()
+    near[..., :2] += (torch.rand(near.shape[:2] + (2,), generator=gen) - 0.5) * 80.0
+    hist = both.ag_pose.flatten(1, 2)
+    query = torch.cat([hist, near], 1)  # [B, Q, 3]
+    cfg = model.cfg
+    args = (query, mp.pose, mp.valid, cfg.ag_map_knn, cfg.ag_map_dist)
+    got, want = knn_relative(*args, clusters), knn_relative(*args)
+    for g, w in zip(got, want, strict=True):
+        assert torch.equal(g, w)
+    assert got[1].float().mean() > 0.9  # most neighbours lie within range

@@ -17,6 +17,7 @@ from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
 from tbsim_env.constants import ObjectType
+from tbsim_env.map_knn import PieceClusters
 
 N_AGENT_TYPES = 3
 """Type branches of the model: vehicle, pedestrian, cyclist (spec 1.4)."""
@@ -126,6 +127,8 @@ class AgentContext(NamedTuple):
         tl_feat: [B, L, d] TL features of this step.
         tl_pose: [B, L, 3].
         tl_valid: [B, L] bool.
+        map_clusters: the map pieces' ``PieceClusters`` for the nearest-piece search, or None
+            (every piece is measured; the same neighbours).
     """
 
     mp: MapTokens
@@ -133,6 +136,7 @@ class AgentContext(NamedTuple):
     tl_feat: torch.Tensor
     tl_pose: torch.Tensor
     tl_valid: torch.Tensor
+    map_clusters: PieceClusters | None = None
 
 
 class AgentEncoder(nn.Module):
@@ -182,7 +186,7 @@ class AgentEncoder(nn.Module):
         x, ag_pose, ag_valid = self.input(valid, pose, motion, attr)
         s_idx, s_mask, s_rel = knn_relative(ag_pose, ag_pose, ag_valid, cfg.ag_knn, cfg.ag_dist)
         m_idx, m_mask, m_rel = knn_relative(
-            ag_pose, mp.pose, mp.valid, cfg.ag_map_knn, cfg.ag_map_dist
+            ag_pose, mp.pose, mp.valid, cfg.ag_map_knn, cfg.ag_map_dist, ctx.map_clusters
         )
         t_idx, t_mask, t_rel = knn_relative(
             ag_pose, ctx.tl_pose, ctx.tl_valid, cfg.ag_tl_knn, cfg.ag_tl_dist

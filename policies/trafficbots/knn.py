@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from policies.trafficbots.encodings import relative_pose
-from tbsim_env.sim.knn import nearest_k
+from tbsim_env.map_knn import PieceClusters, nearest_pieces
 from tbsim_env.torch_utils import gather_rows
 
 
@@ -16,6 +16,7 @@ def knn_select(
     target_valid: torch.Tensor,
     k: int,
     dist_limit: float,
+    clusters: PieceClusters | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Rank valid targets by 2-D distance and keep the ``k`` nearest within ``dist_limit``.
 
@@ -32,23 +33,25 @@ def knn_select(
     selection does not depend on the device, on ``topk``'s algorithm or on padding rows after
     the targets either (``TokenBatch.trim``).
 
+    The search is the observations' (``tbsim_env.map_knn.nearest_pieces``): with the
+    targets' ``clusters`` (a large map), eagerly on the CPU, it measures the pieces of the
+    nearest clusters only, with the same result.
+
     Args:
         query_xy: [B, Q, 2] query positions.
         target_xy: [B, T, 2] target positions.
         target_valid: [B, T] bool.
         k: neighbours per query.
         dist_limit: neighbours farther than this are masked (metres).
+        clusters: optional ``PieceClusters`` of the valid targets.
 
     Returns:
         (idx [B, Q, K] int64 rows of the targets, mask [B, Q, K] bool valid neighbours).
     """
     k = min(k, target_xy.shape[1])
-    # x and y apart, so no [B, Q, T, 2] difference.
-    dx = query_xy[:, :, None, 0] - target_xy[:, None, :, 0]  # [B, Q, T]
-    dy = query_xy[:, :, None, 1] - target_xy[:, None, :, 1]
-    dist2 = (dx * dx + dy * dy).masked_fill_(~target_valid[:, None, :], float("inf"))
-    idx = nearest_k(dist2.sqrt(), k, exact_within=dist_limit)
-    return idx, dist2.gather(-1, idx) <= dist_limit * dist_limit
+    points = target_xy.masked_fill(~target_valid[..., None], float("inf"))[:, None]
+    idx, dist = nearest_pieces(points, clusters, query_xy, k, dist_limit)
+    return idx, dist <= dist_limit
 
 
 def knn_relative(
@@ -57,6 +60,7 @@ def knn_relative(
     target_valid: torch.Tensor,
     k: int,
     dist_limit: float,
+    clusters: PieceClusters | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """KNN selection plus the pose of each selected neighbour in the query frame.
 
@@ -66,10 +70,13 @@ def knn_relative(
         target_valid: [B, T] bool.
         k: neighbours per query.
         dist_limit: range in metres.
+        clusters: optional ``PieceClusters`` of the valid targets (``knn_select``).
 
     Returns:
         (idx [B, Q, K], mask [B, Q, K] bool, rel_pose [B, Q, K, 3]).
     """
-    idx, mask = knn_select(query_pose[..., :2], target_pose[..., :2], target_valid, k, dist_limit)
+    idx, mask = knn_select(
+        query_pose[..., :2], target_pose[..., :2], target_valid, k, dist_limit, clusters
+    )
     rel = relative_pose(query_pose[:, :, None, :], gather_rows(target_pose, idx))
     return idx, mask, rel

@@ -36,6 +36,7 @@ from policies.trafficbots.rules import (
 )
 from policies.trafficbots.tl_encoder import TLContext, TLEncoder, TLStateHead, tl_context
 from tbsim_env import constants as C
+from tbsim_env.map_knn import PieceClusters, build_piece_clusters, clusters_pay
 from tbsim_env.rows import take_rows
 from tbsim_env.sim.dynamics import squash_action
 from tbsim_env.sim.geometry import wrap_angle
@@ -56,6 +57,14 @@ def rand(
     """Uniform [0, 1) samples, drawn like ``randn``."""
     gen_device = generator.device if generator is not None else torch.device("cpu")
     return torch.rand(shape, generator=generator, device=gen_device).to(device)
+
+
+def _repeat(clusters: PieceClusters | None, n: int) -> PieceClusters | None:
+    """Each row of ``clusters`` ``n`` times in a row (scene-major rollouts)."""
+    if clusters is None or n == 1:
+        return clusters
+    b = clusters.members.shape[0]
+    return take_rows(clusters, torch.arange(b, device=clusters.members.device).repeat_interleave(n))
 
 
 @dataclass(frozen=True)
@@ -98,6 +107,8 @@ class SceneEncoding:
         dest_usable: [B, N] bool.
         ag_map_kv: the agent encoder's keys and values of the map, [B, M, 2d] per layer.
         tl_map_kv: the TL encoder's, likewise.
+        map_clusters: the map pieces' ``PieceClusters`` for the agents' nearest-piece search
+            (eval mode, maps large enough for it to pay), else None.
     """
 
     mp: MapTokens
@@ -106,6 +117,7 @@ class SceneEncoding:
     dest_usable: torch.Tensor
     ag_map_kv: tuple[torch.Tensor, ...]
     tl_map_kv: tuple[torch.Tensor, ...]
+    map_clusters: PieceClusters | None
 
 
 @dataclass(frozen=True)
@@ -126,6 +138,7 @@ class RolloutContext:
         dest_usable: [B, N] bool.
         ag_map_kv: [B', M, 2d] per agent-encoder layer, ``AgentEncoder.map_kv``, repeated.
         tl_map_kv: [B', M, 2d] per TL-encoder layer, ``TLEncoder.map_kv``, repeated.
+        map_clusters: ``SceneEncoding.map_clusters``, repeated.
         post_mean: [B, N, Z] posterior mean, or None if the posterior was not computed.
         post_log_std: [B, N, Z] or None.
         post_valid: [B, N] bool or None.
@@ -145,6 +158,7 @@ class RolloutContext:
     dest_usable: torch.Tensor
     ag_map_kv: tuple[torch.Tensor, ...]
     tl_map_kv: tuple[torch.Tensor, ...]
+    map_clusters: PieceClusters | None
     post_mean: torch.Tensor | None = None
     post_log_std: torch.Tensor | None = None
     post_valid: torch.Tensor | None = None
@@ -154,9 +168,9 @@ class RolloutContext:
         """The ``SceneEncoding`` of these rollouts' scenes (row i: scene i)."""
         n = self.n_rollouts
         rows = torch.arange(0, self.ag_type.shape[0], n, device=self.ag_type.device)
-        per_rollout = (self.mp, self.tl, self.ag_map_kv, self.tl_map_kv)
-        mp, tl, ag_kv, tl_kv = per_rollout if n == 1 else take_rows(per_rollout, rows)
-        return SceneEncoding(mp, tl, self.dest_logits, self.dest_usable, ag_kv, tl_kv)
+        per_rollout = (self.mp, self.tl, self.ag_map_kv, self.tl_map_kv, self.map_clusters)
+        mp, tl, ag_kv, tl_kv, clusters = per_rollout if n == 1 else take_rows(per_rollout, rows)
+        return SceneEncoding(mp, tl, self.dest_logits, self.dest_usable, ag_kv, tl_kv, clusters)
 
 
 @dataclass(frozen=True)
@@ -297,6 +311,7 @@ class TrafficBots(nn.Module):
             dest_usable=scene.dest_usable,
             ag_map_kv=tuple(kv.repeat_interleave(n, 0) for kv in scene.ag_map_kv),
             tl_map_kv=tuple(kv.repeat_interleave(n, 0) for kv in scene.tl_map_kv),
+            map_clusters=_repeat(scene.map_clusters, n),
             post_mean=post_mean,
             post_log_std=post_log_std,
             post_valid=post_valid,
@@ -325,7 +340,11 @@ class TrafficBots(nn.Module):
         dest_logits, dest_usable = self._predict_destinations(batch, dest_hist_valid, attr, mp)
         ag_map_kv = self.agent_encoder.map_kv(mp.feat)
         tl_map_kv = self.tl_encoder.map_kv(mp.feat)
-        return SceneEncoding(mp, tl, dest_logits, dest_usable, ag_map_kv, tl_map_kv)
+        clusters = None
+        if not self.training and clusters_pay(mp.pose.shape[1]):
+            # Fixed shapes, so that single scenes' encodings join into batches (restarts).
+            clusters = build_piece_clusters(mp.pose[..., :2], mp.valid, fixed_shape=True)
+        return SceneEncoding(mp, tl, dest_logits, dest_usable, ag_map_kv, tl_map_kv, clusters)
 
     def _input_dropout(
         self, batch: TokenBatch, generator: torch.Generator | None, p: float
@@ -529,7 +548,9 @@ class TrafficBots(nn.Module):
             state.hist_pose,
             motion,
             ctx.ag_attr,
-            AgentContext(ctx.mp, ctx.ag_map_kv, tl_feat, ctx.tl.pose, ctx.tl.valid),
+            AgentContext(
+                ctx.mp, ctx.ag_map_kv, tl_feat, ctx.tl.pose, ctx.tl.valid, ctx.map_clusters
+            ),
         )
         reached = state.dest_reached | (
             destination_reached(ag_pose, ctx.dest, ctx.mp, cfg) & ctx.dest_valid & ag_valid
