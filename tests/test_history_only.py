@@ -213,8 +213,11 @@ def test_what_needs_the_future_refuses_in_one_line(tmp_path, history_dir, capsys
     sc = load_scenarios(one)[0]
     with pytest.raises(MissingFutureError, match="log replay"):
         simulate_rollouts(sc, make_policy("log_replay"))
-    with pytest.raises(MissingFutureError, match="off-road"):
-        trafficbots_rollouts(load_default_model(), sc, num_rollouts=2, road_edge_weight=1.0)
+    # Ranking samples by agents leaving the road reads only the simulation: allowed.
+    ranked = trafficbots_rollouts(
+        load_default_model(), sc, num_rollouts=2, num_samples=4, road_edge_weight=1.0
+    )
+    assert ranked.num_rollouts == 2 and ranked.num_steps == 80
 
 
 # ----------------------------------------------------------------------------- environments

@@ -8,7 +8,8 @@ import torch
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.evaluation import make_rollout_fn
-from tbsim_env.metrics.wosac import offroad_indication, score_scenario
+from tbsim_env.metrics.wosac import offroad_indication, score_scenario, simulated_offroad
+from tbsim_env.sim.horizon import wosac_scenario
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -45,9 +46,20 @@ def test_offroad_indication_is_the_scored_offroad_rate(plain, scenario):
     assert float(flags.float().mean()) == pytest.approx(scores.simulated_offroad_rate)
 
 
+def test_simulated_offroad_counts_every_step_and_needs_no_logged_future(plain, scenario):
+    flags = simulated_offroad(scenario, plain)
+    scored = offroad_indication(scenario, plain)  # only where the log is valid
+    assert flags.shape == scored.shape
+    assert not (scored & ~flags).any()  # every scored off-road agent is flagged
+    # The same flags on the scene cut to its history (the future invalid, as in the WOSAC
+    # test split), put back on WOSAC's time grid.
+    history = wosac_scenario(scenario.on_time_grid(scenario.current_index + 1))
+    assert torch.equal(simulated_offroad(history, plain), flags)
+
+
 def test_road_edge_weight_keeps_the_rollouts_that_stay_on_the_road(model, scenario, plain):
     everything = _run(model, scenario, N, 1000.0)  # all samples, off-road agents dominate
-    off = offroad_indication(scenario, everything).sum(-1)
+    off = simulated_offroad(scenario, everything).sum(-1)
     assert off.min() < off.max(), "premise: the samples differ in off-road agents"
     assert torch.equal(off, off.sort().values)  # ranked by off-road count
     # The same samples as without the weight, in another order.
@@ -58,7 +70,7 @@ def test_road_edge_weight_keeps_the_rollouts_that_stay_on_the_road(model, scenar
     kept = _run(model, scenario, 3, 1000.0)
     assert torch.equal(kept.x, everything.x[:3])
     assert torch.equal(kept.heading, everything.heading[:3])
-    assert offroad_indication(scenario, kept).sum(-1).max() <= off[3:].min()
+    assert simulated_offroad(scenario, kept).sum(-1).max() <= off[3:].min()
 
 
 @pytest.mark.parametrize("weight", [-1.0, float("nan"), float("inf")])

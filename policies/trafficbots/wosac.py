@@ -24,8 +24,8 @@ from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
 from tbsim_env.metrics.wosac.rollouts import Rollouts
-from tbsim_env.metrics.wosac.scoring import offroad_indication
-from tbsim_env.sim.horizon import wosac_end_step, wosac_scenario
+from tbsim_env.metrics.wosac.scoring import simulated_offroad
+from tbsim_env.sim.horizon import wosac_scenario
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "trafficbots_small"
 """Base path of the shipped checkpoint (``.safetensors`` + ``.json``)."""
@@ -53,21 +53,14 @@ def trafficbots_rollouts(
     """``num_rollouts`` joint futures of every sim agent (``num_samples`` sampled, best kept).
 
     A rollout's score is the number of relevant agents that collide in it (spec 7.3), plus
-    ``road_edge_weight`` times the number of evaluated agents that leave the road (the WOSAC
-    off-road indication); the lowest scores are kept, ties in sampling order. The spec's
-    submission uses ``w_road_edge = 0``, the default here too. Rollouts cover the 80 steps
-    after the current one, also on a history-only scene (the WOSAC test split).
-
-    Raises:
-        MissingFutureError: ``road_edge_weight`` > 0 on a scene without its logged future (the
-            off-road indication counts only steps where the log is valid).
+    ``road_edge_weight`` times the number of evaluated agents that leave the road at some
+    simulated step (``simulated_offroad``: it reads nothing of the logged future); the lowest
+    scores are kept, ties in sampling order. The spec's submission uses ``w_road_edge = 0``,
+    the default here too. Rollouts cover the 80 steps after the current one, also on a
+    history-only scene (the WOSAC test split).
     """
     if not math.isfinite(road_edge_weight) or road_edge_weight < 0:
         raise ValueError(f"road_edge_weight must be finite and >= 0, got {road_edge_weight}")
-    if road_edge_weight > 0:
-        scenario.require_log_until(
-            wosac_end_step(scenario), "ranking rollouts by off-road agents (road_edge_weight)"
-        )
     grid = wosac_scenario(scenario)  # the scenario itself unless its log is shorter
     tokens = preprocess_scenario(grid, token_config or TokenConfig())
     gen = torch.Generator(device=model.device).manual_seed(int(seed))
@@ -78,7 +71,7 @@ def trafficbots_rollouts(
     rollouts = _to_rollouts(grid, tokens, samples.pose[0], samples.valid[0])
     if road_edge_weight == 0:
         return rollouts
-    offroad = offroad_indication(scenario, rollouts).sum(-1)  # [n]
+    offroad = simulated_offroad(grid, rollouts).sum(-1)  # [n]
     score = samples.score[0].to(offroad.device) + road_edge_weight * offroad
     keep = torch.sort(score, stable=True).indices[:num_rollouts]
     return rollouts.select(keep)

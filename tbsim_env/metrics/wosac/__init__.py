@@ -27,6 +27,7 @@ from tbsim_env.metrics.wosac.scoring import (
     offroad_indication,
     scenario_features,
     score_scenario,
+    simulated_offroad,
 )
 from tbsim_env.metrics.wosac.submission import (
     SubmissionError,
@@ -63,6 +64,7 @@ __all__ = [
     "rollouts_to_proto",
     "scenario_features",
     "score_scenario",
+    "simulated_offroad",
     "score_submission_file",
     "scores_table",
     "scores_to_json",

@@ -240,9 +240,13 @@ class ScenarioFeatures:
 
 
 def _trajectories(
-    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None
+    scenario: Scenario,
+    rollouts: Rollouts,
+    device: torch.device | str | None,
+    require_future: bool = True,
 ) -> tuple[MetricObjects, ObjectTrajectories, ObjectTrajectories]:
-    """Check the rollouts against the scenario; (objects, log [1, N, T], sim [R, N, T])."""
+    """Check the rollouts against the scenario; (objects, log [1, N, T], sim [R, N, T]).
+    Without ``require_future`` the log may end at the current step (its future invalid)."""
     device = rollouts.x.device if device is None else torch.device(device)
     if rollouts.scenario_id != scenario.scenario_id:
         raise ScoringError(
@@ -252,7 +256,8 @@ def _trajectories(
     if impossible:
         raise ScoringError(f"scenario {scenario.scenario_id} ({scenario.source}): {impossible}")
     first = scenario.current_index + 1
-    scenario.require_log_until(scenario.current_index + rollouts.num_steps, "WOSAC scoring")
+    if require_future:
+        scenario.require_log_until(scenario.current_index + rollouts.num_steps, "WOSAC scoring")
     if first + rollouts.num_steps != scenario.num_steps:
         raise ScoringError(
             f"scenario {scenario.scenario_id}: rollouts have {rollouts.num_steps} steps, "
@@ -319,6 +324,31 @@ def offroad_indication(
         slice_steps(sim, slice(first, None)), road_edge_segments(scenario, log.x.device)
     )
     return _indication(dist > 0.0, log.valid[0, : objects.num_eval, first:])
+
+
+def simulated_offroad(
+    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """Which evaluated objects leave the road in each rollout, at any simulated step.
+
+    ``offroad_indication`` counts only the steps where the log is valid (as WOSAC scores);
+    this flag counts every simulated step, so it reads nothing of the log's future: a
+    history-only scene on WOSAC's time grid (``sim.horizon.wosac_scenario``, the test split)
+    works too. What a submission may rank its own samples by.
+
+    Returns:
+        [R, E] bool, E = the evaluated objects (SDC and tracks to predict that are sim agents).
+
+    Raises:
+        ScoringError, MapFeatureError: as ``score_scenario``.
+    """
+    scenario = scenario.motion_window()
+    objects, log, sim = _trajectories(scenario, rollouts, device, require_future=False)
+    first = scenario.current_index + 1
+    dist = distance_to_road_edge(
+        slice_steps(sim, slice(first, None)), road_edge_segments(scenario, log.x.device)
+    )
+    return (dist > 0.0).any(-1)
 
 
 def score_scenario(
