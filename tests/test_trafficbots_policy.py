@@ -95,3 +95,32 @@ def test_trimmed_policy_drives_like_the_padded_one(policy, scenario) -> None:
     assert not (ps_pad.slot[:, n_used:] >= 0).any()
     assert (a_pad.abs() > 0).any() and torch.allclose(a_pad, a_trim, atol=1e-4)
     assert TrafficEnv([scenario]).npc_policy.trim
+
+
+def test_trafficenv_reuses_each_scenes_encoding_exactly() -> None:
+    """``TrafficEnv`` keeps each scene's tokens and encoding: returning to a scene starts from
+    them, and every episode is the one a policy that computes them each time drives."""
+    import numpy as np
+
+    from tbsim_env.data.generator import default_scenarios
+    from tbsim_env.env import TrafficEnv
+
+    scenes = default_scenarios(2)
+
+    def episodes(cache: bool) -> tuple[list[np.ndarray], TrafficEnv]:
+        env = TrafficEnv(scenes, controlled="sdc", npc_policy="trafficbots")
+        env.npc_policy.cache_scenes = cache
+        poses = []
+        for seed, k in enumerate((0, 1, 0)):  # scene 0 again from its cache
+            env.reset(seed=seed, options={"scenario_index": k})
+            for _ in range(12):
+                if not env.agents:
+                    break
+                env.step({a: np.zeros(2, np.float32) for a in env.agents})
+                poses.append(env.sim_state.pose.numpy().copy())
+        return poses, env
+
+    (cached, env), (fresh, _) = episodes(True), episodes(False)
+    entries = list(env.npc_policy.scene_cache.values())
+    assert len(entries) == 2 and all(e.encoding is not None for e in entries)
+    assert all(np.array_equal(a, b) for a, b in zip(cached, fresh, strict=True))

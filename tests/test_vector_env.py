@@ -478,8 +478,9 @@ def test_trafficbots_restarts_from_its_scene_caches_exactly(scenes):
 
     def run(cache: bool) -> tuple[list[torch.Tensor], int]:
         venv = BatchedTrafficEnv(scenes, 2, controlled="sdc", npc_policy="trafficbots", seed=4)
-        if not cache:
-            venv.npc_policy.scene_cache.clear()  # preprocess and predict on every restart
+        if not cache:  # preprocess and encode on every restart
+            venv.npc_policy.scene_cache.clear()
+            venv.npc_policy.cache_scenes = False
         venv.reset()
         poses, restarts = [], 0
         for _ in range(100):

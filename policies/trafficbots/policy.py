@@ -57,18 +57,22 @@ class TrafficBotsPolicyState:
 
 @dataclass
 class SceneCache:
-    """What a bound policy keeps of one scenario (it depends on the scene only).
+    """What a policy keeps of one scenario (it depends on the scene only).
 
     Attributes:
         scenario: the scenario object (entries are keyed by its ``id``).
         tokens: its preprocessed ``SceneTokens``.
         encoding: the model's ``SceneEncoding`` of it (map, TL precompute, destination
-            distribution), batch 1 (None until its first start).
+            distribution, attention keys and values of the map), batch 1 (None until its
+            first start).
+        rows: the (agents, map pieces, TL tokens) token rows ``encoding`` was computed on
+            (a trimmed batch's rows depend on the scenes in it).
     """
 
     scenario: Scenario
     tokens: SceneTokens
     encoding: SceneEncoding | None = None
+    rows: tuple[int, int, int] | None = None
 
 
 def _match(keys: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
@@ -93,6 +97,9 @@ class TrafficBotsPolicy:
         scene_cache: what a restart needs of each scenario this policy will start from
             (``for_scenarios`` fills it): ``id(scenario)`` -> ``SceneCache``, so that a restart
             neither preprocesses the scene again nor reruns the network on it (``SceneEncoding``).
+        cache_scenes: also keep the entry of every other scenario it starts (``TrafficEnv``,
+            which resets into the same scenes again and again): memory grows with the
+            scenes started, by about their preprocessed tokens.
     """
 
     name = "trafficbots"
@@ -105,17 +112,25 @@ class TrafficBotsPolicy:
         trim: bool = False,
         min_rows: tuple[int, int, int] | None = None,
         scene_cache: dict[int, SceneCache] | None = None,
+        cache_scenes: bool = False,
     ) -> None:
         self.model = model.eval()
         self.token_config = token_config or TokenConfig()
         self.trim = trim
         self.min_rows = min_rows
         self.scene_cache = scene_cache or {}
+        self.cache_scenes = cache_scenes
 
-    def _cached(self, scenario: Scenario) -> SceneCache | None:
-        """The cache entry of this very scenario object, if it was bound."""
+    def _entry(self, scenario: Scenario) -> SceneCache:
+        """The cache entry of this very scenario object; a new one (kept with
+        ``cache_scenes``) if there is none."""
         hit = self.scene_cache.get(id(scenario))
-        return hit if hit is not None and hit.scenario is scenario else None
+        if hit is not None and hit.scenario is scenario:
+            return hit
+        entry = SceneCache(scenario, preprocess_scenario(scenario, self.token_config))
+        if self.cache_scenes:
+            self.scene_cache[id(scenario)] = entry
+        return entry
 
     def for_scenarios(self, scenarios: Sequence[Scenario]) -> TrafficBotsPolicy:
         """This policy with state shapes fixed for any batch drawn from ``scenarios``.
@@ -139,7 +154,12 @@ class TrafficBotsPolicy:
             used = TokenBatch.from_tokens(tokens).rows_used()
             rows = [max(a, b) for a, b in zip(rows, used, strict=True)]
         return TrafficBotsPolicy(
-            self.model, self.token_config, trim=True, min_rows=tuple(rows), scene_cache=cache
+            self.model,
+            self.token_config,
+            trim=True,
+            min_rows=tuple(rows),
+            scene_cache=cache,
+            cache_scenes=self.cache_scenes,
         )
 
     @classmethod
@@ -161,24 +181,10 @@ class TrafficBotsPolicy:
         dev = state.device
         if dev != self.model.device:
             raise ValueError(f"simulator on {dev} but the TrafficBots model on {self.model.device}")
-        cached = [self._cached(sc) for sc in scenarios]
-        tokens = [
-            c.tokens if c is not None else preprocess_scenario(sc, self.token_config)
-            for c, sc in zip(cached, scenarios)
-        ]
-        batch = TokenBatch.from_tokens(tokens, device=self.model.device)
-        if self.trim:
-            batch = batch.trim(self.min_rows)
+        entries = [self._entry(sc) for sc in scenarios]
+        tokens = [e.tokens for e in entries]
+        ctx, batch = self._prepare(entries, generator)
         n_ag, n_tl = batch.ag_type.shape[1], batch.tl_piece.shape[1]
-        scene = None
-        if all(c is not None and c.encoding is not None for c in cached):
-            scene = cat_rows([c.encoding for c in cached])
-        ctx = self.model.prepare(batch, 1, generator, scene=scene)
-        if scene is None:
-            encoding = ctx.scene()
-            for i, c in enumerate(cached):
-                if c is not None:
-                    c.encoding = take_rows(encoding, torch.tensor([i], device=dev))
         tok_track = np.stack([t.agent_track_index[:n_ag] for t in tokens])  # trimmed rows
         slot = _match(torch.as_tensor(tok_track, device=dev), state.agents.track_index)
         lane_ids = []
@@ -201,6 +207,26 @@ class TrafficBotsPolicy:
             )
         tl_pred = torch.zeros_like(tl_signal)
         return TrafficBotsPolicyState(ctx, rollout, slot, tl_signal, offset, tl_pred)
+
+    def _prepare(
+        self, entries: list[SceneCache], generator: torch.Generator
+    ) -> tuple[RolloutContext, TokenBatch]:
+        """The model's context of the entries' scenes (their cached encodings when all were
+        computed on these token rows; otherwise computed and cached) and their token batch."""
+        batch = TokenBatch.from_tokens([e.tokens for e in entries], device=self.model.device)
+        if self.trim:
+            batch = batch.trim(self.min_rows)
+        rows = (batch.ag_type.shape[1], batch.mp_valid.shape[1], batch.tl_piece.shape[1])
+        scene = None
+        if all(e.encoding is not None and e.rows == rows for e in entries):
+            scene = cat_rows([e.encoding for e in entries])
+        ctx = self.model.prepare(batch, 1, generator, scene=scene)
+        if scene is None:
+            encoding = ctx.scene()
+            for i, e in enumerate(entries):
+                e.encoding = take_rows(encoding, torch.tensor([i], device=batch.device))
+                e.rows = rows
+        return ctx, batch
 
     @staticmethod
     def _log_agents(state: SimState, slot: torch.Tensor, offset: torch.Tensor, t: torch.Tensor):

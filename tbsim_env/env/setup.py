@@ -108,12 +108,14 @@ def make_npc_policy(
     npc_policy: str | Policy, kwargs: dict[str, Any] | None, device: torch.device
 ) -> Policy:
     """The NPC policy of an env: a ``Policy`` as given, or a registered name built with
-    ``kwargs`` (``"trafficbots"`` on the env's device and trimmed to the token rows the
-    scenarios use, unless ``kwargs`` say otherwise)."""
+    ``kwargs`` (``"trafficbots"`` on the env's device, trimmed to the token rows the
+    scenarios use and keeping each scene's tokens and encoding for its next episodes, unless
+    ``kwargs`` say otherwise)."""
     kwargs = dict(kwargs or {})
     if npc_policy == "trafficbots":
         kwargs.setdefault("device", str(device))
         kwargs.setdefault("trim", True)
+        kwargs.setdefault("cache_scenes", True)
     return make_policy(npc_policy, **kwargs)
 
 
