@@ -179,7 +179,7 @@ def training_step(
     has_loss = loss_valid.any(-1)  # [B, N]
     l_kl, kl_raw = kl_loss(ctx.post_mean, ctx.post_log_std, ctx.post_valid & has_loss, loss_cfg)
     hist_valid = batch.ag_valid[..., : model.cfg.n_history].any(-1)
-    l_dest = destination_loss(ctx.dest_logits, batch.ag_dest, hist_valid & has_loss)
+    l_dest = destination_loss(ctx.scene.dest_logits, batch.ag_dest, hist_valid & has_loss)
     l_tl = tl_state_loss(traj.tl_logits, batch.tl_state, ctx.tl.valid)
     loss = l_kl + l_il + l_dest + l_tl
     logs = {

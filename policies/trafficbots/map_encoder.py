@@ -5,7 +5,6 @@ Run once per scenario; the output ``MapTokens`` is reused at every step and by e
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -40,17 +39,6 @@ class MapTokens:
     node_pose: torch.Tensor
     node_valid: torch.Tensor
     cls: torch.Tensor
-
-    def repeat(self, n: int) -> MapTokens:
-        """Repeat every field ``n`` times along the batch (``repeat_interleave``)."""
-        if n == 1:
-            return self
-        return MapTokens(
-            **{
-                f.name: getattr(self, f.name).repeat_interleave(n, dim=0)
-                for f in dataclasses.fields(self)
-            }
-        )
 
 
 class MapEncoder(nn.Module):

@@ -59,12 +59,12 @@ def rand(
     return torch.rand(shape, generator=generator, device=gen_device).to(device)
 
 
-def _repeat(clusters: PieceClusters | None, n: int) -> PieceClusters | None:
-    """Each row of ``clusters`` ``n`` times in a row (scene-major rollouts)."""
-    if clusters is None or n == 1:
-        return clusters
-    b = clusters.members.shape[0]
-    return take_rows(clusters, torch.arange(b, device=clusters.members.device).repeat_interleave(n))
+def _repeat(scene: SceneEncoding, n: int) -> SceneEncoding:
+    """Each row of ``scene`` ``n`` times in a row (scene-major rollouts)."""
+    if n == 1:
+        return scene
+    b = scene.dest_logits.shape[0]
+    return take_rows(scene, torch.arange(b, device=scene.dest_logits.device).repeat_interleave(n))
 
 
 @dataclass(frozen=True)
@@ -125,8 +125,7 @@ class RolloutContext:
     """Per-rollout constants, batch B' = B scenes * n_rollouts (scene-major).
 
     Attributes:
-        mp: encoded map, repeated.
-        tl: static TL tensors, repeated.
+        scene: the scenes' ``SceneEncoding``, each row repeated for its rollouts.
         ag_type: [B', N] ``ObjectType``.
         ag_attr: [B', N, 6].
         z: [B', N, Z] personality latent.
@@ -134,19 +133,13 @@ class RolloutContext:
         dest: [B', N] int64 destination map rows.
         dest_valid: [B', N] bool.
         n_rollouts: rollouts per scene.
-        dest_logits: [B, N, M] destination logits (per scene, not repeated).
-        dest_usable: [B, N] bool.
-        ag_map_kv: [B', M, 2d] per agent-encoder layer, ``AgentEncoder.map_kv``, repeated.
-        tl_map_kv: [B', M, 2d] per TL-encoder layer, ``TLEncoder.map_kv``, repeated.
-        map_clusters: ``SceneEncoding.map_clusters``, repeated.
         post_mean: [B, N, Z] posterior mean, or None if the posterior was not computed.
         post_log_std: [B, N, Z] or None.
         post_valid: [B, N] bool or None.
         hold: [B', N] bool agents held at rest (``InferenceConfig.hold_parked``), or None.
     """
 
-    mp: MapTokens
-    tl: TLContext
+    scene: SceneEncoding
     ag_type: torch.Tensor
     ag_attr: torch.Tensor
     z: torch.Tensor
@@ -154,23 +147,28 @@ class RolloutContext:
     dest: torch.Tensor
     dest_valid: torch.Tensor
     n_rollouts: int
-    dest_logits: torch.Tensor
-    dest_usable: torch.Tensor
-    ag_map_kv: tuple[torch.Tensor, ...]
-    tl_map_kv: tuple[torch.Tensor, ...]
-    map_clusters: PieceClusters | None
     post_mean: torch.Tensor | None = None
     post_log_std: torch.Tensor | None = None
     post_valid: torch.Tensor | None = None
     hold: torch.Tensor | None = None
 
-    def scene(self) -> SceneEncoding:
+    @property
+    def mp(self) -> MapTokens:
+        """The encoded map of every rollout."""
+        return self.scene.mp
+
+    @property
+    def tl(self) -> TLContext:
+        """The static TL tensors of every rollout."""
+        return self.scene.tl
+
+    def per_scene(self) -> SceneEncoding:
         """The ``SceneEncoding`` of these rollouts' scenes (row i: scene i)."""
         n = self.n_rollouts
+        if n == 1:
+            return self.scene
         rows = torch.arange(0, self.ag_type.shape[0], n, device=self.ag_type.device)
-        per_rollout = (self.mp, self.tl, self.ag_map_kv, self.tl_map_kv, self.map_clusters)
-        mp, tl, ag_kv, tl_kv, clusters = per_rollout if n == 1 else take_rows(per_rollout, rows)
-        return SceneEncoding(mp, tl, self.dest_logits, self.dest_usable, ag_kv, tl_kv, clusters)
+        return take_rows(self.scene, rows)
 
 
 @dataclass(frozen=True)
@@ -298,8 +296,7 @@ class TrafficBots(nn.Module):
             dest_idx = self._sample_destinations(batch, n, generator, scene.dest_logits)
             dest_valid = scene.dest_usable.repeat_interleave(n, 0)
         return RolloutContext(
-            mp=mp.repeat(n),
-            tl=tl.repeat(n),
+            scene=_repeat(scene, n),
             ag_type=batch.ag_type.repeat_interleave(n, 0),
             ag_attr=attr.repeat_interleave(n, 0),
             z=z,
@@ -307,11 +304,6 @@ class TrafficBots(nn.Module):
             dest=dest_idx,
             dest_valid=dest_valid,
             n_rollouts=n,
-            dest_logits=scene.dest_logits,
-            dest_usable=scene.dest_usable,
-            ag_map_kv=tuple(kv.repeat_interleave(n, 0) for kv in scene.ag_map_kv),
-            tl_map_kv=tuple(kv.repeat_interleave(n, 0) for kv in scene.tl_map_kv),
-            map_clusters=_repeat(scene.map_clusters, n),
             post_mean=post_mean,
             post_log_std=post_log_std,
             post_valid=post_valid,
@@ -538,7 +530,9 @@ class TrafficBots(nn.Module):
         state = self.observe(state, ag_pose, ag_speed, ag_valid, tl_state)
         ag_pose = ag_pose.detach()
         vmask = ag_valid[..., None].to(ag_pose.dtype)
-        tl_feat = self.tl_encoder(state.hist_tl_state, state.hist_tl_present, ctx.tl, ctx.tl_map_kv)
+        tl_feat = self.tl_encoder(
+            state.hist_tl_state, state.hist_tl_present, ctx.tl, ctx.scene.tl_map_kv
+        )
         tl_logits = self.tl_head(tl_feat)
         motion = state.hist_motion
         if not self.training and self.inference.clip_history_motion:
@@ -549,7 +543,12 @@ class TrafficBots(nn.Module):
             motion,
             ctx.ag_attr,
             AgentContext(
-                ctx.mp, ctx.ag_map_kv, tl_feat, ctx.tl.pose, ctx.tl.valid, ctx.map_clusters
+                ctx.mp,
+                ctx.scene.ag_map_kv,
+                tl_feat,
+                ctx.tl.pose,
+                ctx.tl.valid,
+                ctx.scene.map_clusters,
             ),
         )
         reached = state.dest_reached | (

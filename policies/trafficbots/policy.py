@@ -222,7 +222,7 @@ class TrafficBotsPolicy:
             scene = cat_rows([e.encoding for e in entries])
         ctx = self.model.prepare(batch, 1, generator, scene=scene)
         if scene is None:
-            encoding = ctx.scene()
+            encoding = ctx.per_scene()
             for i, e in enumerate(entries):
                 e.encoding = take_rows(encoding, torch.tensor([i], device=batch.device))
                 e.rows = rows

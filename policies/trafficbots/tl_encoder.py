@@ -7,7 +7,6 @@ is precomputed once per scenario in a ``TLContext``.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -21,6 +20,7 @@ from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
 from tbsim_env.constants import NUM_TL_STATES
+from tbsim_env.rows import take_rows
 from tbsim_env.torch_utils import listed
 
 
@@ -55,26 +55,6 @@ class TLContext:
     map_idx: torch.Tensor
     map_mask: torch.Tensor
     map_rpe: torch.Tensor
-
-    def repeat(self, n: int) -> TLContext:
-        """Repeat every field ``n`` times along the batch."""
-        if n == 1:
-            return self
-        return TLContext(
-            **{
-                f.name: getattr(self, f.name).repeat_interleave(n, dim=0)
-                for f in dataclasses.fields(self)
-            }
-        )
-
-    def rows(self, rows: torch.Tensor) -> TLContext:
-        """The context of the batch rows ``rows`` [B'] int64."""
-        return TLContext(
-            **{
-                f.name: getattr(self, f.name).index_select(0, rows)
-                for f in dataclasses.fields(self)
-            }
-        )
 
 
 def tl_context(
@@ -169,7 +149,7 @@ class TLEncoder(nn.Module):
         out = ctx.lane_feat.new_zeros(ctx.lane_feat.shape)  # [B, L, d]
         if rows.numel():
             kv = tuple(t.index_select(0, rows) for t in map_kv)
-            out[rows] = self._encode(state[rows], step_valid[rows], ctx.rows(rows), kv)
+            out[rows] = self._encode(state[rows], step_valid[rows], take_rows(ctx, rows), kv)
         return out
 
     def _encode(
