@@ -232,18 +232,21 @@ def _dense(x: torch.Tensor) -> torch.Tensor:
 
 
 def init_history(state: SimState, length: int) -> History:
-    """History window ending at the state's step, filled from the log (oldest first)."""
-    n_t = state.log.valid.shape[-1]
+    """History window ending at the state's step, filled from the log (oldest first).
+
+    The log's time-major ``by_step`` blocks already hold a step's (x, y, yaw, speed, valid) in
+    ``History.data``'s layout: one ``index_select`` of the H steps of every row, then a
+    transpose, instead of a gather per field.
+    """
+    n_b, n_t = state.batch_size, state.log.valid.shape[-1]
     steps = state.step[:, None] - torch.arange(length - 1, -1, -1, device=state.device)  # [B, H]
     inside = steps >= 0
-    idx = steps.clamp(0, n_t - 1)[:, None, :].expand(-1, state.num_agents, -1)
-    pose = state.log.pose.gather(2, idx[..., None].expand(-1, -1, -1, 3))
-    speed = state.log.speed.gather(2, idx)
-    valid = state.log.valid.gather(2, idx) & inside[:, None, :]
-    valid[..., -1] = state.valid
-    pose[..., -1, :] = state.pose
-    speed[..., -1] = state.speed
-    return History(data=torch.cat([pose, speed[..., None], valid[..., None].float()], -1))
+    rows = cached_arange(n_b, state.device)[:, None] * n_t + steps.clamp(0, n_t - 1)
+    blocks = state.log.by_step.flatten(0, 1).index_select(0, rows.reshape(-1))  # [B H, N, 5]
+    data = blocks.view(n_b, length, -1, 5).transpose(1, 2).contiguous()  # [B, N, H, 5]
+    data[..., 4] *= inside[:, None, :]
+    data[..., -1, :] = _history_row(state)[..., 0, :]
+    return History(data=data)
 
 
 def _history_row(state: SimState) -> torch.Tensor:
