@@ -184,11 +184,13 @@ def nearest_pieces(
     [B, Q, k], ranked by ``sim.knn.k_nearest`` over every piece. With ``rows`` [B] int64,
     observer row b is in the scene of map row ``rows[b]``.
 
-    Eagerly, maps with more pieces than the clustered search measures use it when there are
-    ``MAP_KNN_MIN_OBSERVERS`` observers per map row or more; the observers it does not hold
-    for (~1% on the real samples) are searched in full. A compiled graph cannot size tensors
-    by that; it searches every piece (fused, that costs less there than the gathers of the
-    clustered search).
+    Eagerly on the CPU, maps with more pieces than the clustered search measures use it when
+    there are ``MAP_KNN_MIN_OBSERVERS`` observers per map row or more; the observers it does
+    not hold for (~1% on the real samples) are searched in full. A compiled graph cannot size
+    tensors by that; it searches every piece (fused, that costs less there than the gathers
+    of the clustered search). Neither does a GPU, where finding those observers would cost a
+    host sync every call, and measuring every piece costs idle lanes rather than time (the
+    rule of ``torch_utils.listed``).
 
     Args:
         points: [B', 1, M, 2] piece anchor points, +inf for invalid pieces.
@@ -206,7 +208,7 @@ def nearest_pieces(
         and clusters_pay(m, clusters.members.shape[-1])
         and observers >= C.MAP_KNN_MIN_OBSERVERS * points.shape[0]
     )
-    if not clustered or torch.compiler.is_compiling():
+    if not clustered or points.device.type != "cpu" or torch.compiler.is_compiling():
         return _all_pieces(points if rows is None else points[rows], me_xy, k, within)
     cand, bound, xy = candidate_pieces(clusters, me_xy, searched, rows)  # xy [B, Q, C, 2]
     dx = xy[..., 0] - me_xy[..., 0:1]

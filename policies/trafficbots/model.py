@@ -108,7 +108,7 @@ class SceneEncoding:
         ag_map_kv: the agent encoder's keys and values of the map, [B, M, 2d] per layer.
         tl_map_kv: the TL encoder's, likewise.
         map_clusters: the map pieces' ``PieceClusters`` for the agents' nearest-piece search
-            (eval mode, maps large enough for it to pay), else None.
+            (eval mode on the CPU, maps large enough for it to pay), else None.
     """
 
     mp: MapTokens
@@ -333,7 +333,7 @@ class TrafficBots(nn.Module):
         ag_map_kv = self.agent_encoder.map_kv(mp.feat)
         tl_map_kv = self.tl_encoder.map_kv(mp.feat)
         clusters = None
-        if not self.training and clusters_pay(mp.pose.shape[1]):
+        if not self.training and mp.pose.device.type == "cpu" and clusters_pay(mp.pose.shape[1]):
             # Fixed shapes, so that single scenes' encodings join into batches (restarts).
             clusters = build_piece_clusters(mp.pose[..., :2], mp.valid, fixed_shape=True)
         return SceneEncoding(mp, tl, dest_logits, dest_usable, ag_map_kv, tl_map_kv, clusters)
