@@ -317,13 +317,8 @@ def offroad_indication(
     Raises:
         ScoringError, MissingFutureError, MapFeatureError: as ``score_scenario``.
     """
-    scenario = scenario.motion_window()
-    objects, log, sim = _trajectories(scenario, rollouts, device)
-    first = scenario.current_index + 1
-    dist = distance_to_road_edge(
-        slice_steps(sim, slice(first, None)), road_edge_segments(scenario, log.x.device)
-    )
-    return _indication(dist > 0.0, log.valid[0, : objects.num_eval, first:])
+    offroad, log_valid = _offroad_per_step(scenario, rollouts, device, require_future=True)
+    return _indication(offroad, log_valid)
 
 
 def simulated_offroad(
@@ -342,13 +337,24 @@ def simulated_offroad(
     Raises:
         ScoringError, MapFeatureError: as ``score_scenario``.
     """
+    return _offroad_per_step(scenario, rollouts, device, require_future=False)[0].any(-1)
+
+
+def _offroad_per_step(
+    scenario: Scenario,
+    rollouts: Rollouts,
+    device: torch.device | str | None,
+    require_future: bool,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(evaluated objects with a box corner past the road edge [R, E, F] bool, the log's
+    validity at those future steps [E, F] bool) of the scenario in WOSAC's motion window."""
     scenario = scenario.motion_window()
-    objects, log, sim = _trajectories(scenario, rollouts, device, require_future=False)
+    objects, log, sim = _trajectories(scenario, rollouts, device, require_future)
     first = scenario.current_index + 1
     dist = distance_to_road_edge(
         slice_steps(sim, slice(first, None)), road_edge_segments(scenario, log.x.device)
     )
-    return (dist > 0.0).any(-1)
+    return dist > 0.0, log.valid[0, : objects.num_eval, first:]
 
 
 def score_scenario(
