@@ -123,7 +123,7 @@ class AgentContext(NamedTuple):
     Attributes:
         mp: encoded map (features are not detached).
         map_kv: each layer's ``context_kv`` of the map tokens, [B, M, 2d] per layer
-            (``AgentEncoder.map_kv``, computed once per rollout), or None to compute them.
+            (``AgentEncoder.map_kv``, computed once per rollout).
         tl_feat: [B, L, d] TL features of this step.
         tl_pose: [B, L, 3].
         tl_valid: [B, L] bool.
@@ -132,7 +132,7 @@ class AgentContext(NamedTuple):
     """
 
     mp: MapTokens
-    map_kv: tuple[torch.Tensor, ...] | None
+    map_kv: tuple[torch.Tensor, ...]
     tl_feat: torch.Tensor
     tl_pose: torch.Tensor
     tl_valid: torch.Tensor
@@ -197,8 +197,7 @@ class AgentEncoder(nn.Module):
         s_rpe = rpe(s_rel, cfg)
         own = Neighbours(s_idx, s_mask, s_rpe)
         near = Neighbours(ctx_idx, ctx_mask, ctx_rpe)
-        map_kv = ctx.map_kv if ctx.map_kv is not None else self.map_kv(mp.feat)
-        for layer, kv in zip(self.layers, map_kv, strict=True):
+        for layer, kv in zip(self.layers, ctx.map_kv, strict=True):
             # Context rows: the map pieces, then the TL tokens.
             ctx_kv = torch.cat([kv, layer.context_kv(ctx.tl_feat)], dim=1)  # [B, M + L, 2d]
             x = layer(x, ag_valid, own, ctx_kv, near)

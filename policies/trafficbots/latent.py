@@ -62,13 +62,15 @@ class Posterior(nn.Module):
         )
         tl_win = tl_state[..., steps]  # [B, L, 19]
         tl_step_valid = tl_ctx.valid[..., None].expand_as(tl_win)
-        tl_feat = self.tl_encoder(tl_win, tl_step_valid, tl_ctx)
+        tl_feat = self.tl_encoder(tl_win, tl_step_valid, tl_ctx, self.tl_encoder.map_kv(mp.feat))
         feat, _, valid = self.agent_encoder(
             ag_valid[..., steps],
             ag_pose[..., steps, :],
             ag_motion[..., steps, :],
             ag_attr,
-            AgentContext(mp, None, tl_feat, tl_ctx.pose, tl_ctx.valid),
+            AgentContext(
+                mp, self.agent_encoder.map_kv(mp.feat), tl_feat, tl_ctx.pose, tl_ctx.valid
+            ),
         )
         mean = self.mean(feat)
         return mean, self.log_std.expand_as(mean), valid

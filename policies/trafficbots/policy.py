@@ -224,8 +224,9 @@ class TrafficBotsPolicy:
         if scene is None:
             encoding = ctx.per_scene()
             for i, e in enumerate(entries):
-                e.encoding = take_rows(encoding, torch.tensor([i], device=batch.device))
-                e.rows = rows
+                if self.scene_cache.get(id(e.scenario)) is e:  # kept: worth a copy of its row
+                    e.encoding = take_rows(encoding, torch.tensor([i], device=batch.device))
+                    e.rows = rows
         return ctx, batch
 
     @staticmethod

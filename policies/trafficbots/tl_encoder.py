@@ -40,9 +40,9 @@ class TLContext:
         lane_feat: [B, L, d] map feature of the lane piece, detached (spec 3.2 step 3).
         self_idx, self_mask, self_rpe: TL -> TL neighbours [B, L, Ks], [B, L, Ks],
             [B, L, Ks, rpe_dim].
-        map_feat: [B, M, d] map token features (not detached).
-        map_idx, map_mask, map_rpe: TL -> map neighbours, rows of ``map_feat`` [B, L, Km],
-            [B, L, Km], [B, L, Km, rpe_dim].
+        map_idx, map_mask, map_rpe: TL -> map neighbours, rows of the map tokens [B, L, Km],
+            [B, L, Km], [B, L, Km, rpe_dim] (the encoder reads the map as ``TLEncoder.map_kv``
+            of its features).
     """
 
     pose: torch.Tensor
@@ -51,7 +51,6 @@ class TLContext:
     self_idx: torch.Tensor
     self_mask: torch.Tensor
     self_rpe: torch.Tensor
-    map_feat: torch.Tensor
     map_idx: torch.Tensor
     map_mask: torch.Tensor
     map_rpe: torch.Tensor
@@ -84,7 +83,6 @@ def tl_context(
         self_idx=s_idx,
         self_mask=s_mask,
         self_rpe=rpe(s_rel, cfg),
-        map_feat=mp.feat,
         map_idx=m_idx,
         map_mask=m_mask,
         map_rpe=rpe(m_rel, cfg),
@@ -111,10 +109,11 @@ class TLEncoder(nn.Module):
         )
 
     def map_kv(self, map_feat: torch.Tensor) -> tuple[torch.Tensor, ...]:
-        """Each layer's keys and values of the map tokens [B, M, d]: [B, M, 2d] per layer.
+        """Each layer's keys and values of the map tokens [B, M, d] (features not detached):
+        [B, M, 2d] per layer, what ``forward`` reads of the map.
 
-        The map does not change during a rollout: ``prepare`` computes these once and
-        ``forward`` takes them instead of projecting the map every step.
+        The map does not change during a rollout: ``prepare`` computes these once instead of
+        projecting the map every step.
         """
         return tuple(layer.context_kv(map_feat) for layer in self.layers)
 
@@ -123,7 +122,7 @@ class TLEncoder(nn.Module):
         state: torch.Tensor,
         step_valid: torch.Tensor,
         ctx: TLContext,
-        map_kv: tuple[torch.Tensor, ...] | None = None,
+        map_kv: tuple[torch.Tensor, ...],
     ) -> torch.Tensor:
         """Encode.
 
@@ -135,13 +134,11 @@ class TLEncoder(nn.Module):
             state: [B, L, W] int64 ``TLState`` per window step (W <= n_time, newest last).
             step_valid: [B, L, W] bool, the window step exists.
             ctx: static TL tensors.
-            map_kv: ``map_kv(ctx.map_feat)``, computed before (None: computed here).
+            map_kv: ``map_kv`` of the encoded map.
 
         Returns:
             [B, L, d] TL token features (0 for invalid tokens).
         """
-        if map_kv is None:
-            map_kv = self.map_kv(ctx.map_feat)
         lit = None if self.training else listed(ctx.valid.any(-1, keepdim=True))
         if lit is None:
             return self._encode(state, step_valid, ctx, map_kv)
