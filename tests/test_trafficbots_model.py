@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -121,6 +122,37 @@ def test_step_api_reproduces_rollout_and_sees_external_agents(small_model, token
     assert state.hist_valid.shape[-1] == 11
     # The input state is never mutated (explicit, functional state).
     assert small_model.initial_state(ctx).step == 0
+
+
+def test_tl_features_are_kept_only_while_the_window_is_unchanged(small_model, tokens) -> None:
+    """A scene whose lights held their state through the TL window keeps last step's TL
+    features and is not encoded again; they equal a fresh encoding at every step."""
+    batch = TokenBatch.from_tokens([tokens, tokens, tokens])
+    n_b, n_tl = batch.tl_piece.shape
+    steps = 30
+    tl = torch.zeros(n_b, n_tl, steps, dtype=torch.long)
+    tl[1, 0, 15:] = 3  # scene 1: one light changes at step 15
+    tl[2, :, ::7] = 4  # scene 2: blinks every 7 steps (the window never settles)
+    pose = batch.ag_pose[..., 10, :] * batch.ag_valid[..., 10, None]
+    speed, valid = batch.ag_motion[..., 10, 0], batch.ag_valid[..., 10]
+    encoded = []
+    enc = small_model.tl_encoder
+    with torch.no_grad(), mock.patch.object(enc, "_encode", wraps=enc._encode) as spy:
+        ctx = small_model.prepare(batch, 1, torch.Generator().manual_seed(0))
+        state = small_model.initial_state(ctx)
+        for t in range(steps):
+            spy.reset_mock()
+            _, state = small_model.step(ctx, state, pose, speed, valid, tl[..., t])
+            encoded.append(sum(c.args[0].shape[0] for c in spy.call_args_list))
+            fresh = small_model.tl_encoder._encode(
+                state.hist_tl_state, state.hist_tl_present, ctx.tl, ctx.scene.tl_map_kv
+            )
+            torch.testing.assert_close(state.tl_feat, fresh, rtol=0, atol=1e-5)
+    assert batch.tl_valid.any() and state.tl_feat.abs().sum() > 0
+    # Rows encoded per step: all 3 until the windows fill (11 steps), then scene 2 (every
+    # step), scene 1 again from its change until the change leaves the window.
+    want = [3] * 11 + [1] * 4 + [2] * 11 + [1] * 4
+    assert encoded == want
 
 
 def test_seeded_sampling_is_reproducible_and_seed_dependent(small_model, tokens) -> None:

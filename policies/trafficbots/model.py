@@ -185,6 +185,9 @@ class RolloutState:
         hist_tl_state: [B', L, W] int64 ``TLState``.
         hist_tl_present: [B', L, W] bool, the window slot holds a step.
         dest_reached: [B', N] bool, destination conditioning switched off.
+        tl_feat: [B', L, d] the TL encoder's features of the last ``step`` (0 before).
+        tl_known: [B'] bool, ``tl_feat`` holds the features of the current TL window; False
+            until a ``step`` and wherever ``observe`` changed the window since.
     """
 
     step: int
@@ -194,6 +197,8 @@ class RolloutState:
     hist_tl_state: torch.Tensor
     hist_tl_present: torch.Tensor
     dest_reached: torch.Tensor
+    tl_feat: torch.Tensor
+    tl_known: torch.Tensor
 
     def replace(self, **changes) -> RolloutState:
         return dataclasses.replace(self, **changes)
@@ -452,6 +457,8 @@ class TrafficBots(nn.Module):
             hist_tl_state=torch.zeros(n_b, n_tl, w, dtype=torch.long, device=dev),
             hist_tl_present=torch.zeros(n_b, n_tl, w, dtype=torch.bool, device=dev),
             dest_reached=torch.zeros(n_b, n_ag, dtype=torch.bool, device=dev),
+            tl_feat=torch.zeros(n_b, n_tl, self.cfg.hidden_dim, device=dev),
+            tl_known=torch.zeros(n_b, dtype=torch.bool, device=dev),
         )
 
     # ------------------------------------------------------------------ every step
@@ -492,13 +499,19 @@ class TrafficBots(nn.Module):
         present = torch.ones_like(tl_state, dtype=torch.bool)
         if tl_present is not None:
             present = present & tl_present[:, None]
+        tl_window = _push(state.hist_tl_state, tl_state.long())
+        tl_window_present = _push(state.hist_tl_present, present)
+        # The window is unchanged where every light held its state through it: [B'] bool.
+        unchanged = (tl_window == state.hist_tl_state).flatten(1).all(-1)
+        unchanged &= (tl_window_present == state.hist_tl_present).flatten(1).all(-1)
         return state.replace(
             step=state.step + 1,
             hist_valid=_push(state.hist_valid, ag_valid),
             hist_pose=_push(state.hist_pose, ag_pose * vmask),
             hist_motion=_push(state.hist_motion, motion),
-            hist_tl_state=_push(state.hist_tl_state, tl_state.long()),
-            hist_tl_present=_push(state.hist_tl_present, present),
+            hist_tl_state=tl_window,
+            hist_tl_present=tl_window_present,
+            tl_known=state.tl_known & unchanged,
         )
 
     def step(
@@ -530,8 +543,11 @@ class TrafficBots(nn.Module):
         state = self.observe(state, ag_pose, ag_speed, ag_valid, tl_state)
         ag_pose = ag_pose.detach()
         vmask = ag_valid[..., None].to(ag_pose.dtype)
+        # A scene whose lights all held their state through the window keeps last step's TL
+        # features (the encoder's inputs are the same): encoding costs only after a change.
+        previous = None if self.training else (state.tl_known, state.tl_feat)
         tl_feat = self.tl_encoder(
-            state.hist_tl_state, state.hist_tl_present, ctx.tl, ctx.scene.tl_map_kv
+            state.hist_tl_state, state.hist_tl_present, ctx.tl, ctx.scene.tl_map_kv, previous
         )
         tl_logits = self.tl_head(tl_feat)
         motion = state.hist_motion
@@ -562,4 +578,6 @@ class TrafficBots(nn.Module):
         if not self.training:
             action = self._apply_rules(ctx, action, ag_speed)
         action = action * vmask
-        return StepOutput(action, raw, tl_logits), state.replace(dest_reached=reached)
+        known = torch.ones_like(state.tl_known)
+        nxt = state.replace(dest_reached=reached, tl_feat=tl_feat.detach(), tl_known=known)
+        return StepOutput(action, raw, tl_logits), nxt

@@ -123,27 +123,39 @@ class TLEncoder(nn.Module):
         step_valid: torch.Tensor,
         ctx: TLContext,
         map_kv: tuple[torch.Tensor, ...],
+        previous: tuple[torch.Tensor, torch.Tensor] | None = None,
     ) -> torch.Tensor:
         """Encode.
 
-        In inference, eagerly on the CPU, only the scenes with a valid TL token are encoded
-        (``torch_utils.listed``): every token of the others is 0 anyway, and generated or real
-        batches often mix scenes with and without signals.
+        In inference, eagerly on the CPU (``torch_utils.listed``), only the scenes that need
+        it are encoded: not those without a valid TL token (every token is 0 anyway; generated
+        and real batches often mix scenes with and without signals), nor those whose window
+        is the one of ``previous`` (their features are those).
 
         Args:
             state: [B, L, W] int64 ``TLState`` per window step (W <= n_time, newest last).
             step_valid: [B, L, W] bool, the window step exists.
             ctx: static TL tensors.
             map_kv: ``map_kv`` of the encoded map.
+            previous: optional (same [B] bool, features [B, L, d]): the rows ``same`` have
+                the window (``state`` and ``step_valid``) that ``features`` were encoded from,
+                in the same ``ctx``; they keep those features.
 
         Returns:
             [B, L, d] TL token features (0 for invalid tokens).
         """
-        lit = None if self.training else listed(ctx.valid.any(-1, keepdim=True))
+        need = ctx.valid.any(-1, keepdim=True)  # [B, 1]
+        if previous is not None:
+            need = need & ~previous[0][:, None]
+        lit = None if self.training else listed(need)
         if lit is None:
             return self._encode(state, step_valid, ctx, map_kv)
         rows = lit[0]
-        out = ctx.lane_feat.new_zeros(ctx.lane_feat.shape)  # [B, L, d]
+        if previous is None:
+            out = ctx.lane_feat.new_zeros(ctx.lane_feat.shape)  # [B, L, d]
+        else:
+            same, feat = previous
+            out = feat * same[:, None, None].to(feat.dtype)
         if rows.numel():
             kv = tuple(t.index_select(0, rows) for t in map_kv)
             out[rows] = self._encode(state[rows], step_valid[rows], take_rows(ctx, rows), kv)
