@@ -11,7 +11,7 @@ import torch
 
 from tbsim_env.sim.dynamics import unicycle_step
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange
+from tbsim_env.torch_utils import cached_arange, listed
 
 
 def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -59,20 +59,27 @@ def step(state: SimState, action: torch.Tensor) -> SimState:
     fresh = state.log.first_valid > state.step.unsqueeze(1)  # not seen_before(state)
 
     moving = state.controlled & state.valid
-    moving_ = moving.unsqueeze(-1)
-    limit = state.agents.action_limit
-    act = torch.clamp(action, -limit, limit) * moving_  # clip_action
-    sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
-
     # Spawn (controlled, not present, not seen before) or replay (not controlled, present or
     # not seen before) where the log has the agent. For a moving agent ``from_log`` may be
     # anything: ``moving`` wins below. (``valid > controlled`` is ``valid & ~controlled``.)
     from_log = log_valid & (fresh | (state.valid > state.controlled))
-    from_log_ = from_log.unsqueeze(-1)
-    pose = torch.where(moving_, sim_pose, torch.where(from_log_, log_pose, state.pose))
-    speed = torch.where(moving, sim_speed, torch.where(from_log, log_speed, state.speed))
-    valid = moving | from_log
-    return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
+    pose = torch.where(from_log.unsqueeze(-1), log_pose, state.pose)
+    speed = torch.where(from_log, log_speed, state.speed)
+    pairs = listed(moving)
+    if pairs is None:
+        moving_ = moving.unsqueeze(-1)
+        limit = state.agents.action_limit
+        act = torch.clamp(action, -limit, limit) * moving_  # clip_action
+        sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
+        pose = torch.where(moving_, sim_pose, pose)
+        speed = torch.where(moving, sim_speed, speed)
+    else:  # the moving agents alone (a few of the slots: the rest replay the log)
+        limit = state.agents.action_limit[pairs]
+        act = torch.clamp(action[pairs], -limit, limit)
+        sim_pose, sim_speed = unicycle_step(state.pose[pairs], state.speed[pairs], act)
+        pose = pose.index_put(pairs, sim_pose)
+        speed = speed.index_put(pairs, sim_speed)
+    return state.replace(step=nxt, pose=pose, speed=speed, valid=moving | from_log)
 
 
 def _log_at(state: SimState, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
