@@ -19,15 +19,22 @@ import torch
 from tbsim_env.sim.state import Shared
 
 
-def take_rows(tree: Any, rows: torch.Tensor) -> Any:
+def take_rows(tree: Any, rows: torch.Tensor, out: Any = None) -> Any:
     """Gather rows (leading batch dimension) of every tensor of a dataclass / dict / tuple tree.
 
     Args:
         tree: a tensor, None, or a (frozen) dataclass, dict, list or tuple of those.
         rows: [R] int64 row indices.
+        out: optional tree of the same structure whose tensors receive the rows where they
+            can (each that owns its whole storage and has the result's shape and dtype; the
+            others are left alone and a new tensor is made): restarting every row of a batch
+            then reuses the batch's memory, where new tensors of that size would be mapped
+            and faulted in page by page again. Only for a tree whose owner alone holds its
+            tensors (the batched env's own episode); they are overwritten.
 
     Returns:
-        The same structure with every tensor ``x`` replaced by ``x[rows]`` (a copy).
+        The same structure with every tensor ``x`` replaced by ``x[rows]`` (a copy; in
+        ``out``'s tensor where it was written there).
 
     Raises:
         TypeError: a leaf is neither a tensor nor None.
@@ -35,17 +42,39 @@ def take_rows(tree: Any, rows: torch.Tensor) -> Any:
     if tree is None or isinstance(tree, Shared):
         return tree
     if isinstance(tree, torch.Tensor):
+        if _can_receive(out, tree, rows):
+            return torch.index_select(tree, 0, rows, out=out)
         return tree[rows]
     if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
-        return dataclasses.replace(
-            tree,
-            **{f.name: take_rows(getattr(tree, f.name), rows) for f in dataclasses.fields(tree)},
-        )
+        fields = {
+            f.name: take_rows(getattr(tree, f.name), rows, _part(out, tree, f.name))
+            for f in dataclasses.fields(tree)
+        }
+        return dataclasses.replace(tree, **fields)
     if isinstance(tree, dict):
-        return {k: take_rows(v, rows) for k, v in tree.items()}
+        return {k: take_rows(v, rows, _part(out, tree, k)) for k, v in tree.items()}
     if isinstance(tree, (list, tuple)):
-        return _rebuild(tree, [take_rows(v, rows) for v in tree])
+        parts = out if type(out) is type(tree) and len(out) == len(tree) else [None] * len(tree)
+        return _rebuild(tree, [take_rows(v, rows, o) for v, o in zip(tree, parts, strict=True)])
     raise TypeError(f"cannot take rows of {type(tree).__name__}; use tensors and dataclasses")
+
+
+def _part(out: Any, tree: Any, key: str) -> Any:
+    """``out``'s field or entry ``key`` when ``out`` has ``tree``'s type, else None."""
+    if type(out) is not type(tree):
+        return None
+    return out.get(key) if isinstance(out, dict) else getattr(out, key)
+
+
+def _can_receive(out: Any, x: torch.Tensor, rows: torch.Tensor) -> bool:
+    """``out`` is a tensor that ``x[rows]`` can be written into, touching nothing else."""
+    return (
+        isinstance(out, torch.Tensor)
+        and out.shape == (rows.shape[0], *x.shape[1:])
+        and out.dtype == x.dtype
+        and out.device == x.device
+        and _owns_storage(out)
+    )
 
 
 def cat_rows(trees: Sequence[Any]) -> Any:

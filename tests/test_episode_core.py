@@ -84,6 +84,36 @@ def test_reset_rows_equals_a_fresh_start_of_those_rows(core, rows):
         assert _equal(take_rows(out, torch.tensor([r])), take_rows(state, torch.tensor([r])))
 
 
+def test_start_into_a_state_reuses_its_tensors_and_equals_a_fresh_start(core):
+    """``start(reuse=state)`` writes the new episodes into ``state``'s own tensors (a whole
+    batch restarting reuses its memory) and gives what a fresh start gives."""
+    bank, config = core
+    state, _ = ep.start(bank, torch.tensor([0, 1, 2]), config)
+    actions = torch.zeros(3, bank.setup.query.shape[1], 2)
+    for _ in range(3):
+        state, _ = ep.step(state, actions, None, config)
+    ks = torch.tensor([2, 2, 0])
+    owned = {t.data_ptr() for t in _tensors(state.sim) + _tensors(state.setup)}
+    got, got_metrics = ep.start(bank, ks, config, reuse=state)
+    want, want_metrics = ep.start(bank, ks, config)
+    assert _equal(got, want) and _equal(got_metrics, want_metrics)
+    reused = [t for t in _tensors(got.sim) + _tensors(got.setup) if t.data_ptr() in owned]
+    big = max(_tensors(got.sim), key=torch.Tensor.numel)
+    assert big.data_ptr() in owned and len(reused) > 10
+
+
+def test_take_rows_writes_only_into_tensors_that_own_their_storage() -> None:
+    table = {"a": torch.arange(12.0).view(4, 3), "b": torch.arange(4), "c": torch.ones(4, 2)}
+    rows = torch.tensor([3, 0])
+    whole = torch.zeros(2, 3)
+    view = torch.zeros(4, 3)[:2]  # shares its storage with two more rows
+    out = take_rows(table, rows, {"a": whole, "b": view, "c": torch.zeros(2, 2, 1)})
+    assert out["a"] is whole and torch.equal(whole, table["a"][rows])
+    assert out["b"] is not view and not view.any()  # wrong shape, and a view: not written
+    assert torch.equal(out["b"], table["b"][rows]) and torch.equal(out["c"], table["c"][rows])
+    assert torch.equal(take_rows(table, rows, None)["a"], table["a"][rows])
+
+
 def test_slot_actions_read_only_alive_external_agents(core):
     bank, config = core
     state, _ = ep.start(bank, torch.tensor([0]), config)

@@ -192,6 +192,26 @@ def test_autoreset_restarts_finished_slots(scenes):
     assert draws == expected
 
 
+def test_restarting_every_slot_reuses_the_batch_memory(scenes):
+    """Restarting every slot at once (episodes of one length end in the same step) writes
+    the new episodes into the batch's own tables; they go on as in fresh envs."""
+    venv = BatchedTrafficEnv(scenes, 3, controlled="sdc", npc_policy="log_replay", seed=2)
+    venv.reset()
+    log_memory = venv.sim_state.log.by_step.data_ptr()
+    for _ in range(5):
+        venv.step(venv.expert_actions())
+    obs = venv.reset_slots([0, 1, 2])
+    assert venv.sim_state.log.by_step.data_ptr() == log_memory
+    fresh = BatchedTrafficEnv(scenes, 3, controlled="sdc", npc_policy="log_replay")
+    fobs, _ = fresh.reset(scenario_indices=venv.scenario_index.tolist())
+    assert all(torch.equal(obs[k], fobs[k]) for k in obs)
+    for _ in range(3):
+        a = venv.expert_actions()
+        o1, r1, *_ = venv.step(a)
+        o2, r2, *_ = fresh.step(a)
+        assert torch.equal(r1, r2) and all(torch.equal(o1[k], o2[k]) for k in o1)
+
+
 def test_determinism_and_seed_dependence(scenes):
     def run(seed):
         venv = BatchedTrafficEnv(

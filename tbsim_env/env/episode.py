@@ -234,15 +234,19 @@ def build_bank(
 
 
 def start(
-    bank: EpisodeBank, ks: torch.Tensor, config: StepConfig
+    bank: EpisodeBank, ks: torch.Tensor, config: StepConfig, reuse: EpisodeState | None = None
 ) -> tuple[EpisodeState, StepMetrics]:
     """New episodes of the bank rows ``ks`` [B] (``policy_state`` None).
+
+    Args:
+        reuse: optional episodes of B rows whose tensors receive the new ones where they can
+            (``rows.take_rows``' ``out``): overwritten, so only for their owner's own state.
 
     Returns:
         (the episodes' first state, ``step_metrics`` of it: the first infos).
     """
-    sim = take_rows(bank.start, ks)
-    setup = take_rows(bank.setup, ks)
+    sim = take_rows(bank.start, ks, None if reuse is None else reuse.sim)
+    setup = take_rows(bank.setup, ks, None if reuse is None else reuse.setup)
     metrics = step_metrics(sim, setup.query, setup.route)
     state = EpisodeState(
         sim=sim,

@@ -60,7 +60,7 @@ from tbsim_env.rows import with_rows
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import to_local
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import gather_rows, torch_threads
+from tbsim_env.torch_utils import cached_arange, gather_rows, torch_threads
 
 ROUTE_KEY = "route"
 """Optional extra observation key: upcoming points of the logged route in the ego frame."""
@@ -339,7 +339,12 @@ class BatchedTrafficEnv:
         """(``state`` with new episodes in the slots ``rows`` [R], everything else untouched;
         the R new episodes alone, without policy state)."""
         ks = self._draw(len(rows))
-        fresh, _ = ep.start(self.bank, ks, self._step_config)
+        # Every slot at once (episodes of one length end together): the new episodes go into
+        # the batch's own tensors. Not at B = 1, where a step hands out views of the state
+        # (it reads a batch of one by number).
+        every = len(rows) == state.batch_size > 1
+        every = every and bool((rows == cached_arange(len(rows), rows.device)).all())
+        fresh, _ = ep.start(self.bank, ks, self._step_config, reuse=state if every else None)
         # In place: a restart costs the restarted rows, not a copy of every table of the batch.
         state = ep.merge_rows(state, rows, fresh, in_place=True)
         policy_state = state.policy_state
