@@ -11,8 +11,9 @@ from policies import make_policy
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import episode as ep
+from tbsim_env.env.agent_metrics import step_metrics
 from tbsim_env.env.setup import select_scenarios
-from tbsim_env.observation import ObsConfig
+from tbsim_env.observation import ObsConfig, init_history
 from tbsim_env.rows import take_rows
 
 
@@ -45,21 +46,21 @@ def _equal(a, b) -> bool:
 
 def test_step_and_reset_modify_nothing(core):
     bank, config = core
-    state, _ = ep.start(bank, torch.tensor([0, 1, 2]), config)
+    state, _ = ep.start(bank, torch.tensor([0, 1, 2]))
     before = [t.clone() for t in _tensors(state)]
     bank_before = [t.clone() for t in _tensors(bank)]
     gen = torch.Generator().manual_seed(0)
     for _ in range(5):
         actions = torch.randn(3, bank.setup.query.shape[1], 2, generator=gen)
         nxt, _ = ep.step(state, actions, None, config)
-        ep.reset_rows(bank, nxt, torch.tensor([1]), torch.tensor([2]), config)
+        ep.reset_rows(bank, nxt, torch.tensor([1]), torch.tensor([2]))
     assert all(torch.equal(x, y) for x, y in zip(_tensors(state), before))
     assert all(torch.equal(x, y) for x, y in zip(_tensors(bank), bank_before))
 
 
 def test_step_is_a_function_of_its_inputs(core):
     bank, config = core
-    state, _ = ep.start(bank, torch.tensor([2, 0]), config)
+    state, _ = ep.start(bank, torch.tensor([2, 0]))
     gen = torch.Generator().manual_seed(1)
     actions = torch.randn(2, bank.setup.query.shape[1], 2, generator=gen)
     a_state, a_out = ep.step(state, actions, None, config)
@@ -70,14 +71,14 @@ def test_step_is_a_function_of_its_inputs(core):
 @pytest.mark.parametrize("rows", [[1], [2, 0], [0, 1, 2], [2, 0, 1], [1, 0, 2]])
 def test_reset_rows_equals_a_fresh_start_of_those_rows(core, rows):
     bank, config = core
-    state, _ = ep.start(bank, torch.tensor([0, 1, 2]), config)
+    state, _ = ep.start(bank, torch.tensor([0, 1, 2]))
     actions = torch.zeros(3, bank.setup.query.shape[1], 2)
     for _ in range(3):
         state, _ = ep.step(state, actions, None, config)
     rows_t = torch.tensor(rows)
     ks = torch.tensor([(r + 1) % 3 for r in rows])
-    out = ep.reset_rows(bank, state, rows_t, ks, config)
-    fresh, _ = ep.start(bank, ks, config)
+    out = ep.reset_rows(bank, state, rows_t, ks)
+    fresh, _ = ep.start(bank, ks)
     for i, r in enumerate(rows):
         assert _equal(take_rows(out, torch.tensor([r])), take_rows(fresh, torch.tensor([i])))
     for r in set(range(3)) - set(rows):
@@ -88,15 +89,20 @@ def test_start_into_a_state_reuses_its_tensors_and_equals_a_fresh_start(core):
     """``start(reuse=state)`` writes the new episodes into ``state``'s own tensors (a whole
     batch restarting reuses its memory) and gives what a fresh start gives."""
     bank, config = core
-    state, _ = ep.start(bank, torch.tensor([0, 1, 2]), config)
+    state, _ = ep.start(bank, torch.tensor([0, 1, 2]))
     actions = torch.zeros(3, bank.setup.query.shape[1], 2)
     for _ in range(3):
         state, _ = ep.step(state, actions, None, config)
     ks = torch.tensor([2, 2, 0])
     owned = {t.data_ptr() for t in _tensors(state.sim) + _tensors(state.setup)}
-    got, got_metrics = ep.start(bank, ks, config, reuse=state)
-    want, want_metrics = ep.start(bank, ks, config)
+    got, got_metrics = ep.start(bank, ks, reuse=state)
+    want, want_metrics = ep.start(bank, ks)
     assert _equal(got, want) and _equal(got_metrics, want_metrics)
+    # The bank's first metrics and history are those of the first state.
+    sim, setup = got.sim, got.setup
+    direct = dataclasses.replace(step_metrics(sim, setup.query, setup.route), agent_distance=None)
+    assert _equal(got_metrics, direct) and torch.equal(got.progress, direct.progress)
+    assert torch.equal(got.history.data, init_history(sim, config.obs.history).data)
     reused = [t for t in _tensors(got.sim) + _tensors(got.setup) if t.data_ptr() in owned]
     big = max(_tensors(got.sim), key=torch.Tensor.numel)
     assert big.data_ptr() in owned and len(reused) > 10
@@ -116,7 +122,7 @@ def test_take_rows_writes_only_into_tensors_that_own_their_storage() -> None:
 
 def test_slot_actions_read_only_alive_external_agents(core):
     bank, config = core
-    state, _ = ep.start(bank, torch.tensor([0]), config)
+    state, _ = ep.start(bank, torch.tensor([0]))
     q = state.setup.query.shape[1]
     actions = torch.full((1, q, 2), float("nan"))
     alive = state.alive.clone()

@@ -7,7 +7,7 @@ Waymax-style (``SimulatorState`` + ``step(state, action)``), in torch and batche
 * ``step(state, actions, npc_action, config)``: one 0.1 s step -> (``EpisodeState``,
   ``StepOutput``): dynamics and log replay, metrics, rewards (``env.rewards``),
   terminations and removals, truncation at the episode end, history, observations.
-* ``reset_rows(bank, state, rows, ks, config)``: the rows ``rows`` start new episodes.
+* ``reset_rows(bank, state, rows, ks)``: the rows ``rows`` start new episodes.
 
 ``TrafficEnv`` runs it at B = 1 behind the PettingZoo dict API; ``BatchedTrafficEnv`` at
 B slots with same-step autoreset. Neither adds a rule of its own: they parse actions, call
@@ -86,13 +86,20 @@ class EpisodeSetup:
 class EpisodeBank:
     """Every scenario's first state and setup, padded to common shapes (leading dim S).
 
+    An episode's start depends on its scenario alone, so what ``start`` hands a new episode
+    besides the state is computed here once: a restart only gathers rows.
+
     Attributes:
         start: [S] ``SimState`` at the first simulated step (``controlled`` set).
         setup: [S] ``EpisodeSetup``.
+        history: [S] ``History`` ending at the first step.
+        first: [S] ``StepMetrics`` of the first state (without ``agent_distance``).
     """
 
     start: SimState
     setup: EpisodeSetup
+    history: History
+    first: StepMetrics
 
     @property
     def num_scenarios(self) -> int:
@@ -230,13 +237,19 @@ def build_bank(
         external=external,
         npc=npc,
     )
-    return EpisodeBank(start=state, setup=setup)
+    first = step_metrics(state, query, route)
+    return EpisodeBank(
+        start=state,
+        setup=setup,
+        history=init_history(state, config.obs.history),
+        first=dataclasses.replace(first, agent_distance=None),
+    )
 
 
 def start(
-    bank: EpisodeBank, ks: torch.Tensor, config: StepConfig, reuse: EpisodeState | None = None
+    bank: EpisodeBank, ks: torch.Tensor, reuse: EpisodeState | None = None
 ) -> tuple[EpisodeState, StepMetrics]:
-    """New episodes of the bank rows ``ks`` [B] (``policy_state`` None).
+    """New episodes of the bank rows ``ks`` [B] (``policy_state`` None): rows of the bank.
 
     Args:
         reuse: optional episodes of B rows whose tensors receive the new ones where they can
@@ -247,10 +260,11 @@ def start(
     """
     sim = take_rows(bank.start, ks, None if reuse is None else reuse.sim)
     setup = take_rows(bank.setup, ks, None if reuse is None else reuse.setup)
-    metrics = step_metrics(sim, setup.query, setup.route)
+    history = take_rows(bank.history, ks, None if reuse is None else reuse.history)
+    metrics = take_rows(bank.first, ks)
     state = EpisodeState(
         sim=sim,
-        history=init_history(sim, config.obs.history),
+        history=history,
         setup=setup,
         progress=metrics.progress,
         goal_reached=torch.zeros_like(setup.qmask),
@@ -267,13 +281,12 @@ def reset_rows(
     state: EpisodeState,
     rows: torch.Tensor,
     ks: torch.Tensor,
-    config: StepConfig,
     in_place: bool = False,
 ) -> EpisodeState:
     """``state`` with the rows ``rows`` [R] (distinct) restarted on the bank rows ``ks`` [R]; the
     other rows and ``policy_state`` are unchanged (restarting the policy is the caller's: it needs
     the scenarios and the random generator). ``in_place``: as ``merge_rows``."""
-    return merge_rows(state, rows, start(bank, ks, config)[0], in_place)
+    return merge_rows(state, rows, start(bank, ks)[0], in_place)
 
 
 def merge_rows(

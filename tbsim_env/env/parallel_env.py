@@ -287,7 +287,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         exact = bool(getattr(self.npc_policy, "exact_replay", False))
         bank = ep.build_bank([sc], [query], exact, self._step_config, self.device)
         ks = torch.zeros(1, dtype=torch.int64, device=self.device)
-        state, metrics = ep.start(bank, ks, self._step_config)
+        state, metrics = ep.start(bank, ks)
         names = [agent_name(sc.tracks.id[i]) for i in query]
         obs = ep.observe_state(state, self._step_config)
         columns, _, _ = self._info_columns(state, metrics, None)

@@ -320,7 +320,7 @@ class BatchedTrafficEnv:
             ks = torch.as_tensor(list(scenario_indices), dtype=torch.int64, device=self.device)
             if bool(((ks < 0) | (ks >= len(self.scenarios))).any()):
                 raise ValueError(f"scenario_indices outside [0, {len(self.scenarios)})")
-        state, metrics = ep.start(self.bank, ks, self._step_config)
+        state, metrics = ep.start(self.bank, ks)
         # A stateless policy's state may be None: whether NPCs act is kept apart.
         self._has_npc = bool(state.setup.npc.any())
         policy_state = self._policy_start(state.sim, ks) if self._has_npc else None
@@ -344,7 +344,7 @@ class BatchedTrafficEnv:
         # (it reads a batch of one by number).
         every = len(rows) == state.batch_size > 1
         every = every and bool((rows == cached_arange(len(rows), rows.device)).all())
-        fresh, _ = ep.start(self.bank, ks, self._step_config, reuse=state if every else None)
+        fresh, _ = ep.start(self.bank, ks, reuse=state if every else None)
         # In place: a restart costs the restarted rows, not a copy of every table of the batch.
         state = ep.merge_rows(state, rows, fresh, in_place=True)
         policy_state = state.policy_state

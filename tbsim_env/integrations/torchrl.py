@@ -102,7 +102,7 @@ def observation_specs(env: BatchedTrafficEnv, device: torch.device) -> tuple[dic
         return {k: box_spec(s, (b, q), device) for k, s in spaces.items()}, {}
     cfg = ep.StepConfig(env.config, env.obs_config, dense=False)
     with torch.no_grad():
-        state, _ = ep.start(env.bank, torch.zeros(1, dtype=torch.int64, device=env.device), cfg)
+        state, _ = ep.start(env.bank, torch.zeros(1, dtype=torch.int64, device=env.device))
         probe = ep.observe_state(state, cfg)
     k = probe.index.shape[-1]
     unit = gym.spaces.Box(0.0, 1.0, (), np.float32)
