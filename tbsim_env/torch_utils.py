@@ -95,6 +95,23 @@ def _row_offsets(b: int, n: int, dim: int, device: torch.device) -> torch.Tensor
     return out
 
 
+def gather_columns(
+    x: torch.Tensor, index: torch.Tensor, rows: torch.Tensor
+) -> tuple[torch.Tensor, ...]:
+    """The C columns of a table ``x`` [K, C, E] at ``index`` [B, ...] (int, in [0, E)) of the
+    table rows ``rows`` [B] int64: C tensors [B, ...], ``x[rows[b], c, index[b, ...]]``.
+
+    Each column comes out contiguous (what elementwise code reads fastest) from one flat
+    index shared by all; ``gather_rows`` of each column would compute that index C times.
+    """
+    _, c, e = x.shape
+    flat = (index + (rows * (c * e)).view(-1, *([1] * (index.dim() - 1)))).reshape(-1)
+    values = x.reshape(-1)
+    return tuple(
+        values.index_select(0, flat if j == 0 else flat + j * e).view(index.shape) for j in range(c)
+    )
+
+
 def gather_rows(
     x: torch.Tensor, index: torch.Tensor, rows: torch.Tensor | None = None
 ) -> torch.Tensor:

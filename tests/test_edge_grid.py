@@ -76,6 +76,18 @@ def test_exact_equals_every_segment_and_flags_what_it_cannot_vouch_for(cell, cou
     assert stale[0, -200:].float().mean() > 0.5
 
 
+def test_grid_segment_table_is_the_edges_start_and_vector():
+    """The grid's column table holds each edge row's start and end - start (what the lookup
+    reads instead of gathering both ends), bit for bit."""
+    edges, segments = _edges(_wiggly_roads(3))
+    grid = build_edge_grid(segments + segments[:1])  # two rows of the same scene
+    table = grid.segments.value  # [K, 4, E]
+    e = edges.start.shape[1]
+    for k in range(2):
+        assert torch.equal(table[k, :2, :e].T, edges.start[0])
+        assert torch.equal(table[k, 2:, :e].T, edges.end[0] - edges.start[0])
+
+
 def test_no_edges_and_fewer_segments_than_candidates():
     one, segs = _edges([np.array([[0.0, 0.0], [10.0, 0.0], [20.0, 5.0]])])
     grid = build_edge_grid(segs, cell=4.0, count=16, margin=5.0)

@@ -402,3 +402,17 @@ def test_gather_rows_is_batched_advanced_indexing(batch):
             idx = torch.randint(0, 7, shape, generator=g)
             b = torch.arange(batch).view((batch,) + (1,) * (len(shape) - 1))
             assert torch.equal(gather_rows(x, idx), x[b, idx])
+
+
+def test_gather_columns_reads_each_column_of_the_table_rows():
+    from tbsim_env.torch_utils import gather_columns
+
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(4, 3, 9, generator=g)  # K = 4 table rows, C = 3 columns, E = 9
+    rows = torch.tensor([2, 0, 2])
+    idx = torch.randint(0, 9, (3, 5, 2), generator=g, dtype=torch.int32)
+    cols = gather_columns(x, idx, rows)
+    assert len(cols) == 3
+    for c, got in enumerate(cols):
+        assert got.is_contiguous() and got.shape == idx.shape
+        assert torch.equal(got, x[rows.view(3, 1, 1), c, idx.long()])

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.sim.geometry import segment_projection
+from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import EdgeGrid, RoadEdges, Shared
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.torch_utils import gather_columns, gather_rows
 
 
 def scene_edge_grid(
@@ -102,6 +102,11 @@ def build_edge_grid(
     """
     grids = [scene_edge_grid(s, e, cell, count, margin) for s, e in segments]
     b, g = len(grids), max(len(x["bound"]) for x in grids)
+    table = np.zeros((b, max(max(len(s) for s, _ in segments), 1), 4), np.float32)
+    for i, (s, e) in enumerate(segments):
+        start = np.asarray(s, np.float32)  # the RoadEdges' float32 values
+        table[i, : len(start), :2] = start
+        table[i, : len(start), 2:] = np.asarray(e, np.float32) - start
     cells = np.zeros((b, g, count), np.int32)
     bound = np.full((b, g), np.inf, np.float32)
     center = np.zeros((b, g, 2), np.float32)
@@ -117,6 +122,7 @@ def build_edge_grid(
         cells=Shared(torch.from_numpy(cells).to(dev)),
         bound=Shared(torch.from_numpy(bound).to(dev)),
         center=Shared(torch.from_numpy(center).to(dev)),
+        segments=Shared(torch.from_numpy(table).transpose(1, 2).contiguous().to(dev)),
     )
 
 
@@ -155,9 +161,8 @@ def grid_signed_distance(
     cell = _cell_of(grid, points, rows)  # [B, K]
     table = grid.row if rows is None else grid.row[rows]
     cand = gather_rows(grid.cells.value, cell, table)  # [B, K, Cc]
-    a = gather_rows(edges.start, cand, rows)  # [B, K, Cc, 2]
-    ab = gather_rows(edges.end, cand, rows) - a
-    t, dist = segment_projection(points.unsqueeze(-2), a, ab)
+    ax, ay, bx, by = gather_columns(grid.segments.value, cand, table)  # [B, K, Cc] each
+    t, dist = segment_projection_xy(points[..., :1], points[..., 1:], ax, ay, bx, by)
     local = dist.argmin(-1, keepdim=True)
     d = dist.gather(-1, local)[..., 0]
     t_best = t.gather(-1, local)[..., 0]

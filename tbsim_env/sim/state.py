@@ -123,6 +123,9 @@ class EdgeGrid:
         bound: Shared [K, G] float32, distance from the cell centre of the nearest segment not
             listed (inf when every segment is listed), less a rounding slack.
         center: Shared [K, G, 2] float32, cell centres.
+        segments: Shared [K, 4, E] float32, the road-edge segments as a lookup reads them,
+            a column each: start x, start y, (end - start) x, (end - start) y; in the order
+            of the rows of their ``RoadEdges``.
     """
 
     cell: torch.Tensor
@@ -132,6 +135,7 @@ class EdgeGrid:
     cells: Shared
     bound: Shared
     center: Shared
+    segments: Shared
 
 
 @dataclass(frozen=True)
