@@ -416,3 +416,18 @@ def test_gather_columns_reads_each_column_of_the_table_rows():
     for c, got in enumerate(cols):
         assert got.is_contiguous() and got.shape == idx.shape
         assert torch.equal(got, x[rows.view(3, 1, 1), c, idx.long()])
+
+
+def test_segment_projection_layouts_agree_bit_for_bit():
+    """The vector and the x / y layouts of the point-segment projection are one rule."""
+    from tbsim_env.sim.geometry import segment_projection, segment_projection_xy
+
+    g = torch.Generator().manual_seed(0)
+    for scale in (1.0, 1e3, 1e5):  # metres up to a 100 km frame
+        q = torch.randn(20, 30, 1, 2, generator=g) * scale
+        a = torch.randn(20, 30, 16, 2, generator=g) * scale
+        ab = torch.randn(20, 30, 16, 2, generator=g) * scale * 1e-2
+        ab[:, :, :3] = 0.0  # zero-length segments
+        want = segment_projection(q, a, ab)
+        got = segment_projection_xy(*q.unbind(-1), *a.unbind(-1), *ab.unbind(-1))
+        assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])

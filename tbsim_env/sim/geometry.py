@@ -95,8 +95,13 @@ def segment_projection(
         (t [...]: the projection parameter along ab, not clamped, 0 for a zero-length
         segment; distance [...] m from q to the nearest point of the segment).
     """
-    (qx, qy), (ax, ay), (bx, by) = q.unbind(-1), a.unbind(-1), ab.unbind(-1)
-    return segment_projection_xy(qx, qy, ax, ay, bx, by)
+    # The vector layout: a compiled graph's scan over every segment runs faster so than
+    # with x and y apart (``segment_projection_xy``, the same values, faster eagerly).
+    len2 = (ab * ab).sum(-1)
+    t = ((q - a) * ab).sum(-1) / len2.clamp_min(1e-12)
+    t = torch.where(len2 > 0, t, torch.zeros_like(t))
+    offset = q - (a + t.clamp(0.0, 1.0).unsqueeze(-1) * ab)
+    return t, torch.hypot(offset[..., 0], offset[..., 1])
 
 
 def segment_projection_xy(
@@ -108,9 +113,9 @@ def segment_projection_xy(
     by: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``segment_projection`` of coordinates given apart (broadcast [...] tensors: point q,
-    segment start a, segment vector b), x and y computed apart: no sums over a dim of 2,
-    half the time of the vector form eagerly, and the same values (a sum of two products is
-    their one addition)."""
+    segment start a, segment vector b), with the same values (a sum of two products is their
+    one addition; tested): no sums over a dim of 2, half the time of the vector layout
+    eagerly on gathered candidates (``edge_grid``'s lookup), though slower compiled."""
     len2 = bx * bx + by * by
     t = ((qx - ax) * bx + (qy - ay) * by) / len2.clamp_min(1e-12)
     t = torch.where(len2 > 0, t, torch.zeros_like(t))
