@@ -219,6 +219,9 @@ MAP_KNN_RADIUS_PAD = 0.01
 # Elements (float32) of the largest per-call intermediate of KNARPE attention on a CPU; larger
 # batches run in chunks of rows so that the working set stays in the caches (2 MiB).
 CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
+BANK_METRICS_CHUNK = 256
+"""Scenarios per chunk when an episode bank computes its first metrics (their agent
+distances are [S, Q, N])."""
 
 # Off-road check of the environment (tbsim_env.sim.edge_grid).
 EDGE_GRID_CELL = 2.0

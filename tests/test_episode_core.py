@@ -108,6 +108,15 @@ def test_start_into_a_state_reuses_its_tensors_and_equals_a_fresh_start(core):
     assert big.data_ptr() in owned and len(reused) > 10
 
 
+def test_bank_first_metrics_in_chunks_equal_one_batch(core, monkeypatch):
+    bank, config = core
+    policy = make_policy("log_replay")
+    sel = select_scenarios(default_scenarios(3), "all", config.env, policy, False)
+    monkeypatch.setattr(ep.C, "BANK_METRICS_CHUNK", 2)  # 3 scenes: chunks of 2 and 1
+    chunked = ep.build_bank(sel.scenarios, sel.queries, True, config, torch.device("cpu"))
+    assert _equal(chunked.first, bank.first)
+
+
 def test_take_rows_writes_only_into_tensors_that_own_their_storage() -> None:
     table = {"a": torch.arange(12.0).view(4, 3), "b": torch.arange(4), "c": torch.ones(4, 2)}
     rows = torch.tensor([3, 0])

@@ -29,6 +29,7 @@ from typing import Any
 import torch
 
 from policies.base import Policy, PolicyState
+from tbsim_env import constants as C
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, goal_mask, step_metrics
@@ -46,7 +47,7 @@ from tbsim_env.observation import (
     observe_indexed,
     push_history,
 )
-from tbsim_env.rows import take_rows, with_rows
+from tbsim_env.rows import cat_rows, take_rows, with_rows
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
@@ -237,13 +238,28 @@ def build_bank(
         external=external,
         npc=npc,
     )
-    first = step_metrics(state, query, route)
     return EpisodeBank(
         start=state,
         setup=setup,
         history=init_history(state, config.obs.history),
-        first=dataclasses.replace(first, agent_distance=None),
+        first=_first_metrics(state, setup),
     )
+
+
+def _first_metrics(state: SimState, setup: EpisodeSetup) -> StepMetrics:
+    """``step_metrics`` of the bank's first states without ``agent_distance``, in chunks of
+    ``C.BANK_METRICS_CHUNK`` scenarios (its [S, Q, N] distances would be large for a big
+    bank)."""
+    s, step = setup.query.shape[0], C.BANK_METRICS_CHUNK
+    if s <= step:
+        return dataclasses.replace(
+            step_metrics(state, setup.query, setup.route), agent_distance=None
+        )
+    parts = []
+    for lo in range(0, s, step):
+        rows = torch.arange(lo, min(lo + step, s), device=setup.query.device)
+        parts.append(_first_metrics(take_rows(state, rows), take_rows(setup, rows)))
+    return cat_rows(parts)
 
 
 def start(
