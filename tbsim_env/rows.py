@@ -3,7 +3,8 @@
 The environments keep an episode as a frozen dataclass of ``[B, ...]`` tensors; starting new
 episodes in some rows is ``with_rows(state, rows, fresh)`` and looking at some rows is
 ``take_rows(state, rows)``; ``cat_rows(trees)`` stacks the rows of several trees (per-scene
-caches into a batch). All three are pure: they return new trees and modify nothing.
+caches into a batch). All three return new trees and modify nothing, except where a caller
+asks for writes into trees it alone holds (``take_rows``' ``out``, ``with_rows``' ``in_place``).
 ``sim.state.Shared`` tables (per-scenario tables that rows read through a row map) pass
 through both unchanged.
 """
