@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.sim.knn import k_nearest
+from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.torch_utils import gather_rows
 
 
@@ -211,9 +211,7 @@ def nearest_pieces(
     if not clustered or points.device.type != "cpu" or torch.compiler.is_compiling():
         return _all_pieces(points if rows is None else points[rows], me_xy, k, within)
     cand, bound, xy = candidate_pieces(clusters, me_xy, searched, rows)  # xy [B, Q, C, 2]
-    dx = xy[..., 0] - me_xy[..., 0:1]
-    dy = xy[..., 1] - me_xy[..., 1:2]
-    idx, top = k_nearest(torch.sqrt(dx * dx + dy * dy), None, k, within, ids=(cand, m))
+    idx, top = k_nearest(planar_distances(xy, me_xy), None, k, within, ids=(cand, m))
     fail_rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
     if len(fail_rows):  # the few observers it does not hold for: every piece
         scene = fail_rows if rows is None else rows[fail_rows]
@@ -228,10 +226,7 @@ def _all_pieces(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``k_nearest`` over every piece ``points`` [R, 1, M, 2] (+inf for padding) of the
     observers ``me_xy`` [R, Q, 2]: (indices, distances) [R, Q, k]."""
-    # x and y apart (no [R, Q, M, 2] difference): the same values, a third of the time.
-    dx = points[..., 0] - me_xy[..., 0:1]
-    dy = points[..., 1] - me_xy[..., 1:2]
-    return k_nearest(torch.sqrt(dx * dx + dy * dy), None, k, within)
+    return k_nearest(planar_distances(points, me_xy), None, k, within)
 
 
 def search_holds(kth: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:

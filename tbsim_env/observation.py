@@ -33,7 +33,7 @@ from tbsim_env.observation_spec import (
 )
 from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
-from tbsim_env.sim.knn import k_nearest
+from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed
 
@@ -387,14 +387,11 @@ def _seen_tokens(
     m_idx, m_top = nearest_pieces(
         pieces, ctx.clusters, me[..., :2], cfg.num_map, cfg.map_radius, rows
     )
-    # x and y apart (no [B, Q, L, 2] difference): the same values, a third of the time.
     light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
     tl_invalid = _lights_at(ctx, state.step)[0]  # [B, 1, L]
     if rows is not None:
         light_xy, tl_invalid = light_xy[rows], tl_invalid[rows]
-    dx = light_xy[..., 0] - me[:, :, None, 0]  # [B, Q, L]
-    dy = light_xy[..., 1] - me[:, :, None, 1]
-    tl_dist = torch.sqrt(dx * dx + dy * dy)
+    tl_dist = planar_distances(light_xy, me)  # [B, Q, L]
     t_idx, t_top = k_nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
 
     sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)

@@ -78,6 +78,16 @@ def nearest_k(
     return torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
 
 
+def planar_distances(xy: torch.Tensor, me_xy: torch.Tensor) -> torch.Tensor:
+    """[..., Q, M] distances of target points ``xy`` [..., M, 2] to observers ``me_xy``
+    [..., Q, >= 2] (broadcast over the leading dims: [B, 1, M, 2] targets shared by a row's
+    observers, or [B, Q, M, 2] per observer). x and y apart: no [..., Q, M, 2] difference and
+    no norm over a dim of 2, the same values in a third of the time."""
+    dx = xy[..., 0] - me_xy[..., 0:1]
+    dy = xy[..., 1] - me_xy[..., 1:2]
+    return torch.sqrt(dx * dx + dy * dy)
+
+
 def k_nearest(
     dist: torch.Tensor,
     invalid: torch.Tensor | None,
@@ -116,4 +126,4 @@ def k_nearest(
     return col.gather(-1, pos), torch.gather(d, -1, pos)
 
 
-__all__ = ["k_nearest", "nearest_k"]
+__all__ = ["k_nearest", "nearest_k", "planar_distances"]
