@@ -192,17 +192,22 @@ def test_autoreset_restarts_finished_slots(scenes):
     assert draws == expected
 
 
-def test_restarting_every_slot_reuses_the_batch_memory(scenes):
+@pytest.mark.parametrize("batch, layout", [(3, "dense"), (1, "indexed"), (3, "indexed")])
+def test_restarting_every_slot_reuses_the_batch_memory(scenes, batch, layout):
     """Restarting every slot at once (episodes of one length end in the same step) writes
-    the new episodes into the batch's own tables; they go on as in fresh envs."""
-    venv = BatchedTrafficEnv(scenes, 3, controlled="sdc", npc_policy="log_replay", seed=2)
+    the new episodes into the batch's own tables; they go on as in fresh envs, and nothing
+    handed out before changes."""
+    kw = dict(controlled="sdc", npc_policy="log_replay", obs_layout=layout)
+    venv = BatchedTrafficEnv(scenes, batch, seed=2, **kw)
     venv.reset()
     log_memory = venv.sim_state.log.by_step.data_ptr()
     for _ in range(5):
-        venv.step(venv.expert_actions())
-    obs = venv.reset_slots([0, 1, 2])
+        before, *_ = venv.step(venv.expert_actions())
+    kept = {k: v.clone() for k, v in before.items()}
+    obs = venv.reset_slots(list(range(batch)))
     assert venv.sim_state.log.by_step.data_ptr() == log_memory
-    fresh = BatchedTrafficEnv(scenes, 3, controlled="sdc", npc_policy="log_replay")
+    assert all(torch.equal(before[k], kept[k]) for k in kept)
+    fresh = BatchedTrafficEnv(scenes, batch, **kw)
     fobs, _ = fresh.reset(scenario_indices=venv.scenario_index.tolist())
     assert all(torch.equal(obs[k], fobs[k]) for k in obs)
     for _ in range(3):

@@ -340,9 +340,8 @@ class BatchedTrafficEnv:
         the R new episodes alone, without policy state)."""
         ks = self._draw(len(rows))
         # Every slot at once (episodes of one length end together): the new episodes go into
-        # the batch's own tensors. Not at B = 1, where a step hands out views of the state
-        # (it reads a batch of one by number).
-        every = len(rows) == state.batch_size > 1
+        # the batch's own tensors (nothing handed out is a view of them: ``_package``).
+        every = len(rows) == state.batch_size
         every = every and bool((rows == cached_arange(len(rows), rows.device)).all())
         fresh, _ = ep.start(self.bank, ks, reuse=state if every else None)
         # In place: a restart costs the restarted rows, not a copy of every table of the batch.
@@ -468,7 +467,8 @@ class BatchedTrafficEnv:
         state: EpisodeState,
     ) -> dict[str, torch.Tensor]:
         """The observation dict of ``obs_layout`` from the core's observation of ``state``,
-        zero for observers outside ``mask`` [B, Q]."""
+        zero for observers outside ``mask`` [B, Q]. No tensor of it is the state's or a view
+        of it (a restart may write into the state's tensors)."""
         m = mask.float()
         extra = {}
         if self.route_points:
@@ -482,7 +482,8 @@ class BatchedTrafficEnv:
             return {
                 "scene": state.scenario.clone(),
                 "agent_tokens": obs.agent_tokens,
-                "light_tokens": obs.light_tokens,
+                # A view of the state's lights at B = 1 (read by number there).
+                "light_tokens": obs.light_tokens.clone(),
                 "ego": obs.ego.clone(),
                 "index": obs.index,
                 # The core saw ``mask`` (``observer_mask``): others see no token already.
