@@ -227,14 +227,12 @@ def test_collided_with_others_matches_collided(scenes, name):
         near = (near <= radius[:, None] + radius[0, query][..., None]) & valid[:, None]
         near &= torch.arange(n) != query[..., None]
         assert torch.equal((overlap & near).any(-1) & valid[0, query[0]][None], ref)
-        got = collided_with_others(query, pose[0, query], size[0, query], pose, size, valid)
+        limit = near_limits(query, size[0, query], size)  # the per-episode prefilter limits
+        got = collided_with_others(pose[0, query], size[0, query], pose, size, valid, limit)
         assert torch.equal(got & valid[0, query[0]][None], ref)
-        # With the per-episode prefilter limits and the query's cos / sin precomputed.
-        limit = near_limits(query, size[0, query], size)
+        # With the query's cos / sin precomputed.
         trig = cos_sin(pose[0, query][..., 2:])
-        got = collided_with_others(
-            query, pose[0, query], size[0, query], pose, size, valid, limit, trig
-        )
+        got = collided_with_others(pose[0, query], size[0, query], pose, size, valid, limit, trig)
         assert torch.equal(got & valid[0, query[0]][None], ref)
         hits += int(ref.sum())
     assert hits > 0

@@ -213,7 +213,7 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
     all_size = state.agents.size[..., :2]
     gap = agent_distances(pose, state.pose)
     coll = collided_with_others(
-        query, pose, size, state.pose, all_size, state.valid, route.near_limit, trig, gap
+        pose, size, state.pose, all_size, state.valid, route.near_limit, trig, gap
     )
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
     off_d, stale = _offroad(corners, state.road_edges, present)

@@ -153,13 +153,12 @@ def agent_distances(pose_q: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
 
 
 def collided_with_others(
-    query: torch.Tensor,
     pose_q: torch.Tensor,
     size_q: torch.Tensor,
     pose: torch.Tensor,
     size: torch.Tensor,
     valid: torch.Tensor,
-    near_limit: torch.Tensor | None = None,
+    near_limit: torch.Tensor,
     cos_sin_q: tuple[torch.Tensor, torch.Tensor] | None = None,
     gap: torch.Tensor | None = None,
 ) -> torch.Tensor:
@@ -170,18 +169,16 @@ def collided_with_others(
     A query agent's own validity is not checked (the caller masks it).
 
     Args:
-        query: [B, K] int64 agent slots; pose_q: [B, K, 3] and size_q: [B, K, 2] their
-            poses and (length, width).
+        pose_q: [B, K, 3] and size_q: [B, K, 2] the query agents' poses and (length, width).
         pose: [B, N, 3]; size: [B, N, 2] (length, width); valid: [B, N] bool.
-        near_limit: optional ``near_limits(query, size_q, size)`` (fixed while the sizes are).
+        near_limit: [B, K, N] ``near_limits(query, size_q, size)`` of the query slots (fixed
+            while the sizes are; -inf at each query agent itself, which is never a partner).
         cos_sin_q: optional ``cos_sin`` of the query yaws, [B, K, 1] each.
         gap: optional ``agent_distances(pose_q, pose)`` [B, K, N].
 
     Returns:
         [B, K] bool.
     """
-    if near_limit is None:
-        near_limit = near_limits(query, size_q, size)
     if gap is None:
         gap = agent_distances(pose_q, pose)
     near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
