@@ -39,7 +39,7 @@ def frames_of(scenario, checkpoint: str | None, times: tuple[int, ...]) -> list[
             tr = np.stack([p for p, _ in trail[-20:]], axis=1)
             tv = np.stack([v for _, v in trail[-20:]], axis=1)
             title = f"{scenario.scenario_id}  t = {1.0 + 0.1 * step:.1f} s"
-            out.append(render_state(layer, s, 0, groups, trails=tr, trail_valid=tv, title=title))
+            out.append(render_state(layer, s, 0, groups, trails=(tr, tv), title=title))
     return out
 
 

@@ -443,6 +443,13 @@ def test_render_state_adds_origin(scenario: Scenario, view: View) -> None:
     groups = np.full(3, int(AgentGroup.EXTERNAL))
     ext = render_state(layer, state, 0, groups, title="", legend=False)
     assert colour_close(ext[pix(view, tuple(sdc_xy))], GROUP_COLORS[AgentGroup.EXTERNAL], tol=0)
+    # Trails (positions, valid): drawn where valid only.
+    trail = np.repeat(t.xyz[:, None, 5, :2], 4, axis=1) + [[-8.0, 0.0]]  # scenario frame
+    trail = trail + np.linspace(0.0, 6.0, 4)[None, :, None] * [1.0, 0.0]
+    trail_valid = np.ones((3, 4), bool)
+    with_trails = render_state(layer, state, 0, legend=False, trails=(trail, trail_valid))
+    hidden = render_state(layer, state, 0, legend=False, trails=(trail, ~trail_valid))
+    assert not np.array_equal(with_trails, img) and np.array_equal(hidden, img)
     with pytest.raises(IndexError):
         render_state(layer, state, 1)
 

@@ -312,8 +312,7 @@ def render_state(
     batch_index: int,
     groups: np.ndarray | None = None,
     *,
-    trails: np.ndarray | None = None,
-    trail_valid: np.ndarray | None = None,
+    trails: tuple[np.ndarray, np.ndarray] | None = None,
     title: str | None = None,
     legend: bool | Sequence[AgentGroup] = True,
     view: View | None = None,
@@ -325,8 +324,8 @@ def render_state(
         state: batched simulator state.
         batch_index: which scenario of the batch.
         groups: [N] ``AgentGroup`` per agent slot (default: ``default_groups``).
-        trails: [N, K, 2] past positions, metres, in the SCENARIO frame (oldest first).
-        trail_valid: [N, K] bool mask for ``trails``.
+        trails: (positions [N, K, 2] metres in the SCENARIO frame, oldest first; valid
+            [N, K] bool): past positions drawn behind the agents.
         title: text; default ``"<scenario id>  t = <step * DT> s"``.
         legend: as in ``render_frame``.
         view: camera (default ``map_layer.view``).
@@ -351,8 +350,8 @@ def render_state(
         valid=_np(state.valid[b] & state.agents.mask[b]),
         group=groups,
         type=_np(state.agents.object_type[b]),
-        trails=trails,
-        trail_valid=trail_valid,
+        trails=None if trails is None else trails[0],
+        trail_valid=None if trails is None else trails[1],
     )
     signals = SignalLayer(
         xy=_np(sig.stop_point[b]).astype(np.float64) + origin,
