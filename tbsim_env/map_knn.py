@@ -2,17 +2,26 @@
 
 A real WOMD scene keeps up to 1,024 map pieces and an observer sees its 64 nearest, so the plain
 search (``sim.knn.k_nearest`` over every piece) measures and ranks ~15x more pieces than it
-keeps; at all agents controlled it was the largest part of an env step. Here the pieces of a
-scene are grouped once into compact clusters (a k-d split of their anchor points into leaves
-of at most ``MAP_KNN_CLUSTER_SIZE``); per observer, the ``MAP_KNN_CLUSTERS`` clusters with the
-smallest lower bound on their pieces' distance are searched exactly.
+keeps; at all agents controlled it was the largest part of an env step. Two indexes narrow it
+down, both exact:
+
+* ``PieceGrid`` (the observations: a bank's maps, shared by its rows): the road-edge grid's
+  ``CellLists`` over the pieces' anchor points (``sim.edge_grid``; points are zero-length
+  segments): every ``MAP_GRID_CELL`` cell lists its ``MAP_GRID_CANDIDATES`` pieces nearest to
+  its centre. An observer measures its cell's list.
+* ``PieceClusters`` (TrafficBots' per-scene cache, which joins single scenes into batches by
+  concatenation and so needs fixed shapes): the pieces of a scene grouped into compact clusters
+  (a k-d split of their anchor points into leaves of at most ``MAP_KNN_CLUSTER_SIZE``); per
+  observer, the ``MAP_KNN_CLUSTERS`` clusters with the smallest lower bound on their pieces'
+  distance are measured.
 
 ``nearest_pieces`` is the search: the observations' nearest map pieces and TrafficBots' map
 neighbours of each agent. The result is the plain search's, exactly: no piece outside the
-searched clusters is nearer than the bound of the next cluster, and the search checks that its
-k-th distance stays below that bound (by ``MAP_KNN_MARGIN``, far more than float rounding, so
-ranking buckets cannot tie across it). For an observer where it does not hold (a sparse map
-beyond the clusters, or an observer far from every piece) it searches every piece.
+measured ones is nearer than a bound (the grid cell's, or the next cluster's), and the search
+checks that its k-th distance stays below that bound (by ``MAP_KNN_MARGIN``, far more than
+float rounding, so ranking buckets cannot tie across it). For an observer where it does not
+hold (a sparse map beyond the listed pieces, or an observer far from every piece) it searches
+every piece.
 """
 
 from __future__ import annotations
@@ -23,8 +32,10 @@ import numpy as np
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.sim.knn import k_nearest, planar_distances
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.sim.edge_grid import cell_of, cell_slack, scene_edge_grid, stack_cell_lists
+from tbsim_env.sim.knn import k_nearest, planar_distances, planar_distances_xy
+from tbsim_env.sim.state import CellLists, Shared
+from tbsim_env.torch_utils import gather_columns, gather_rows
 
 
 @dataclass(frozen=True)
@@ -49,6 +60,75 @@ class PieceClusters:
     @property
     def num_clusters(self) -> int:
         return int(self.members.shape[1])
+
+
+@dataclass(frozen=True)
+class PieceGrid(CellLists):
+    """``CellLists`` of the valid map pieces of B maps (``build_piece_grid``): ``cells`` lists
+    piece indices, and ``M`` (one past the last piece: the sentinel, +inf away) where a map
+    has fewer pieces than a list holds.
+
+    Attributes:
+        xy: Shared [K, 2, M + 1] float32 m, the pieces' anchor points, a row each of x and y
+            (+inf for invalid pieces and the sentinel column).
+    """
+
+    xy: Shared
+
+
+def build_piece_grid(
+    xy: torch.Tensor,
+    valid: torch.Tensor,
+    cell: float = C.MAP_GRID_CELL,
+    count: int = C.MAP_GRID_CANDIDATES,
+    margin: float = C.MAP_GRID_MARGIN,
+) -> PieceGrid:
+    """``PieceGrid`` of B maps (a bank's: its rows share the tables).
+
+    Args:
+        xy: [B, M, 2] float32 piece anchor points (as the search measures them).
+        valid: [B, M] bool.
+        cell, count, margin: cell size (m), pieces listed per cell, extent beyond the pieces
+            (m); constants in ``tbsim_env.constants``.
+    """
+    xy_np, valid_np = xy.detach().cpu().float().numpy(), valid.detach().cpu().numpy()
+    b, m = valid_np.shape
+    grids = []
+    for i in range(b):
+        ids = np.flatnonzero(valid_np[i])
+        pts = xy_np[i, ids]
+        grid = scene_edge_grid(pts, pts, cell, count, margin)  # points: zero-length segments
+        cells = ids[grid["cells"]] if len(ids) else np.full_like(grid["cells"], m)
+        cells[:, len(ids) :] = m  # fewer pieces than a list: the sentinel, not repeats
+        grids.append({**grid, "cells": cells})
+    inf = torch.full((b, 1, 2), float("inf"), device=xy.device)
+    points = torch.cat([xy.float().masked_fill(~valid[..., None], float("inf")), inf], 1)
+    return PieceGrid(
+        **stack_cell_lists(grids, cell, xy.device),
+        xy=Shared(points.transpose(1, 2).contiguous()),
+    )
+
+
+def grid_candidates(
+    grid: PieceGrid, me_xy: torch.Tensor, rows: torch.Tensor | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The pieces listed in each observer's grid cell.
+
+    Args:
+        grid: the maps' ``PieceGrid``.
+        me_xy: [B, Q, 2] observer positions.
+        rows: optional [B] int64: observer row b is in the map of grid row ``rows[b]``.
+
+    Returns:
+        (candidates [B, Q, Cc] int64 piece indices (``M`` for the sentinel), their distances
+        [B, Q, Cc] m (+inf: the sentinel, invalid pieces), bound [B, Q] m: no piece left out
+        is nearer; +inf when none is left).
+    """
+    cell = cell_of(grid, me_xy, rows)  # [B, Q]
+    table = grid.row if rows is None else grid.row[rows]
+    cand = gather_rows(grid.cells.value, cell, table)  # [B, Q, Cc] int32
+    x, y = gather_columns(grid.xy.value, cand, table)
+    return cand.long(), planar_distances_xy(x, y, me_xy), cell_slack(grid, me_xy, cell, table)
 
 
 def _kd_leaves(xy: np.ndarray, ids: np.ndarray, size: int) -> list[np.ndarray]:
@@ -174,7 +254,7 @@ def candidate_pieces(
 
 def nearest_pieces(
     points: torch.Tensor,
-    clusters: PieceClusters | None,
+    index: PieceGrid | PieceClusters | None,
     me_xy: torch.Tensor,
     k: int,
     within: float,
@@ -184,34 +264,32 @@ def nearest_pieces(
     [B, Q, k], ranked by ``sim.knn.k_nearest`` over every piece. With ``rows`` [B] int64,
     observer row b is in the scene of map row ``rows[b]``.
 
-    Eagerly on the CPU, maps with more pieces than the clustered search measures use it when
-    there are ``MAP_KNN_MIN_OBSERVERS`` observers per map row or more; the observers it does
-    not hold for (~1% on the real samples) are searched in full. A compiled graph cannot size
+    Eagerly on the CPU, the ``index`` narrows the search where it measures fewer pieces than
+    there are (``_index_pays``); the observers it does not hold for (none on the real samples
+    with the grid, ~1% with the clusters) are searched in full. A compiled graph cannot size
     tensors by that; it searches every piece (fused, that costs less there than the gathers
-    of the clustered search). Neither does a GPU, where finding those observers would cost a
+    of the narrowed search). Neither does a GPU, where finding those observers would cost a
     host sync every call, and measuring every piece costs idle lanes rather than time (the
     rule of ``torch_utils.listed``).
 
     Args:
         points: [B', 1, M, 2] piece anchor points, +inf for invalid pieces.
-        clusters: their ``PieceClusters`` (None: search every piece).
+        index: their ``PieceGrid`` or ``PieceClusters`` (None: search every piece).
         me_xy: [B, Q, 2] observer positions.
         k: pieces per observer.
         within: the radius the caller masks beyond, metres (``k_nearest``).
         rows: optional [B] int64 map row of each observer row (default: row b itself).
     """
-    searched, m = C.MAP_KNN_CLUSTERS, points.shape[2]
-    observers = me_xy.shape[0] * me_xy.shape[1]
-    clustered = (
-        clusters is not None
-        and clusters.num_clusters > searched
-        and clusters_pay(m, clusters.members.shape[-1])
-        and observers >= C.MAP_KNN_MIN_OBSERVERS * points.shape[0]
-    )
-    if not clustered or points.device.type != "cpu" or torch.compiler.is_compiling():
+    m = points.shape[2]
+    eager_cpu = points.device.type == "cpu" and not torch.compiler.is_compiling()
+    if not eager_cpu or not _index_pays(index, m, me_xy.shape[0] * me_xy.shape[1], points):
         return _all_pieces(points if rows is None else points[rows], me_xy, k, within)
-    cand, bound, xy = candidate_pieces(clusters, me_xy, searched, rows)  # xy [B, Q, C, 2]
-    idx, top = k_nearest(planar_distances(xy, me_xy), None, k, within, ids=(cand, m))
+    if isinstance(index, PieceGrid):
+        cand, dist, bound = grid_candidates(index, me_xy, rows)
+    else:
+        cand, bound, xy = candidate_pieces(index, me_xy, C.MAP_KNN_CLUSTERS, rows)
+        dist = planar_distances(xy, me_xy)
+    idx, top = k_nearest(dist, None, k, within, ids=(cand, m))
     fail_rows, cols = (~search_holds(top[..., -1], bound)).nonzero(as_tuple=True)
     if len(fail_rows):  # the few observers it does not hold for: every piece
         scene = fail_rows if rows is None else rows[fail_rows]
@@ -219,6 +297,21 @@ def nearest_pieces(
         idx = idx.index_put((fail_rows, cols), full_idx[:, 0])
         top = top.index_put((fail_rows, cols), full_top[:, 0])
     return idx, top
+
+
+def _index_pays(
+    index: PieceGrid | PieceClusters | None, m: int, observers: int, points: torch.Tensor
+) -> bool:
+    """Whether searching through ``index`` costs less than measuring all ``m`` pieces for
+    ``observers`` observers of ``points.shape[0]`` maps."""
+    if isinstance(index, PieceGrid):
+        return m > index.cells.value.shape[-1] and observers * m >= C.MAP_GRID_MIN_WORK
+    return (
+        index is not None
+        and index.num_clusters > C.MAP_KNN_CLUSTERS
+        and clusters_pay(m, index.members.shape[-1])
+        and observers >= C.MAP_KNN_MIN_OBSERVERS * points.shape[0]
+    )
 
 
 def _all_pieces(
@@ -232,12 +325,16 @@ def _all_pieces(
 def search_holds(kth: torch.Tensor, bound: torch.Tensor) -> torch.Tensor:
     """[B, Q] bool: the candidates' k-th distance ``kth`` stays ``MAP_KNN_MARGIN`` below the
     ``bound`` on every other piece (or no other piece is left), so the candidates' k nearest
-    are the k nearest of all pieces."""
-    return torch.isinf(bound) | (kth + C.MAP_KNN_MARGIN <= bound)
+    are the k nearest of all pieces. Never where ``kth`` is +inf: fewer than k valid pieces
+    were measured, and the plain search fills such entries with pieces, not the sentinel."""
+    return torch.isfinite(kth) & (torch.isinf(bound) | (kth + C.MAP_KNN_MARGIN <= bound))
 
 
 __all__ = [
     "PieceClusters",
+    "PieceGrid",
+    "build_piece_grid",
+    "grid_candidates",
     "build_piece_clusters",
     "candidate_pieces",
     "clusters_pay",

@@ -23,7 +23,7 @@ from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.map_knn import PieceClusters, build_piece_clusters, nearest_pieces
+from tbsim_env.map_knn import PieceGrid, build_piece_grid, nearest_pieces
 from tbsim_env.observation_spec import (
     ATTRIBUTE_FEATURES,
     HISTORY_FEATURES,
@@ -90,8 +90,8 @@ class MapContext:
         tl_invalid: [B, T, 1, L] bool, derived: not ``tl_valid``, step-major.
         knn_xy: [B, 1, M + L, 2] float32, derived: the positions the nearest-token searches
             measure to (piece starts, +inf for padding pieces, then light poses).
-        clusters: derived: the valid pieces grouped for the clustered nearest-piece search
-            (``tbsim_env.map_knn``).
+        grid: derived: the valid pieces' ``PieceGrid`` for the nearest-piece search
+            (``tbsim_env.map_knn``); its tables are shared by the rows of a bank.
     """
 
     pose: torch.Tensor
@@ -107,7 +107,7 @@ class MapContext:
     tl_tokens: torch.Tensor
     tl_invalid: torch.Tensor
     knn_xy: torch.Tensor
-    clusters: PieceClusters
+    grid: PieceGrid
 
 
 @dataclass(frozen=True)
@@ -220,7 +220,7 @@ def build_map_context(
         tl_tokens=_dense(tl_tokens.transpose(1, 2)),
         tl_invalid=_dense(~t["tl_valid"].transpose(1, 2)[:, :, None]),
         knn_xy=_dense(torch.cat([map_xy, t["tl_pose"][..., :2]], 1)[:, None]),
-        clusters=build_piece_clusters(t["pose"][..., :2], t["valid"]),
+        grid=build_piece_grid(t["pose"][..., :2], t["valid"]),
     )
 
 
@@ -384,9 +384,7 @@ def _seen_tokens(
         skip = ~usable | (slot == observers.unsqueeze(-1))
         a_idx, a_top = k_nearest(dist, skip, ka, cfg.agent_radius, ids=(slot, n))
     pieces = ctx.knn_xy[:, :, : ctx.pose.shape[1]]  # [B, 1, M, 2]
-    m_idx, m_top = nearest_pieces(
-        pieces, ctx.clusters, me[..., :2], cfg.num_map, cfg.map_radius, rows
-    )
+    m_idx, m_top = nearest_pieces(pieces, ctx.grid, me[..., :2], cfg.num_map, cfg.map_radius, rows)
     light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
     tl_invalid = _lights_at(ctx, state.step)[0]  # [B, 1, L]
     if rows is not None:

@@ -1,4 +1,5 @@
-"""The clustered nearest-map-piece search (``tbsim_env.map_knn``) equals the full search."""
+"""The narrowed nearest-map-piece searches (``tbsim_env.map_knn``: the observations' grid,
+TrafficBots' clusters) equal the full search."""
 
 from __future__ import annotations
 
@@ -10,29 +11,46 @@ import torch
 from tbsim_env import constants as C
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
-from tbsim_env.map_knn import candidate_pieces, nearest_pieces, scene_clusters, search_holds
+from tbsim_env.map_knn import (
+    build_piece_clusters,
+    build_piece_grid,
+    candidate_pieces,
+    grid_candidates,
+    nearest_pieces,
+    scene_clusters,
+    search_holds,
+)
 from tbsim_env.observation import ObsConfig, build_map_context
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.knn import k_nearest
 
 
 @pytest.fixture(scope="module")
-def contexts(womd_dir):
+def real_scenes(womd_dir):
     wod = womd_dir / "waymo-open-dataset"
-    real = [
+    return [
         *load_scenarios(wod / "motion_data_one_scenario.tfrecord"),
         *load_scenarios(wod / "womd_scenario_input.tfrecord"),
     ]
+
+
+@pytest.fixture(scope="module")
+def contexts(real_scenes):
     out = {}
-    for name, scenes in (("real", real), ("generated", default_scenarios(3))):
+    for name, scenes in (("real", real_scenes), ("generated", default_scenarios(3))):
         state = build_sim_state(scenes)
         out[name] = build_map_context(scenes, state.origin, ObsConfig())
     return out
 
 
-def _pieces(ctx, me, k, within):
+def _index(ctx, kind: str):
+    """The map context's own grid, or clusters of its pieces (TrafficBots' index)."""
+    return ctx.grid if kind == "grid" else build_piece_clusters(ctx.pose[..., :2], ctx.valid)
+
+
+def _pieces(ctx, index, me, k, within):
     """``nearest_pieces`` over a map context's pieces, as the observations search them."""
-    return nearest_pieces(ctx.knn_xy[:, :, : ctx.pose.shape[1]], ctx.clusters, me, k, within)
+    return nearest_pieces(ctx.knn_xy[:, :, : ctx.pose.shape[1]], index, me, k, within)
 
 
 def _observers(ctx, gen: torch.Generator, q: int = 300) -> torch.Tensor:
@@ -53,33 +71,62 @@ def _piece_xy(ctx) -> torch.Tensor:
     return torch.cat([xy, torch.full_like(xy[:, :1], float("inf"))], 1)
 
 
-def _full(ctx, me_xy: torch.Tensor, k: int):
-    """The plain search over every piece (distances as the observation computes them)."""
+def _full(ctx, me_xy: torch.Tensor, k: int, rows: torch.Tensor | None = None):
+    """The plain search over every piece (distances as the observation computes them) of the
+    map rows ``rows`` (all by default)."""
     m = ctx.pose.shape[1]
-    dx = ctx.knn_xy[:, :, :m, 0] - me_xy[..., 0:1]
-    dy = ctx.knn_xy[:, :, :m, 1] - me_xy[..., 1:2]
+    xy = ctx.knn_xy if rows is None else ctx.knn_xy[rows]
+    dx = xy[:, :, :m, 0] - me_xy[..., 0:1]
+    dy = xy[:, :, :m, 1] - me_xy[..., 1:2]
     return k_nearest(torch.sqrt(dx * dx + dy * dy), None, k, math.inf)  # the int64 key
 
 
-@pytest.mark.parametrize("name", ["real", "generated"])
-def test_clustered_search_equals_the_full_search(contexts, name):
-    ctx = contexts[name]
-    gen = torch.Generator().manual_seed(0)
-    me = _observers(ctx, gen)
-    k = ObsConfig().num_map
-    idx, top = _pieces(ctx, me, k, ObsConfig().map_radius)
-    ref_idx, ref_top = _full(ctx, me, k)
+def _assert_equal_to_full(ctx, me, got):
+    idx, top = got
+    ref_idx, ref_top = _full(ctx, me, ObsConfig().num_map)
     assert torch.equal(top, ref_top)
     finite = torch.isfinite(ref_top)
     assert torch.equal(idx[finite], ref_idx[finite])
 
 
+@pytest.mark.parametrize("kind", ["grid", "clusters"])
+@pytest.mark.parametrize("name", ["real", "generated"])
+def test_narrowed_search_equals_the_full_search(contexts, name, kind):
+    ctx = contexts[name]
+    me = _observers(ctx, torch.Generator().manual_seed(0))
+    cfg = ObsConfig()
+    _assert_equal_to_full(ctx, me, _pieces(ctx, _index(ctx, kind), me, cfg.num_map, cfg.map_radius))
+
+
+def test_the_grid_search_holds_where_agents_drive_and_not_far_away(contexts, real_scenes):
+    """Every logged position of every agent of the real samples is vouched for by its cell's
+    list (where those lists hold what the full search finds); points kilometres away are not."""
+    ctx, state = contexts["real"], build_sim_state(real_scenes)
+    assert ctx.grid.cells.value.shape[-1] < ctx.pose.shape[1], "the real maps use the grid"
+    m, cfg = ctx.pose.shape[1], ObsConfig()
+    for b in range(ctx.valid.shape[0]):
+        me = state.log.pose[b][state.log.valid[b]][None, :, :2]  # [1, P, 2]
+        far = me[:, :5] + torch.tensor([1000.0, -3000.0])
+        me = torch.cat([far, me], 1)
+        rows = torch.tensor([b])
+        cand, d, bound = grid_candidates(ctx.grid, me, rows)
+        xy = _piece_xy(ctx)[b, cand[0]]
+        dx, dy = xy[..., 0] - me[0, :, 0:1], xy[..., 1] - me[0, :, 1:2]
+        assert torch.equal(d[0], torch.sqrt(dx * dx + dy * dy))  # the grid's copy of the points
+        _, top = k_nearest(d, None, cfg.num_map, cfg.map_radius, ids=(cand, m))
+        holds = search_holds(top[..., -1], bound)
+        assert holds[:, 5:].all() and not holds[:, :5].any()
+        ref_idx, ref_top = _full(ctx, me, cfg.num_map, rows)
+        assert torch.equal(top[holds], ref_top[holds])
+
+
 def test_the_clustered_search_holds_near_the_map_and_not_far_away(contexts):
     ctx = contexts["real"]
-    assert ctx.clusters.num_clusters > C.MAP_KNN_CLUSTERS, "the real maps use the clustered path"
+    clusters = _index(ctx, "clusters")
+    assert clusters.num_clusters > C.MAP_KNN_CLUSTERS, "the real maps use the clustered path"
     gen = torch.Generator().manual_seed(1)
     me = _observers(ctx, gen)
-    cand, bound, cand_xy = candidate_pieces(ctx.clusters, me, C.MAP_KNN_CLUSTERS)
+    cand, bound, cand_xy = candidate_pieces(clusters, me, C.MAP_KNN_CLUSTERS)
     xy = torch.stack([_piece_xy(ctx)[b, cand[b]] for b in range(len(cand))])
     assert torch.equal(xy, cand_xy)  # the clusters' own copy of the anchor points
     dx, dy = xy[..., 0] - me[..., 0:1], xy[..., 1] - me[..., 1:2]
@@ -93,24 +140,70 @@ def test_the_clustered_search_holds_near_the_map_and_not_far_away(contexts):
     assert torch.equal(top[holds], ref_top[holds])
 
 
+def test_a_grid_of_short_lists_falls_back_to_the_full_search(contexts):
+    ctx = contexts["real"]
+    grid = build_piece_grid(ctx.pose[..., :2], ctx.valid, cell=20.0, count=66)
+    me = _observers(ctx, torch.Generator().manual_seed(2), q=50)
+    cand, d, bound = grid_candidates(grid, me)
+    _, top = k_nearest(d, None, ObsConfig().num_map, ObsConfig().map_radius, ids=(cand, 1024))
+    assert (~search_holds(top[..., -1], bound)).float().mean() > 0.3  # many fall back
+    _assert_equal_to_full(ctx, me, _pieces(ctx, grid, me, 64, ObsConfig().map_radius))
+
+
 def test_a_search_of_too_few_clusters_falls_back_to_the_full_search(contexts, monkeypatch):
     ctx = contexts["real"]
     monkeypatch.setattr(C, "MAP_KNN_CLUSTERS", 2)  # 32 candidates cannot hold 64 nearest
     me = _observers(ctx, torch.Generator().manual_seed(2), q=50)
-    idx, top = _pieces(ctx, me, ObsConfig().num_map, ObsConfig().map_radius)
-    ref_idx, ref_top = _full(ctx, me, ObsConfig().num_map)
-    assert torch.equal(top, ref_top) and torch.equal(idx, ref_idx)
+    _assert_equal_to_full(ctx, me, _pieces(ctx, _index(ctx, "clusters"), me, 64, 200.0))
+
+
+@pytest.mark.parametrize("kind", ["grid", "clusters"])
+def test_a_map_of_fewer_pieces_than_observed_beside_a_large_one(contexts, kind):
+    """A row with fewer valid pieces than an observer sees (its lists hold the sentinel) in a
+    batch whose other row uses the narrowed search: the full search's pieces, never the
+    sentinel index."""
+    ctx = contexts["real"]
+    valid = ctx.valid.clone()
+    valid[1, valid[1].nonzero()[40:, 0]] = False  # row 1 keeps 40 pieces
+    xy = ctx.pose[..., :2].masked_fill(~valid[..., None], float("inf"))
+    small = type(ctx)(**{**ctx.__dict__, "valid": valid, "knn_xy": xy[:, None]})
+    if kind == "grid":
+        index = build_piece_grid(ctx.pose[..., :2], valid)
+        assert (index.cells.value[1] == ctx.pose.shape[1]).any()  # the sentinel pads row 1
+    else:
+        index = build_piece_clusters(ctx.pose[..., :2], valid)
+    me = _observers(small, torch.Generator().manual_seed(3), q=100)
+    idx, top = _pieces(small, index, me, 64, 200.0)
+    assert (idx < ctx.pose.shape[1]).all()
+    _assert_equal_to_full(small, me, (idx, top))
+
+
+def test_grid_cells_list_the_pieces_nearest_to_their_centre(contexts):
+    ctx = contexts["real"]
+    grid, m = ctx.grid, ctx.pose.shape[1]
+    xy = _piece_xy(ctx)
+    for b in range(ctx.valid.shape[0]):
+        n = int(grid.shape[b].prod())
+        cells = grid.cells.value[b, :n].long()
+        centre = grid.center.value[b, :n]
+        d_all = torch.cdist(centre.double(), xy[b, :m].double().nan_to_num(posinf=1e9))
+        listed = d_all.gather(1, cells)
+        assert (listed.diff(dim=1) >= -1e-3).all()  # nearest first
+        unlisted = d_all.scatter(1, cells, math.inf).min(1).values
+        assert (listed[:, -1] <= unlisted + 1e-3).all()
+        assert (grid.bound.value[b, :n] <= unlisted).all()
 
 
 def test_clusters_are_compact_and_cover_every_valid_piece(contexts):
     ctx = contexts["real"]
+    clusters = _index(ctx, "clusters")
     for b in range(ctx.valid.shape[0]):
         valid = ctx.valid[b].numpy()
         leaves = scene_clusters(ctx.pose[b, :, :2].numpy(), valid, C.MAP_KNN_CLUSTER_SIZE)
         ids = sorted(i for leaf in leaves for i in leaf.tolist())
         assert ids == sorted(valid.nonzero()[0].tolist())
         assert all(len(leaf) <= C.MAP_KNN_CLUSTER_SIZE for leaf in leaves)
-    members, center, radius = ctx.clusters.members, ctx.clusters.center, ctx.clusters.radius
+    members, center, radius = clusters.members, clusters.center, clusters.radius
     m = ctx.pose.shape[1]
     real = members < m
     xy = (
@@ -118,7 +211,7 @@ def test_clusters_are_compact_and_cover_every_valid_piece(contexts):
         .gather(1, members.flatten(1)[..., None].expand(-1, -1, 2))
         .view(*members.shape, 2)
     )
-    assert torch.equal(xy, ctx.clusters.member_xy)
+    assert torch.equal(xy, clusters.member_xy)
     gap = torch.linalg.vector_norm(xy - center[:, :, None], dim=-1)
     assert (gap[real] <= radius[:, :, None].expand_as(gap)[real]).all()
 

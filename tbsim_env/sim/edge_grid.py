@@ -11,6 +11,10 @@ always the exact signed distance to the scenario's edges.
 
 A step therefore costs a fixed 4 corners x C candidates per agent, with no per-agent cache to
 carry or refresh: the cost grows linearly with the agents and does not depend on their history.
+
+The grid itself (``CellLists``: ``scene_edge_grid``, ``stack_cell_lists``, ``cell_of``,
+``cell_slack``) also lists the observations' nearest map pieces (``map_knn.PieceGrid``; a point
+is a segment of length zero).
 """
 
 from __future__ import annotations
@@ -20,7 +24,7 @@ import torch
 
 from tbsim_env import constants as C
 from tbsim_env.sim.geometry import segment_projection_xy
-from tbsim_env.sim.state import EdgeGrid, RoadEdges, Shared
+from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
 from tbsim_env.torch_utils import gather_columns, gather_rows
 
 
@@ -101,32 +105,45 @@ def build_edge_grid(
             (m); constants in ``tbsim_env.constants``.
     """
     grids = [scene_edge_grid(s, e, cell, count, margin) for s, e in segments]
-    b, g = len(grids), max(len(x["bound"]) for x in grids)
-    table = np.zeros((b, max(max(len(s) for s, _ in segments), 1), 4), np.float32)
+    table = np.zeros((len(grids), max(max(len(s) for s, _ in segments), 1), 4), np.float32)
     for i, (s, e) in enumerate(segments):
         start = np.asarray(s, np.float32)  # the RoadEdges' float32 values
         table[i, : len(start), :2] = start
         table[i, : len(start), 2:] = np.asarray(e, np.float32) - start
+    dev = torch.device(device)
+    return EdgeGrid(
+        **stack_cell_lists(grids, cell, dev),
+        segments=Shared(torch.from_numpy(table).transpose(1, 2).contiguous().to(dev)),
+    )
+
+
+def stack_cell_lists(
+    grids: list[dict[str, np.ndarray]], cell: float, device: torch.device
+) -> dict[str, torch.Tensor | Shared]:
+    """The ``CellLists`` fields of B scenarios' ``scene_edge_grid`` outputs, padded to the
+    largest grid (padding cells: candidates 0, bound +inf, centre 0; no point maps to them)."""
+    b, g = len(grids), max(len(x["bound"]) for x in grids)
+    count = grids[0]["cells"].shape[1]
     cells = np.zeros((b, g, count), np.int32)
     bound = np.full((b, g), np.inf, np.float32)
     center = np.zeros((b, g, 2), np.float32)
     for i, x in enumerate(grids):
         n = len(x["bound"])
         cells[i, :n], bound[i, :n], center[i, :n] = x["cells"], x["bound"], x["center"]
-    dev = torch.device(device)
-    return EdgeGrid(
-        cell=torch.full((b, 1, 1), float(cell), dtype=torch.float32, device=dev),
-        lower=torch.from_numpy(np.stack([x["lower"] for x in grids]).astype(np.float32)).to(dev),
-        shape=torch.from_numpy(np.stack([x["shape"] for x in grids])).to(dev),
-        row=torch.arange(b, device=dev),
-        cells=Shared(torch.from_numpy(cells).to(dev)),
-        bound=Shared(torch.from_numpy(bound).to(dev)),
-        center=Shared(torch.from_numpy(center).to(dev)),
-        segments=Shared(torch.from_numpy(table).transpose(1, 2).contiguous().to(dev)),
-    )
+    return {
+        "cell": torch.full((b, 1, 1), float(cell), dtype=torch.float32, device=device),
+        "lower": torch.from_numpy(np.stack([x["lower"] for x in grids]).astype(np.float32)).to(
+            device
+        ),
+        "shape": torch.from_numpy(np.stack([x["shape"] for x in grids])).to(device),
+        "row": torch.arange(b, device=device),
+        "cells": Shared(torch.from_numpy(cells).to(device)),
+        "bound": Shared(torch.from_numpy(bound).to(device)),
+        "center": Shared(torch.from_numpy(center).to(device)),
+    }
 
 
-def _cell_of(grid: EdgeGrid, xy: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+def cell_of(grid: CellLists, xy: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
     """[B, K] flat cell index of points [B, K, 2] (clamped into the grid) of the grid rows
     ``rows`` [B] (each row its own by default)."""
     lower, cell, shape = grid.lower, grid.cell, grid.shape
@@ -135,6 +152,17 @@ def _cell_of(grid: EdgeGrid, xy: torch.Tensor, rows: torch.Tensor | None) -> tor
     ij = torch.floor((xy - lower[:, None]) / cell).long()
     ij = torch.minimum(ij.clamp_min(0), shape[:, None] - 1)
     return ij[..., 0] * shape[:, None, 1] + ij[..., 1]
+
+
+def cell_slack(
+    grid: CellLists, xy: torch.Tensor, cell: torch.Tensor, table: torch.Tensor
+) -> torch.Tensor:
+    """[B, K] m, ``bound - |p - c|`` of points ``xy`` [B, K, 2] in their cells ``cell`` [B, K]
+    (``cell_of``) of the shared-table rows ``table`` [B]: no target missing from the cell's
+    list is nearer to the point (+inf: every target is listed)."""
+    centre = gather_rows(grid.center.value, cell, table)
+    bound = gather_rows(grid.bound.value, cell, table)
+    return bound - torch.hypot(xy[..., 0] - centre[..., 0], xy[..., 1] - centre[..., 1])
 
 
 def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
@@ -158,7 +186,7 @@ def grid_signed_distance(
         stale [B, K] bool: the nearest segment may be outside the cell's list, so the value
         may be wrong there).
     """
-    cell = _cell_of(grid, points, rows)  # [B, K]
+    cell = cell_of(grid, points, rows)  # [B, K]
     table = grid.row if rows is None else grid.row[rows]
     cand = gather_rows(grid.cells.value, cell, table)  # [B, K, Cc]
     ax, ay, bx, by = gather_columns(grid.segments.value, cand, table)  # [B, K, Cc] each
@@ -171,10 +199,7 @@ def grid_signed_distance(
     has_edge = edges.valid.any(-1, keepdim=True)
     has_edge = has_edge if rows is None else has_edge[rows]
     out = torch.where(has_edge, sign * d, C.NO_EDGE_DISTANCE)
-    centre = gather_rows(grid.center.value, cell, table)
-    bound = gather_rows(grid.bound.value, cell, table)
-    slack = bound - torch.hypot(points[..., 0] - centre[..., 0], points[..., 1] - centre[..., 1])
-    return out, d > slack
+    return out, d > cell_slack(grid, points, cell, table)
 
 
 def joint_sign(
@@ -209,7 +234,10 @@ def joint_sign(
 __all__ = [
     "EdgeGrid",
     "build_edge_grid",
+    "cell_of",
+    "cell_slack",
     "grid_signed_distance",
     "joint_sign",
     "scene_edge_grid",
+    "stack_cell_lists",
 ]

@@ -83,8 +83,14 @@ def planar_distances(xy: torch.Tensor, me_xy: torch.Tensor) -> torch.Tensor:
     [..., Q, >= 2] (broadcast over the leading dims: [B, 1, M, 2] targets shared by a row's
     observers, or [B, Q, M, 2] per observer). x and y apart: no [..., Q, M, 2] difference and
     no norm over a dim of 2, the same values in a third of the time."""
-    dx = xy[..., 0] - me_xy[..., 0:1]
-    dy = xy[..., 1] - me_xy[..., 1:2]
+    return planar_distances_xy(xy[..., 0], xy[..., 1], me_xy)
+
+
+def planar_distances_xy(x: torch.Tensor, y: torch.Tensor, me_xy: torch.Tensor) -> torch.Tensor:
+    """``planar_distances`` of targets given as x [..., M] and y [..., M] apart (columns
+    gathered from a table, ``torch_utils.gather_columns``)."""
+    dx = x - me_xy[..., 0:1]
+    dy = y - me_xy[..., 1:2]
     return torch.sqrt(dx * dx + dy * dy)
 
 
@@ -126,4 +132,4 @@ def k_nearest(
     return col.gather(-1, pos), torch.gather(d, -1, pos)
 
 
-__all__ = ["k_nearest", "nearest_k", "planar_distances"]
+__all__ = ["k_nearest", "nearest_k", "planar_distances", "planar_distances_xy"]

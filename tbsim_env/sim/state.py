@@ -95,7 +95,7 @@ class SignalLog:
 
 @dataclass(frozen=True, eq=False)
 class Shared:
-    """A table of K scenarios that batch rows read through a row map (``EdgeGrid.row``).
+    """A table of K scenarios that batch rows read through a row map (``CellLists.row``).
 
     Row operations (``tbsim_env.rows``) pass it through instead of splitting it: rows of one
     bank share its tables, so starting a new episode in a row copies none of them (a road-edge
@@ -109,9 +109,14 @@ class Shared:
 
 
 @dataclass(frozen=True)
-class EdgeGrid:
-    """Per-cell candidate road-edge segments of B scenarios (``tbsim_env.sim.edge_grid``),
-    padded to the largest grid; the large per-cell tables are ``Shared`` by the rows of a bank.
+class CellLists:
+    """A uniform grid over each of B scenarios whose cells list the targets nearest to their
+    centre (``tbsim_env.sim.edge_grid``): road-edge segments (``EdgeGrid``) or map pieces
+    (``map_knn.PieceGrid``). Padded to the largest grid; the large per-cell tables are
+    ``Shared`` by the rows of a bank.
+
+    A query point p in (or clamped to) a cell with centre c has no unlisted target nearer than
+    ``bound - |p - c|`` (triangle inequality).
 
     Attributes:
         cell: [B, 1, 1] float32, cell size (m).
@@ -119,13 +124,10 @@ class EdgeGrid:
         shape: [B, 2] int64, cells along x and y (at least 1 each).
         row: [B] int64, each batch row's row of the shared tables.
         cells: Shared [K, G, Cc] int32, per cell (x-major: ``ix * shape_y + iy``) the indices
-            of its Cc nearest segments, nearest first; padding entries repeat the last real one.
-        bound: Shared [K, G] float32, distance from the cell centre of the nearest segment not
-            listed (inf when every segment is listed), less a rounding slack.
+            of its Cc targets nearest to the centre, nearest first (padding: see the subclass).
+        bound: Shared [K, G] float32, distance from the cell centre of the nearest target not
+            listed (inf when every target is listed), less a rounding slack.
         center: Shared [K, G, 2] float32, cell centres.
-        segments: Shared [K, 4, E] float32, the road-edge segments as a lookup reads them,
-            a column each: start x, start y, (end - start) x, (end - start) y; in the order
-            of the rows of their ``RoadEdges``.
     """
 
     cell: torch.Tensor
@@ -135,6 +137,19 @@ class EdgeGrid:
     cells: Shared
     bound: Shared
     center: Shared
+
+
+@dataclass(frozen=True)
+class EdgeGrid(CellLists):
+    """``CellLists`` of road-edge segments (the off-road check's lookup); padding entries of
+    ``cells`` repeat the last real one.
+
+    Attributes:
+        segments: Shared [K, 4, E] float32, the road-edge segments as a lookup reads them,
+            a column each: start x, start y, (end - start) x, (end - start) y; in the order
+            of the rows of their ``RoadEdges``.
+    """
+
     segments: Shared
 
 
