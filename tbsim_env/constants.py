@@ -234,6 +234,12 @@ CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
 BANK_METRICS_CHUNK = 256
 """Scenarios per chunk when an episode bank computes its first metrics (their agent
 distances are [S, Q, N])."""
+MALLOC_MMAP_THRESHOLD = 32 << 20
+"""Bytes: glibc serves blocks up to this from the heap instead of fresh mmaps
+(``tbsim_env.malloc``; glibc's largest allowed value on 64-bit systems)."""
+MALLOC_TRIM_THRESHOLD = 256 << 20
+"""Bytes of free memory at the top of the heap that glibc keeps instead of returning it to
+the operating system (``tbsim_env.malloc``)."""
 
 # Off-road check of the environment (tbsim_env.sim.edge_grid).
 EDGE_GRID_CELL = 2.0

@@ -50,6 +50,7 @@ from tbsim_env.env.setup import (
     agent_name,
     controlled_indices,
     make_npc_policy,
+    resolve_device,
     resolve_scenarios,
     select_scenarios,
 )
@@ -148,7 +149,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.config = config or EnvConfig()
         self.obs_config = obs_config or ObsConfig()
         self.render_mode = render_mode
-        self.device = torch.device(device)
+        self.device = resolve_device(device)
         self.scenario_order = scenario_order
         self.torch_threads = torch_threads
         self.controlled_spec = controlled

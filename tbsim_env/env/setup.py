@@ -1,11 +1,11 @@
-"""What both environments do once at construction: scenarios, controlled agents, NPC policy.
+"""What both environments do once at construction: device, scenarios, controlled agents, NPC
+policy.
 
-One definition each of: where scenarios come from (``resolve_scenarios``), which agents a
-``controlled`` spec selects (``controlled_indices``), the agents' PettingZoo names
-(``agent_name``), how the NPC policy is made (``make_npc_policy``), and which scenarios an
-env can run (``select_scenarios``: the episode's time grid, the log-length check of log
-replay, scenes where nothing is controllable).
-"""
+One definition each of: the device (``resolve_device``), where scenarios come from
+(``resolve_scenarios``), which agents a ``controlled`` spec selects (``controlled_indices``),
+the agents' PettingZoo names (``agent_name``), how the NPC policy is made
+(``make_npc_policy``), and which scenarios an env can run (``select_scenarios``: the episode's
+time grid, the log-length check of log replay, scenes where nothing is controllable)."""
 
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from policies.base import Policy
 from tbsim_env.config import EnvConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.errors import UnusableScenarioError
+from tbsim_env.malloc import keep_freed_memory
 from tbsim_env.sim.horizon import episode_scenario
 
 ControlledSpec = str | Sequence[int]
@@ -30,6 +31,15 @@ ControlledSpec = str | Sequence[int]
 def agent_name(track_id: int) -> str:
     """PettingZoo name of the agent with WOMD track id ``track_id``."""
     return f"track_{int(track_id)}"
+
+
+def resolve_device(device: str | torch.device) -> torch.device:
+    """``torch.device(device)``; on the CPU, ``malloc.keep_freed_memory()`` too (once per
+    process: a step's freed temporaries stay with the process instead of page-faulting back)."""
+    out = torch.device(device)
+    if out.type == "cpu":
+        keep_freed_memory()
+    return out
 
 
 def resolve_scenarios(scenarios: Any) -> list[Scenario]:
@@ -186,6 +196,7 @@ __all__ = [
     "agent_name",
     "controlled_indices",
     "make_npc_policy",
+    "resolve_device",
     "resolve_scenarios",
     "select_scenarios",
 ]

@@ -48,7 +48,13 @@ from tbsim_env.env import episode as ep
 from tbsim_env.env.agent_metrics import Route, StepMetrics
 from tbsim_env.env.compiled import StepFunction
 from tbsim_env.env.episode import EpisodeBank, EpisodeState, StepConfig
-from tbsim_env.env.setup import ControlledSpec, agent_name, make_npc_policy, select_scenarios
+from tbsim_env.env.setup import (
+    ControlledSpec,
+    agent_name,
+    make_npc_policy,
+    resolve_device,
+    select_scenarios,
+)
 from tbsim_env.errors import ActionError
 from tbsim_env.observation import (
     IndexedObservation,
@@ -186,7 +192,7 @@ class BatchedTrafficEnv:
         if obs_layout not in ("dense", "indexed"):
             raise ValueError(f"obs_layout must be 'dense' or 'indexed', got {obs_layout!r}")
         self.batch_size = int(batch_size)
-        self.device = torch.device(device)
+        self.device = resolve_device(device)
         self.config = config or EnvConfig()
         self.obs_config = obs_config or ObsConfig()
         self.obs_layout = obs_layout
