@@ -38,11 +38,12 @@ class Route:
         arc: [B, Q, T] cumulative arc length m.
         goal: [B, Q, 2] last valid logged position.
         valid: [B, Q] the agent has at least one valid logged position.
-        segments: [B, Q, T - 1, 2] derived from ``points`` when not given: segment vectors
-            (point t + 1 - point t) m.
+        segments: [B, Q, 2, T - 1] derived from ``points`` when not given: segment vectors
+            (point t + 1 - point t) m, x and y apart (contiguous rows: what the per-step
+            projection reads fastest).
         segment_length2: [B, Q, T - 1] derived: squared segment lengths clamped at 1e-9 m^2.
         segment_length: [B, Q, T - 1] derived: segment lengths m.
-        segment_start: [B, Q, T - 1, 2] derived: ``points[..., :-1, :]``.
+        segment_start: [B, Q, 2, T - 1] derived: ``points[..., :-1, :]``, x and y apart.
         segment_arc: [B, Q, T - 1] derived: ``arc[..., :-1]``.
         size: [B, Q, 2] (length, width) m of the agent.
         radius: [B, Q] m, half diagonal (bounding-circle radius) of its box.
@@ -74,11 +75,12 @@ class Route:
         if self.segments is None:
             ab = self.points[..., 1:, :] - self.points[..., :-1, :]
             len2 = (ab * ab).sum(-1)
-            object.__setattr__(self, "segments", ab)
+            object.__setattr__(self, "segments", ab.transpose(-1, -2).contiguous())
             object.__setattr__(self, "segment_length2", len2.clamp_min(1e-9))
             object.__setattr__(self, "segment_length", len2.clamp_min(0).sqrt())
         if self.segment_start is None:
-            object.__setattr__(self, "segment_start", self.points[..., :-1, :])
+            start = self.points[..., :-1, :].transpose(-1, -2).contiguous()
+            object.__setattr__(self, "segment_start", start)
             object.__setattr__(self, "segment_arc", self.arc[..., :-1])
 
 
@@ -185,9 +187,9 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
 
 def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
-    # x and y apart (``segment_projection``'s layout): no sums over a dim of 2.
-    (ax, ay), (bx, by) = route.segment_start.unbind(-1), route.segments.unbind(-1)
-    qx, qy = xy.unsqueeze(-2).unbind(-1)
+    # x and y apart, each a contiguous row: no sums over a dim of 2, no strided reads.
+    (ax, ay), (bx, by) = route.segment_start.unbind(-2), route.segments.unbind(-2)
+    qx, qy = xy[..., 0:1], xy[..., 1:2]
     t = (((qx - ax) * bx + (qy - ay) * by) / route.segment_length2).clamp(0.0, 1.0)
     d = torch.hypot(qx - (ax + t * bx), qy - (ay + t * by))
     best = d.argmin(-1, keepdim=True)
