@@ -165,10 +165,6 @@ def cell_slack(
     return bound - torch.hypot(xy[..., 0] - centre[..., 0], xy[..., 1] - centre[..., 1])
 
 
-def _cross(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
-
-
 def grid_signed_distance(
     points: torch.Tensor, edges: RoadEdges, grid: EdgeGrid, rows: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -189,8 +185,26 @@ def grid_signed_distance(
     cell = cell_of(grid, points, rows)  # [B, K]
     table = grid.row if rows is None else grid.row[rows]
     cand = gather_rows(grid.cells.value, cell, table)  # [B, K, Cc]
-    ax, ay, bx, by = gather_columns(grid.segments.value, cand, table)  # [B, K, Cc] each
+    out, d = signed_over(points, edges, cand, rows)
+    return out, d > cell_slack(grid, points, cell, table)
+
+
+def signed_over(
+    points: torch.Tensor,
+    edges: RoadEdges,
+    cand: torch.Tensor,
+    rows: torch.Tensor | None = None,
+    usable: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed distance of points [B, K, 2] to the nearest of their candidate segments ``cand``
+    [B, K, C] (indices, read through the edges' grid tables), and that unsigned distance,
+    each [B, K] m (``NO_EDGE_DISTANCE`` without edges). ``usable``: optional [B, K, C] bool,
+    candidates that count (the others are never nearest). ``rows``: as
+    ``grid_signed_distance``'s."""
+    ax, ay, bx, by = _segment_columns(edges, cand, rows)  # [B, K, C] each
     t, dist = segment_projection_xy(points[..., :1], points[..., 1:], ax, ay, bx, by)
+    if usable is not None:
+        dist = torch.where(usable, dist, float("inf"))
     local = dist.argmin(-1, keepdim=True)
     d = dist.gather(-1, local)[..., 0]
     t_best = t.gather(-1, local)[..., 0]
@@ -198,8 +212,21 @@ def grid_signed_distance(
     sign = joint_sign(points, edges, best, t_best, rows)
     has_edge = edges.valid.any(-1, keepdim=True)
     has_edge = has_edge if rows is None else has_edge[rows]
-    out = torch.where(has_edge, sign * d, C.NO_EDGE_DISTANCE)
-    return out, d > cell_slack(grid, points, cell, table)
+    return torch.where(has_edge, sign * d, C.NO_EDGE_DISTANCE), d
+
+
+def _segment_columns(
+    edges: RoadEdges, seg: torch.Tensor, rows: torch.Tensor | None
+) -> tuple[torch.Tensor, ...]:
+    """(start x, start y, (end - start) x, (end - start) y) of the segments ``seg`` [B, ...] of
+    edge row b (or ``rows[b]``), each [B, ...]: from the grid's column table when there is one
+    (one index for all four, contiguous results), else from the edges."""
+    if edges.grid is not None:
+        table = edges.grid.row if rows is None else edges.grid.row[rows]
+        return gather_columns(edges.grid.segments.value, seg, table)
+    sa = gather_rows(edges.start, seg, rows)
+    sab = gather_rows(edges.end, seg, rows) - sa
+    return sa[..., 0], sa[..., 1], sab[..., 0], sab[..., 1]
 
 
 def joint_sign(
@@ -215,12 +242,13 @@ def joint_sign(
     prev = gather_rows(edges.prev_index, best, rows)
     nxt = gather_rows(edges.next_index, best, rows)
     seg = torch.stack([best, prev, nxt], -1)  # [B, K, 3]
-    sa = gather_rows(edges.start, seg, rows)  # [B, K, 3, 2]
-    sab = gather_rows(edges.end, seg, rows) - sa
-    n = torch.sign(_cross(points.unsqueeze(-2) - sa, sab))  # [B, K, 3]
+    ax, ay, dx, dy = _segment_columns(edges, seg, rows)  # [B, K, 3] each
+    # The side of each segment: cross(p - a, b - a).
+    n = torch.sign((points[..., 0:1] - ax) * dy - (points[..., 1:2] - ay) * dx)
     n_this, n_prev, n_next = n.unbind(-1)
-    convex_prev = _cross(sab[..., 1, :], sab[..., 0, :]) > 0
-    convex_next = _cross(sab[..., 0, :], sab[..., 2, :]) > 0
+    (dx0, dx1, dx2), (dy0, dy1, dy2) = dx.unbind(-1), dy.unbind(-1)
+    convex_prev = dx1 * dy0 - dy1 * dx0 > 0  # cross(previous, this)
+    convex_next = dx0 * dy2 - dy0 * dx2 > 0  # cross(this, next)
     with_prev = torch.where(
         convex_prev, torch.maximum(n_this, n_prev), torch.minimum(n_this, n_prev)
     )
@@ -239,5 +267,6 @@ __all__ = [
     "grid_signed_distance",
     "joint_sign",
     "scene_edge_grid",
+    "signed_over",
     "stack_cell_lists",
 ]

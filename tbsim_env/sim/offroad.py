@@ -13,10 +13,10 @@ from __future__ import annotations
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.sim.edge_grid import grid_signed_distance, joint_sign
+from tbsim_env.sim.edge_grid import grid_signed_distance, joint_sign, signed_over
 from tbsim_env.sim.geometry import segment_projection
 from tbsim_env.sim.state import RoadEdges
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.torch_utils import cached_arange, gather_rows
 
 NO_EDGE_DISTANCE = C.NO_EDGE_DISTANCE
 """Distance reported when a scenario has no road edge (always on-road)."""
@@ -118,7 +118,9 @@ def _recompute(
     """[P] signed distance of the points ``(bi, ki)`` [P] over every segment of their scene
     (edge row ``bi``, or ``rows[bi]`` with a row map)."""
     scene = bi if rows is None else rows[bi]
-    return signed_distance_to_edges(points[bi, ki][:, None], _edge_rows(edges, scene))[:, 0]
+    every = cached_arange(edges.valid.shape[1], points.device).expand(len(bi), 1, -1)  # [P, 1, E]
+    usable = edges.valid.index_select(0, scene).unsqueeze(1)
+    return signed_over(points[bi, ki][:, None], edges, every, scene, usable)[0][:, 0]
 
 
 def _edge_rows(edges: RoadEdges, rows: torch.Tensor) -> RoadEdges:
