@@ -35,7 +35,7 @@ from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed
+from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed, valid_first
 
 
 @dataclass(frozen=True)
@@ -356,33 +356,27 @@ def _seen_tokens(
     observers: torch.Tensor,
     dist: torch.Tensor,
     cfg: ObsConfig,
+    columns: tuple[torch.Tensor, torch.Tensor],
     rows: torch.Tensor | None = None,
-    columns: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The tokens observers see, before masking: (index [B, Q, Ka + Km + Kt] int64 (agent
     slots, map pieces, lights, nearest first), relative poses [B, Q, K, 3], mask [B, Q, K]
     float32: 1 within the radius).
 
     Args:
-        observers: [B, Q] int64 agent slots; dist: [B, Q, C] their centre distances to every
-            slot (C = N), or to the ``columns``.
-        rows: optional [B] int64: observer row b is in state / context row ``rows[b]``
-            (observers gathered from several rows); row b itself by default.
-        columns: optional (slot [B, Q, C] int64, usable [B, Q, C] bool): the slot of each
+        observers: [B, Q] int64 agent slots; dist: [B, Q, C] their centre distances to the
+            agents of the ``columns``.
+        columns: (slot [B, Q or 1, C] int64, usable [B, Q or 1, C] bool): the slot of each
             column of ``dist`` and whether it holds a valid agent (the others are padding);
             the same neighbours as over every slot, ranked by slot.
+        rows: optional [B] int64: observer row b is in state / context row ``rows[b]``
+            (observers gathered from several rows); row b itself by default.
     """
     n, ka = state.num_agents, cfg.num_agents
     me = gather_rows(state.pose, observers, rows)  # [B, Q, 3]
-    if columns is None:
-        valid = state.valid if rows is None else state.valid.index_select(0, rows)
-        # Not another valid agent: invalid (valid <= itself is ~valid | itself), or itself.
-        itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
-        a_idx, a_top = k_nearest(dist, valid.unsqueeze(1) <= itself, ka, cfg.agent_radius)
-    else:
-        slot, usable = columns
-        skip = ~usable | (slot == observers.unsqueeze(-1))
-        a_idx, a_top = k_nearest(dist, skip, ka, cfg.agent_radius, ids=(slot, n))
+    slot, usable = columns
+    skip = ~usable | (slot == observers.unsqueeze(-1))  # not another valid agent
+    a_idx, a_top = k_nearest(dist, skip, ka, cfg.agent_radius, ids=(slot.expand_as(dist), n))
     pieces = ctx.knn_xy[:, :, : ctx.pose.shape[1]]  # [B, 1, M, 2]
     m_idx, m_top = nearest_pieces(pieces, ctx.grid, me[..., :2], cfg.num_map, cfg.map_radius, rows)
     light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
@@ -410,28 +404,22 @@ def _seen_by_listed(
     state: SimState,
     ctx: MapContext,
     observers: torch.Tensor,
-    dist: torch.Tensor,
+    dist: tuple[torch.Tensor, torch.Tensor],
     cfg: ObsConfig,
     pairs: tuple[torch.Tensor, torch.Tensor],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``_masked(_seen_tokens(...))`` of the observers ``pairs`` (rows [R], columns [R] of
     ``observers``) only, gathered from every row into one list and scattered back; the others
-    get index 0, pose 0 and mask 0."""
+    get index 0, pose 0 and mask 0. ``dist``: ([B, Q, C] distances, [B, C] their slots)."""
     b, q = pairs
-    # Neighbours among each row's valid slots only (real scenes keep a slot for every track
-    # of the log, most of them absent at any one step): the slots in order, padding after.
-    valid = state.valid
-    count = valid.sum(1)
-    order = torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)[:, : int(count.max())]
-    usable = cached_arange(order.shape[1], valid.device) < count.unsqueeze(1)
-    slot = order.index_select(0, b)  # [R, C]
-    flat = (b * observers.shape[1] + q).unsqueeze(1) * state.num_agents + slot
-    columns = (slot.unsqueeze(1), usable.index_select(0, b).unsqueeze(1))
-    near = dist.reshape(-1).index_select(0, flat.flatten()).view(-1, 1, slot.shape[1])
-    index, rel, mask = _masked(
-        *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), near, cfg, b, columns)
-    )
+    dist, slots = dist
     flat = b * observers.shape[1] + q
+    usable = gather_rows(state.valid, slots).index_select(0, b).unsqueeze(1)
+    columns = (slots.index_select(0, b).unsqueeze(1), usable)  # [R, 1, C]
+    near = dist.flatten(0, 1).index_select(0, flat).unsqueeze(1)
+    index, rel, mask = _masked(
+        *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), near, cfg, columns, b)
+    )
     out = []
     for part in (index, rel, mask):
         full = part.new_zeros(observers.numel(), *part.shape[2:])
@@ -454,7 +442,7 @@ def observe_indexed(
     observers: torch.Tensor,
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
-    agent_distance: torch.Tensor | None = None,
+    agent_distance: tuple[torch.Tensor, torch.Tensor] | None = None,
     observer_mask: torch.Tensor | None = None,
 ) -> IndexedObservation:
     """Observations of the ``observers`` agents, by token index (see ``IndexedObservation``).
@@ -472,17 +460,20 @@ def observe_indexed(
         cfg: observation sizes.
         agent_static: optional precomputed ``agent_static_features(state)`` (it does not
             change within an episode).
-        agent_distance: optional [B, Q, N] centre distances of the observers to every agent
-            slot at the current poses (``StepMetrics.agent_distance`` with the observers as
-            query); computed when None.
+        agent_distance: optional (distances [B, Q, C], slots [B, C]): centre distances of the
+            observers to the agent slots ``slots`` (``torch_utils.valid_first``) at the current
+            poses (``StepMetrics.agent_distance`` with the observers as query); computed when
+            None.
         observer_mask: optional [B, Q] bool, the observers to describe (the env's active
             agents); the others see no token (index 0, pose 0, mask 0). Where that pays
             (``torch_utils.listed``), the searches run on the described observers only.
     """
     static = agent_static_features(state) if agent_static is None else agent_static
-    dist = agent_distance  # [B, Q, N]
+    dist = agent_distance
     if dist is None:
-        dist = agent_distances(gather_rows(state.pose, observers), state.pose)
+        slots = valid_first(state.valid)
+        pose = gather_rows(state.pose, slots)
+        dist = (agent_distances(gather_rows(state.pose, observers), pose), slots)
     q, ka = observers.shape[1], cfg.num_agents
     compact = q * (1 + ka) < state.num_agents
     # Compact tokens follow the observers' rows: those are never listed.
@@ -491,7 +482,9 @@ def observe_indexed(
         index, rel, mask = _seen_by_listed(state, ctx, observers, dist, cfg, pairs)
         tokens = agent_tokens(state, history, static)
     else:
-        index, rel, mask = _seen_tokens(state, ctx, observers, dist, cfg)
+        near, slots = dist
+        columns = (slots.unsqueeze(1), gather_rows(state.valid, slots).unsqueeze(1))
+        index, rel, mask = _seen_tokens(state, ctx, observers, near, cfg, columns)
         if observer_mask is not None:
             mask = mask * observer_mask.unsqueeze(-1)
         if compact:
@@ -568,7 +561,7 @@ def observe(
     observers: torch.Tensor,
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
-    agent_distance: torch.Tensor | None = None,
+    agent_distance: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> dict[str, torch.Tensor]:
     """Dense observations of the ``observers`` agents: ``densify`` of ``observe_indexed``
     (same arguments).

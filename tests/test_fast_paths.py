@@ -34,6 +34,7 @@ from tbsim_env.sim.edge_grid import build_edge_grid, grid_signed_distance
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import _signed_and_unsigned, grid_exact_signed_distance
 from tbsim_env.sim.state import RoadEdges
+from tbsim_env.torch_utils import gather_rows, valid_first
 
 
 @pytest.fixture(scope="module")
@@ -189,8 +190,9 @@ def test_observe_and_core_step_match_references(scenes, name):
             args = (s, history, setup.ctx, setup.query, env.obs_config, setup.static)
             got = observe(*args)
             ref = _reference_observe(*args)
-            dist = agent_distances(s.pose[0, setup.query], s.pose)
-            shared = observe(*args, dist)
+            slots = valid_first(s.valid)
+            dist = agent_distances(s.pose[0, setup.query], gather_rows(s.pose, slots))
+            shared = observe(*args, (dist, slots))
             for key in ref:
                 assert torch.equal(got[key], ref[key]), key
                 assert torch.equal(shared[key], ref[key]), key
@@ -315,9 +317,14 @@ def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
                 if f.name == "offroad_stale":  # set under torch.compile only
                     assert got.offroad_stale is one.offroad_stale is two.offroad_stale is None
                     continue
+                if f.name == "agent_distance":  # the valid columns; the batch pads more
+                    c = int(row.valid.sum())
+                    dist, slots = got.agent_distance
+                    for alone in (one.agent_distance, two.agent_distance):
+                        assert torch.equal(slots[b : b + 1, :c], alone[1][:, :c])
+                        assert torch.equal(dist[b : b + 1, :, :c], alone[0][..., :c])
+                    continue
                 x = getattr(got, f.name)[b : b + 1]
-                if f.name == "agent_distance":
-                    x = x[..., :n]  # the batch pads the agent slots
                 assert torch.equal(x, getattr(one, f.name)), f.name
                 assert torch.equal(x, getattr(two, f.name)), f.name
 

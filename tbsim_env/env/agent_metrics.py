@@ -24,7 +24,7 @@ from tbsim_env.sim.collision import (
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import box_offroad_distance
 from tbsim_env.sim.state import RoadEdges, SimState
-from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed
+from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed, valid_first
 
 
 @dataclass(frozen=True)
@@ -47,7 +47,6 @@ class Route:
         segment_arc: [B, Q, T - 1] derived: ``arc[..., :-1]``.
         size: [B, Q, 2] (length, width) m of the agent.
         radius: [B, Q] m, half diagonal (bounding-circle radius) of its box.
-        near_limit: [B, Q, N] m, ``collision.near_limits`` of the agent against every slot.
         corner_along: [B, Q, 4] m, its box corners along the heading (``corner_offsets``).
         corner_across: [B, Q, 4] m, across the heading.
         log_xy: [B, Q, T, 2] logged positions (not filled), m.
@@ -65,7 +64,6 @@ class Route:
     segment_arc: torch.Tensor | None = field(default=None)
     size: torch.Tensor | None = field(default=None)
     radius: torch.Tensor | None = field(default=None)
-    near_limit: torch.Tensor | None = field(default=None)
     corner_along: torch.Tensor | None = field(default=None)
     corner_across: torch.Tensor | None = field(default=None)
     log_xy: torch.Tensor | None = field(default=None)
@@ -102,8 +100,10 @@ class StepMetrics:
             no state (``log_valid`` False: after the agent's log ends, or after a history-only
             scene's current step).
         log_valid: bool, the log has the agent at this step.
-        agent_distance: [B, Q, N] m, centre distance to every agent slot (``observe`` of the
-            same poses can reuse it); None when not computed.
+        agent_distance: (distances [B, Q, C] m, slots [B, C] int64): centre distances to the
+            agent slots ``slots`` (``torch_utils.valid_first``: every valid slot, then
+            invalid ones); ``observe_indexed`` of the same poses reuses them. None when not
+            computed.
         offroad_stale: [B, Q] bool, set only under ``torch.compile``: present agents with a
             box corner the road-edge grid could not vouch for beyond the graph's recompute
             budget (``OFFROAD_RECOMPUTE_BUDGET``), whose off-road distance may be wrong; the
@@ -117,7 +117,7 @@ class StepMetrics:
     goal_distance: torch.Tensor
     log_divergence: torch.Tensor
     log_valid: torch.Tensor
-    agent_distance: torch.Tensor | None = None
+    agent_distance: tuple[torch.Tensor, torch.Tensor] | None = None
     offroad_stale: torch.Tensor | None = None
 
 
@@ -177,7 +177,6 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
     return {
         "size": size,
         "radius": const(0.5, size) * torch.linalg.vector_norm(size, dim=-1),
-        "near_limit": near_limits(query, size, state.agents.size[..., :2]),
         "corner_along": along,
         "corner_across": across,
         "log_xy": state.log.pose[b_idx, query, :, :2],
@@ -205,18 +204,20 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
         query: [B, Q] int64 agent slots.
         route: their logged routes (``build_route``).
     """
-    if route.near_limit is None:
+    if route.size is None:
         route = dataclasses.replace(route, **_query_fields(state, query))
     pose = gather_rows(state.pose, query)
     present = gather_rows(state.valid, query)
     size = route.size
     x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [B, Q, 1]
     trig = cos_sin(yaw)
-    all_size = state.agents.size[..., :2]
-    gap = agent_distances(pose, state.pose)
-    coll = collided_with_others(
-        pose, size, state.pose, all_size, state.valid, route.near_limit, trig, gap
-    )
+    # The other agents as columns: the valid slots first (``valid_first``).
+    slots = valid_first(state.valid)  # [B, C]
+    other_pose, usable = gather_rows(state.pose, slots), gather_rows(state.valid, slots)
+    other_size = gather_rows(state.agents.size[..., :2], slots)
+    gap = agent_distances(pose, other_pose)  # [B, Q, C]
+    limit = near_limits(query, size, other_size, slots)
+    coll = collided_with_others(pose, size, other_pose, other_size, usable, limit, trig, gap)
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
     off_d, stale = _offroad(corners, state.road_edges, present)
     log_valid, log_xy = _log_at(route, state.step)
@@ -230,7 +231,7 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
         goal_distance=torch.linalg.vector_norm(xy - route.goal, dim=-1),
         log_divergence=log_gap,
         log_valid=log_valid,
-        agent_distance=gap,
+        agent_distance=(gap, slots),
         offroad_stale=(stale & present) if torch.compiler.is_compiling() else None,
     )
     return metrics

@@ -124,21 +124,31 @@ def pairwise_overlap(
     return ~(sep | _separated_on_axes_of_b(pairs))
 
 
-def near_limits(query: torch.Tensor, size_q: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
-    """Bounding-circle prefilter distances of K query agents to every agent slot.
+def near_limits(
+    query: torch.Tensor,
+    size_q: torch.Tensor,
+    size: torch.Tensor,
+    slots: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Bounding-circle prefilter distances of K query agents to every agent slot, or to the
+    slots ``slots``.
 
     Args:
         query: [B, K] int64 agent slots; size_q: [B, K, 2] their (length, width).
-        size: [B, N, 2] (length, width) of every slot.
+        size: [B, N, 2] (length, width) of every slot, or [B, C, 2] of the slots ``slots``.
+        slots: optional [B, C] int64, the slot of each row of ``size`` (``valid_first``).
 
     Returns:
-        [B, K, N] m: the sum of the two bounding-circle radii (half diagonals), -inf for the
-        query agent itself (so that no distance passes the prefilter).
+        [B, K, N or C] m: the sum of the two bounding-circle radii (half diagonals), -inf for
+        the query agent itself (so that no distance passes the prefilter).
     """
     radius = const(0.5, size) * torch.linalg.vector_norm(size, dim=-1)  # [B, N]
     radius_q = const(0.5, size_q) * torch.linalg.vector_norm(size_q, dim=-1)  # [B, K]
     limit = radius.unsqueeze(1) + radius_q.unsqueeze(-1)
-    itself = cached_arange(size.shape[1], size.device) == query.unsqueeze(-1)
+    if slots is None:
+        itself = cached_arange(size.shape[1], size.device) == query.unsqueeze(-1)
+    else:
+        itself = slots.unsqueeze(1) == query.unsqueeze(-1)
     return limit.masked_fill(itself, float("-inf"))
 
 
