@@ -409,6 +409,15 @@ def test_gather_rows_is_batched_advanced_indexing(batch):
             assert torch.equal(gather_rows(x, idx), x[b, idx])
 
 
+def test_valid_first_lists_each_rows_valid_slots_in_order_then_the_others():
+    valid = torch.tensor(
+        [[False, True, False, True, True, False], [True, False, False, False, False, True]]
+    )
+    slots = valid_first(valid)
+    assert slots.tolist() == [[1, 3, 4], [0, 5, 1]]  # C = 3; row 1 pads with invalid slots
+    assert valid_first(torch.zeros(2, 4, dtype=torch.bool)).shape == (2, 1)  # never empty
+
+
 def test_gather_columns_reads_each_column_of_the_table_rows():
     from tbsim_env.torch_utils import gather_columns
 
