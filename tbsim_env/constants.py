@@ -234,6 +234,9 @@ CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
 BANK_METRICS_CHUNK = 256
 """Scenarios per chunk when an episode bank computes its first metrics (their agent
 distances are [S, Q, N])."""
+VALID_FIRST_MIN_QUERIES = 8
+"""Query agents per row from which their agent pairs are measured over each row's valid slots
+(``torch_utils.valid_first``) instead of every slot."""
 MALLOC_MMAP_THRESHOLD = 32 << 20
 """Bytes: glibc serves blocks up to this from the heap instead of fresh mmaps
 (``tbsim_env.malloc``; glibc's largest allowed value on 64-bit systems)."""

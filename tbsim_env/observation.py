@@ -35,7 +35,14 @@ from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
 from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed, valid_first
+from tbsim_env.torch_utils import (
+    cached_arange,
+    const,
+    gather_rows,
+    listed,
+    valid_first,
+    valid_order,
+)
 
 
 @dataclass(frozen=True)
@@ -356,27 +363,33 @@ def _seen_tokens(
     observers: torch.Tensor,
     dist: torch.Tensor,
     cfg: ObsConfig,
-    columns: tuple[torch.Tensor, torch.Tensor],
     rows: torch.Tensor | None = None,
+    columns: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The tokens observers see, before masking: (index [B, Q, Ka + Km + Kt] int64 (agent
     slots, map pieces, lights, nearest first), relative poses [B, Q, K, 3], mask [B, Q, K]
     float32: 1 within the radius).
 
     Args:
-        observers: [B, Q] int64 agent slots; dist: [B, Q, C] their centre distances to the
-            agents of the ``columns``.
-        columns: (slot [B, Q or 1, C] int64, usable [B, Q or 1, C] bool): the slot of each
-            column of ``dist`` and whether it holds a valid agent (the others are padding);
-            the same neighbours as over every slot, ranked by slot.
+        observers: [B, Q] int64 agent slots; dist: [B, Q, C] their centre distances to every
+            slot (C = N), or to the ``columns``.
         rows: optional [B] int64: observer row b is in state / context row ``rows[b]``
             (observers gathered from several rows); row b itself by default.
+        columns: optional (slot [B, Q or 1, C] int64, usable [B, Q or 1, C] bool): the slot of
+            each column of ``dist`` and whether it holds a valid agent (the others are
+            padding); the same neighbours as over every slot, ranked by slot.
     """
     n, ka = state.num_agents, cfg.num_agents
     me = gather_rows(state.pose, observers, rows)  # [B, Q, 3]
-    slot, usable = columns
-    skip = ~usable | (slot == observers.unsqueeze(-1))  # not another valid agent
-    a_idx, a_top = k_nearest(dist, skip, ka, cfg.agent_radius, ids=(slot.expand_as(dist), n))
+    if columns is None:
+        valid = state.valid if rows is None else state.valid.index_select(0, rows)
+        # Not another valid agent: invalid (valid <= itself is ~valid | itself), or itself.
+        itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
+        a_idx, a_top = k_nearest(dist, valid.unsqueeze(1) <= itself, ka, cfg.agent_radius)
+    else:
+        slot, usable = columns
+        skip = ~usable | (slot == observers.unsqueeze(-1))  # not another valid agent
+        a_idx, a_top = k_nearest(dist, skip, ka, cfg.agent_radius, ids=(slot.expand_as(dist), n))
     pieces = ctx.knn_xy[:, :, : ctx.pose.shape[1]]  # [B, 1, M, 2]
     m_idx, m_top = nearest_pieces(pieces, ctx.grid, me[..., :2], cfg.num_map, cfg.map_radius, rows)
     light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
@@ -404,21 +417,25 @@ def _seen_by_listed(
     state: SimState,
     ctx: MapContext,
     observers: torch.Tensor,
-    dist: tuple[torch.Tensor, torch.Tensor],
+    dist: tuple[torch.Tensor, torch.Tensor | None],
     cfg: ObsConfig,
     pairs: tuple[torch.Tensor, torch.Tensor],
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``_masked(_seen_tokens(...))`` of the observers ``pairs`` (rows [R], columns [R] of
     ``observers``) only, gathered from every row into one list and scattered back; the others
-    get index 0, pose 0 and mask 0. ``dist``: ([B, Q, C] distances, [B, C] their slots)."""
+    get index 0, pose 0 and mask 0. ``dist``: ``observe_indexed``'s ``agent_distance``."""
     b, q = pairs
     dist, slots = dist
     flat = b * observers.shape[1] + q
-    usable = gather_rows(state.valid, slots).index_select(0, b).unsqueeze(1)
-    columns = (slots.index_select(0, b).unsqueeze(1), usable)  # [R, 1, C]
-    near = dist.flatten(0, 1).index_select(0, flat).unsqueeze(1)
+    if slots is None:  # distances to every slot: their columns of each row's valid slots
+        slot = valid_order(state.valid).index_select(0, b)  # [R, C]
+        at = flat.unsqueeze(1) * state.num_agents + slot
+        near = dist.reshape(-1).index_select(0, at.flatten()).view(slot.shape)
+    else:
+        slot, near = slots.index_select(0, b), dist.flatten(0, 1).index_select(0, flat)
+    columns = (slot.unsqueeze(1), gather_rows(state.valid, slot, b).unsqueeze(1))  # [R, 1, C]
     index, rel, mask = _masked(
-        *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), near, cfg, columns, b)
+        *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), near.unsqueeze(1), cfg, b, columns)
     )
     out = []
     for part in (index, rel, mask):
@@ -442,7 +459,7 @@ def observe_indexed(
     observers: torch.Tensor,
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
-    agent_distance: tuple[torch.Tensor, torch.Tensor] | None = None,
+    agent_distance: tuple[torch.Tensor, torch.Tensor | None] | None = None,
     observer_mask: torch.Tensor | None = None,
 ) -> IndexedObservation:
     """Observations of the ``observers`` agents, by token index (see ``IndexedObservation``).
@@ -460,10 +477,10 @@ def observe_indexed(
         cfg: observation sizes.
         agent_static: optional precomputed ``agent_static_features(state)`` (it does not
             change within an episode).
-        agent_distance: optional (distances [B, Q, C], slots [B, C]): centre distances of the
-            observers to the agent slots ``slots`` (``torch_utils.valid_first``) at the current
-            poses (``StepMetrics.agent_distance`` with the observers as query); computed when
-            None.
+        agent_distance: optional (distances [B, Q, C], slots [B, C] or None): centre distances
+            of the observers to the agent slots ``slots`` (``torch_utils.valid_first``), or to
+            every slot where ``slots`` is None, at the current poses
+            (``StepMetrics.agent_distance`` with the observers as query); computed when None.
         observer_mask: optional [B, Q] bool, the observers to describe (the env's active
             agents); the others see no token (index 0, pose 0, mask 0). Where that pays
             (``torch_utils.listed``), the searches run on the described observers only.
@@ -471,8 +488,8 @@ def observe_indexed(
     static = agent_static_features(state) if agent_static is None else agent_static
     dist = agent_distance
     if dist is None:
-        slots = valid_first(state.valid)
-        pose = gather_rows(state.pose, slots)
+        slots = valid_first(state.valid, observers.shape[1])
+        pose = state.pose if slots is None else gather_rows(state.pose, slots)
         dist = (agent_distances(gather_rows(state.pose, observers), pose), slots)
     q, ka = observers.shape[1], cfg.num_agents
     compact = q * (1 + ka) < state.num_agents
@@ -483,8 +500,10 @@ def observe_indexed(
         tokens = agent_tokens(state, history, static)
     else:
         near, slots = dist
-        columns = (slots.unsqueeze(1), gather_rows(state.valid, slots).unsqueeze(1))
-        index, rel, mask = _seen_tokens(state, ctx, observers, near, cfg, columns)
+        columns = None
+        if slots is not None:
+            columns = (slots.unsqueeze(1), gather_rows(state.valid, slots).unsqueeze(1))
+        index, rel, mask = _seen_tokens(state, ctx, observers, near, cfg, columns=columns)
         if observer_mask is not None:
             mask = mask * observer_mask.unsqueeze(-1)
         if compact:
@@ -561,7 +580,7 @@ def observe(
     observers: torch.Tensor,
     cfg: ObsConfig,
     agent_static: torch.Tensor | None = None,
-    agent_distance: tuple[torch.Tensor, torch.Tensor] | None = None,
+    agent_distance: tuple[torch.Tensor, torch.Tensor | None] | None = None,
 ) -> dict[str, torch.Tensor]:
     """Dense observations of the ``observers`` agents: ``densify`` of ``observe_indexed``
     (same arguments).

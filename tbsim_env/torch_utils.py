@@ -6,6 +6,8 @@ import contextlib
 
 import torch
 
+from tbsim_env import constants as C
+
 
 @contextlib.contextmanager
 def torch_threads(n: int | None):
@@ -137,20 +139,27 @@ def gather_rows(
     return flat_x.index_select(0, flat).view(*index.shape, *x.shape[2:])
 
 
-def valid_first(valid: torch.Tensor) -> torch.Tensor:
+def valid_order(valid: torch.Tensor) -> torch.Tensor:
     """[B, C] int64 slots: each row's valid slots in order, then its others, C the most valid
-    slots of any row (at least 1); where that pays (``listed``'s rule) - else every slot in
-    order (C = N).
+    slots of any row (at least 1; eager only: C depends on the data). Columns past a row's
+    count hold its invalid slots."""
+    count = max(int(valid.sum(1).max()), 1) if len(valid) else 1
+    return torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)[:, :count]
+
+
+def valid_first(valid: torch.Tensor, queries: int) -> torch.Tensor | None:
+    """``valid_order(valid)`` where measuring ``queries`` query agents per row against those
+    columns instead of every slot pays; None (every slot) elsewhere.
 
     Real scenes keep a slot for every track of the log, most of them absent at any one step
     (257 slots, at most 114 valid in the real samples): [B, Q, C] agent pairs instead of
-    [B, Q, N] cost less than half. Columns past a row's count hold its invalid slots.
+    [B, Q, N] cost less than half. It pays eagerly on the CPU (``listed``'s rule) from
+    ``VALID_FIRST_MIN_QUERIES`` queries per row: with fewer (the SDC alone), its fixed cost
+    is larger than the [B, Q, N] work it saves.
     """
-    b, n = valid.shape
     if valid.device.type != "cpu" or torch.compiler.is_compiling():
-        return cached_arange(n, valid.device).expand(b, n)
-    count = max(int(valid.sum(1).max()), 1) if b else 1
-    return torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)[:, :count]
+        return None
+    return valid_order(valid) if queries >= C.VALID_FIRST_MIN_QUERIES else None
 
 
 def listed(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:

@@ -34,7 +34,7 @@ from tbsim_env.sim.edge_grid import build_edge_grid, grid_signed_distance
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import _signed_and_unsigned, grid_exact_signed_distance
 from tbsim_env.sim.state import RoadEdges
-from tbsim_env.torch_utils import gather_rows, valid_first
+from tbsim_env.torch_utils import gather_rows, valid_first, valid_order
 
 
 @pytest.fixture(scope="module")
@@ -190,12 +190,14 @@ def test_observe_and_core_step_match_references(scenes, name):
             args = (s, history, setup.ctx, setup.query, env.obs_config, setup.static)
             got = observe(*args)
             ref = _reference_observe(*args)
-            slots = valid_first(s.valid)
+            slots = valid_order(s.valid)
             dist = agent_distances(s.pose[0, setup.query], gather_rows(s.pose, slots))
-            shared = observe(*args, (dist, slots))
+            shared = observe(*args, (dist, slots))  # distances over the valid slots
+            every = observe(*args, (agent_distances(s.pose[0, setup.query], s.pose), None))
             for key in ref:
                 assert torch.equal(got[key], ref[key]), key
                 assert torch.equal(shared[key], ref[key]), key
+                assert torch.equal(every[key], ref[key]), key
             action = torch.from_numpy(rng.uniform(-8, 8, (1, s.num_agents, 2)).astype(np.float32))
             nxt = core.step(s, action)
             step, pose, speed, valid = _reference_core_step(s, action)
@@ -283,6 +285,31 @@ def test_grid_edge_distance_matches_reference(scenes, name):
     assert recomputed[2] > 2 * recomputed[16]
 
 
+@pytest.mark.parametrize("name", ["real", "generated"])
+def test_step_metrics_over_the_valid_slots_match_every_slot(scenes, name):
+    """With enough query agents, distances and collisions are measured over each row's valid
+    slots (``valid_first``): the same as over every slot, where the agents are squeezed
+    together so that many boxes overlap."""
+    state = build_sim_state([scenes[name]])
+    gen = torch.Generator().manual_seed(5)
+    n = state.num_agents
+    hits = 0
+    for _ in range(10):
+        pose = state.pose * torch.tensor([0.05, 0.05, 1.0])
+        pose = pose + torch.randn(pose.shape, generator=gen) * torch.tensor([2.0, 2.0, 1.0])
+        valid = torch.rand(1, n, generator=gen) > 0.3
+        st = state.replace(pose=pose, valid=valid)
+        query = torch.randperm(n, generator=gen)[: C.VALID_FIRST_MIN_QUERIES][None]
+        got = step_metrics(st, query, build_route(st, query))
+        dist, slots = got.agent_distance
+        assert slots is not None and dist.shape[-1] == int(valid.sum())
+        assert torch.equal(dist, agent_distances(pose[0, query], pose)[..., slots[0]])
+        ref = collided(pose, st.agents.size[..., :2], valid)[0, query[0]][None]
+        assert torch.equal(got.collision, ref & valid[0, query[0]][None])
+        hits += int(ref.sum())
+    assert hits > 0
+
+
 def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
     """A batch of two (indexed log reads) equals each row alone (the batch-of-one path), and a
     route without the per-episode fields gives the same metrics as one from ``build_route``."""
@@ -317,12 +344,11 @@ def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
                 if f.name == "offroad_stale":  # set under torch.compile only
                     assert got.offroad_stale is one.offroad_stale is two.offroad_stale is None
                     continue
-                if f.name == "agent_distance":  # the valid columns; the batch pads more
-                    c = int(row.valid.sum())
-                    dist, slots = got.agent_distance
-                    for alone in (one.agent_distance, two.agent_distance):
-                        assert torch.equal(slots[b : b + 1, :c], alone[1][:, :c])
-                        assert torch.equal(dist[b : b + 1, :, :c], alone[0][..., :c])
+                if f.name == "agent_distance":  # 3 queries: to every slot; the batch pads them
+                    assert got.agent_distance[1] is None
+                    x = got.agent_distance[0][b : b + 1, :, :n]
+                    assert torch.equal(x, one.agent_distance[0])
+                    assert torch.equal(x, two.agent_distance[0])
                     continue
                 x = getattr(got, f.name)[b : b + 1]
                 assert torch.equal(x, getattr(one, f.name)), f.name
@@ -409,13 +435,16 @@ def test_gather_rows_is_batched_advanced_indexing(batch):
             assert torch.equal(gather_rows(x, idx), x[b, idx])
 
 
-def test_valid_first_lists_each_rows_valid_slots_in_order_then_the_others():
+def test_valid_order_lists_each_rows_valid_slots_in_order_then_the_others():
     valid = torch.tensor(
         [[False, True, False, True, True, False], [True, False, False, False, False, True]]
     )
-    slots = valid_first(valid)
+    slots = valid_order(valid)
     assert slots.tolist() == [[1, 3, 4], [0, 5, 1]]  # C = 3; row 1 pads with invalid slots
-    assert valid_first(torch.zeros(2, 4, dtype=torch.bool)).shape == (2, 1)  # never empty
+    assert valid_order(torch.zeros(2, 4, dtype=torch.bool)).shape == (2, 1)  # never empty
+    # Worth it from VALID_FIRST_MIN_QUERIES query agents per row.
+    assert valid_first(valid, C.VALID_FIRST_MIN_QUERIES - 1) is None
+    assert torch.equal(valid_first(valid, C.VALID_FIRST_MIN_QUERIES), slots)
 
 
 def test_gather_columns_reads_each_column_of_the_table_rows():

@@ -100,10 +100,10 @@ class StepMetrics:
             no state (``log_valid`` False: after the agent's log ends, or after a history-only
             scene's current step).
         log_valid: bool, the log has the agent at this step.
-        agent_distance: (distances [B, Q, C] m, slots [B, C] int64): centre distances to the
-            agent slots ``slots`` (``torch_utils.valid_first``: every valid slot, then
-            invalid ones); ``observe_indexed`` of the same poses reuses them. None when not
-            computed.
+        agent_distance: (distances [B, Q, C] m, slots [B, C] int64 or None): centre distances
+            to the agent slots ``slots`` (``torch_utils.valid_first``: every valid slot, then
+            invalid ones), or to every slot (C = N) where ``slots`` is None;
+            ``observe_indexed`` of the same poses reuses them. None when not computed.
         offroad_stale: [B, Q] bool, set only under ``torch.compile``: present agents with a
             box corner the road-edge grid could not vouch for beyond the graph's recompute
             budget (``OFFROAD_RECOMPUTE_BUDGET``), whose off-road distance may be wrong; the
@@ -117,7 +117,7 @@ class StepMetrics:
     goal_distance: torch.Tensor
     log_divergence: torch.Tensor
     log_valid: torch.Tensor
-    agent_distance: tuple[torch.Tensor, torch.Tensor] | None = None
+    agent_distance: tuple[torch.Tensor, torch.Tensor | None] | None = None
     offroad_stale: torch.Tensor | None = None
 
 
@@ -211,11 +211,13 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
     size = route.size
     x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [B, Q, 1]
     trig = cos_sin(yaw)
-    # The other agents as columns: the valid slots first (``valid_first``).
-    slots = valid_first(state.valid)  # [B, C]
-    other_pose, usable = gather_rows(state.pose, slots), gather_rows(state.valid, slots)
-    other_size = gather_rows(state.agents.size[..., :2], slots)
-    gap = agent_distances(pose, other_pose)  # [B, Q, C]
+    # The other agents as columns: each row's valid slots (``valid_first``), or every slot.
+    slots = valid_first(state.valid, query.shape[1])  # [B, C] or None
+    other_pose, usable, other_size = state.pose, state.valid, state.agents.size[..., :2]
+    if slots is not None:
+        other_pose, usable = gather_rows(other_pose, slots), gather_rows(usable, slots)
+        other_size = gather_rows(other_size, slots)
+    gap = agent_distances(pose, other_pose)  # [B, Q, C or N]
     limit = near_limits(query, size, other_size, slots)
     coll = collided_with_others(pose, size, other_pose, other_size, usable, limit, trig, gap)
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
