@@ -47,6 +47,8 @@ class Route:
         segment_arc: [B, Q, T - 1] derived: ``arc[..., :-1]``.
         size: [B, Q, 2] (length, width) m of the agent.
         radius: [B, Q] m, half diagonal (bounding-circle radius) of its box.
+        near_limit: [B, Q, N] m, ``collision.near_limits`` of the agent against every slot
+            (the prefilter where the step measures every slot, ``valid_first``).
         corner_along: [B, Q, 4] m, its box corners along the heading (``corner_offsets``).
         corner_across: [B, Q, 4] m, across the heading.
         log_xy: [B, Q, T, 2] logged positions (not filled), m.
@@ -64,6 +66,7 @@ class Route:
     segment_arc: torch.Tensor | None = field(default=None)
     size: torch.Tensor | None = field(default=None)
     radius: torch.Tensor | None = field(default=None)
+    near_limit: torch.Tensor | None = field(default=None)
     corner_along: torch.Tensor | None = field(default=None)
     corner_across: torch.Tensor | None = field(default=None)
     log_xy: torch.Tensor | None = field(default=None)
@@ -177,6 +180,7 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
     return {
         "size": size,
         "radius": const(0.5, size) * torch.linalg.vector_norm(size, dim=-1),
+        "near_limit": near_limits(query, size, state.agents.size[..., :2]),
         "corner_along": along,
         "corner_across": across,
         "log_xy": state.log.pose[b_idx, query, :, :2],
@@ -218,7 +222,7 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
         other_pose, usable = gather_rows(other_pose, slots), gather_rows(usable, slots)
         other_size = gather_rows(other_size, slots)
     gap = agent_distances(pose, other_pose)  # [B, Q, C or N]
-    limit = near_limits(query, size, other_size, slots)
+    limit = route.near_limit if slots is None else near_limits(query, size, other_size, slots)
     coll = collided_with_others(pose, size, other_pose, other_size, usable, limit, trig, gap)
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
     off_d, stale = _offroad(corners, state.road_edges, present)
