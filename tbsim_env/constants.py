@@ -203,12 +203,14 @@ ratio): bucket edges fall between round distances (a lane width of 3.5 m, a node
 which generated maps have exactly and rounding would put on either side of an edge."""
 
 MAP_KNN_CLUSTER_SIZE = 16
-"""Map pieces per cluster at most (``tbsim_env.map_knn``: observers search nearby clusters)."""
+"""Map pieces per cluster at most (``tbsim_env.map_knn``: TrafficBots' agents search nearby
+clusters)."""
 MAP_KNN_CLUSTERS = 16
 """Clusters searched per observer for its nearest map pieces (256 candidates at most)."""
 MAP_KNN_MARGIN = 0.05
-"""m: the clustered search holds when its k-th distance is this far below the bound on every
-piece left out (5 buckets of ``KNN_DISTANCE_RESOLUTION``, far above float32 rounding)."""
+"""m: a narrowed map search (grid or clusters) holds when its k-th distance is this far below
+the bound on every piece left out (5 buckets of ``KNN_DISTANCE_RESOLUTION``, far above float32
+rounding)."""
 MAP_KNN_MIN_OBSERVERS = 8
 """Observers per row from which the clustered search pays (fewer: every piece is measured,
 in fewer tensor operations)."""

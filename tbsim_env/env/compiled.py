@@ -7,11 +7,12 @@ both). The NPC policy acts before the step, outside the graph (``episode.npc_act
 
 A compiled graph cannot branch on data or size tensors by it, so the eager shortcuts are not
 taken inside it (each checks ``torch.compiler.is_compiling()``): a batch of one reading its
-step as a Python number, box tests of the near pairs only (the graph tests every pair), the
-clustered nearest-map-piece search (the graph searches every piece), and off-road corners the
-road-edge grid cannot vouch for recomputed over every segment. The graph recomputes a bounded
-number of such corners and reports the rest in ``StepOutput.stale``; ``StepFunction`` then
-redoes the step eagerly (rare: a corner far from the map, or in a cell crowded with edges).
+step as a Python number, box tests of the near pairs only (the graph tests every pair), agent
+pairs over each row's valid slots only and the grid's nearest-map-piece search (the graph
+measures every slot and every piece), and off-road corners the road-edge grid cannot vouch for
+recomputed over every segment. The graph recomputes a bounded number of such corners and
+reports the rest in ``StepOutput.stale``; ``StepFunction`` then redoes the step eagerly (rare:
+a corner far from the map, or in a cell crowded with edges).
 
 Compiled results equal the eager ones up to float rounding (inductor fuses and reorders
 arithmetic: observations differ by ~1e-7). Compiling takes ~15 s on the first step (and again,
