@@ -282,7 +282,8 @@ def nearest_pieces(
     """
     m = points.shape[2]
     eager_cpu = points.device.type == "cpu" and not torch.compiler.is_compiling()
-    if not eager_cpu or not _index_pays(index, m, me_xy.shape[0] * me_xy.shape[1], points):
+    observers = me_xy.shape[0] * me_xy.shape[1]
+    if not eager_cpu or not _index_pays(index, m, observers, points.shape[0]):
         return _all_pieces(points if rows is None else points[rows], me_xy, k, within)
     if isinstance(index, PieceGrid):
         cand, dist, bound = grid_candidates(index, me_xy, rows)
@@ -299,18 +300,16 @@ def nearest_pieces(
     return idx, top
 
 
-def _index_pays(
-    index: PieceGrid | PieceClusters | None, m: int, observers: int, points: torch.Tensor
-) -> bool:
+def _index_pays(index: PieceGrid | PieceClusters | None, m: int, observers: int, maps: int) -> bool:
     """Whether searching through ``index`` costs less than measuring all ``m`` pieces for
-    ``observers`` observers of ``points.shape[0]`` maps."""
+    ``observers`` observers of ``maps`` maps."""
     if isinstance(index, PieceGrid):
         return m > index.cells.value.shape[-1] and observers * m >= C.MAP_GRID_MIN_WORK
     return (
         index is not None
         and index.num_clusters > C.MAP_KNN_CLUSTERS
         and clusters_pay(m, index.members.shape[-1])
-        and observers >= C.MAP_KNN_MIN_OBSERVERS * points.shape[0]
+        and observers >= C.MAP_KNN_MIN_OBSERVERS * maps
     )
 
 

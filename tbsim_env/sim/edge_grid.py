@@ -205,10 +205,26 @@ def signed_over(
     t, dist = segment_projection_xy(points[..., :1], points[..., 1:], ax, ay, bx, by)
     if usable is not None:
         dist = torch.where(usable, dist, float("inf"))
+    return nearest_signed(points, edges, (dist, t), cand, rows)
+
+
+def nearest_signed(
+    points: torch.Tensor,
+    edges: RoadEdges,
+    measured: tuple[torch.Tensor, torch.Tensor],
+    cand: torch.Tensor | None = None,
+    rows: torch.Tensor | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(signed distance, unsigned distance) [B, K] m of points [B, K, 2] to the nearest of the
+    segments they were measured to: ``measured`` = (distance, projection parameter)
+    [B, K, C] to the segments ``cand`` [B, K, C] (None: column c is segment c). The sign is
+    ``joint_sign``'s; ``NO_EDGE_DISTANCE`` where the scene has no edge. ``rows``: as
+    ``grid_signed_distance``'s."""
+    dist, t = measured
     local = dist.argmin(-1, keepdim=True)
     d = dist.gather(-1, local)[..., 0]
     t_best = t.gather(-1, local)[..., 0]
-    best = cand.gather(-1, local)[..., 0].long()  # [B, K]
+    best = local[..., 0] if cand is None else cand.gather(-1, local)[..., 0].long()  # [B, K]
     sign = joint_sign(points, edges, best, t_best, rows)
     has_edge = edges.valid.any(-1, keepdim=True)
     has_edge = has_edge if rows is None else has_edge[rows]
@@ -266,6 +282,7 @@ __all__ = [
     "cell_slack",
     "grid_signed_distance",
     "joint_sign",
+    "nearest_signed",
     "scene_edge_grid",
     "signed_over",
     "stack_cell_lists",

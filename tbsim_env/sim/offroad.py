@@ -13,7 +13,7 @@ from __future__ import annotations
 import torch
 
 from tbsim_env import constants as C
-from tbsim_env.sim.edge_grid import grid_signed_distance, joint_sign, signed_over
+from tbsim_env.sim.edge_grid import grid_signed_distance, nearest_signed, signed_over
 from tbsim_env.sim.geometry import segment_projection
 from tbsim_env.sim.state import RoadEdges
 from tbsim_env.torch_utils import cached_arange, gather_rows
@@ -67,13 +67,7 @@ def _signed_and_unsigned(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(signed distance [B, K], unsigned distance to the nearest candidate [B, K])."""
     dist, t = point_segment_distance(points, edges, segment_index)
-    local = dist.argmin(-1, keepdim=True)  # [B, K, 1]
-    d = dist.gather(2, local)[..., 0]
-    t_best = t.gather(2, local)[..., 0]
-    best = local[..., 0] if segment_index is None else segment_index.gather(2, local)[..., 0]
-    out = joint_sign(points, edges, best, t_best) * d
-    has_edge = edges.valid.any(-1, keepdim=True)
-    return torch.where(has_edge, out, torch.full_like(out, NO_EDGE_DISTANCE)), d
+    return nearest_signed(points, edges, (dist, t), segment_index)
 
 
 def grid_exact_signed_distance(
