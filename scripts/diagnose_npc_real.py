@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from policies.trafficbots.checkpoint import load_checkpoint
-from policies.trafficbots.config import InferenceConfig
+from policies.trafficbots.config import GapKeeping, InferenceConfig
 from policies.trafficbots.rules import still_agents
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
 from tbsim_env import constants as C
@@ -139,11 +139,22 @@ def parked_motion(sc: Scenario, rollouts: Rollouts, out: dict[str, list[float]])
         out["heading_change"] += dyaw.tolist()
 
 
+def parse_gap_keeping(text: str) -> GapKeeping:
+    """``GapKeeping`` from "name=value,..." (its defaults for the names not given; "" for all
+    of them)."""
+    values = dict(item.split("=", 1) for item in text.split(",") if item)
+    return GapKeeping(**{k: float(v) for k, v in values.items()})
+
+
 def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
     """Roll out, score and count every scene of the split."""
     model = load_checkpoint(args.checkpoint) if args.checkpoint else load_default_model()
     if args.rules == "spec":
         model.inference = InferenceConfig.spec()
+    if args.gap_keeping is not None:
+        model.inference = dataclasses.replace(
+            model.inference, gap_keeping=parse_gap_keeping(args.gap_keeping)
+        )
     entries = json.loads(SPLITS.read_text())[args.split]
     scores, events, parked = [], collections.Counter(), {"displacement": [], "heading_change": []}
     samples: dict[str, list] = {}
@@ -228,6 +239,11 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--split", default="validation", choices=("validation", "held_out", "train"))
     p.add_argument("--rules", default="shipped", choices=("shipped", "spec"))
+    p.add_argument(
+        "--gap-keeping",
+        metavar="NAME=VALUE,...",
+        help='add the gap-keeping rule (GapKeeping fields; "" for its defaults)',
+    )
     p.add_argument("--samples", type=int, default=16)
     p.add_argument("--keep", type=int, default=16)
     p.add_argument("--seed", type=int, default=0)

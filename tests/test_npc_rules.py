@@ -14,12 +14,14 @@ import torch
 
 from policies.trafficbots import TrafficBotsConfig
 from policies.trafficbots.batch import TokenBatch
-from policies.trafficbots.config import InferenceConfig
+from policies.trafficbots.config import GapKeeping, InferenceConfig
 from policies.trafficbots.model import TrafficBots
 from policies.trafficbots.policy import TrafficBotsPolicy
 from policies.trafficbots.rules import (
     clip_history_motion,
+    gap_keeping_cap,
     hold_action,
+    keep_gap,
     limit_vehicle_curvature,
     parked_vehicles,
     still_agents,
@@ -232,3 +234,128 @@ def test_parked_vehicle_stays_put_in_the_env():
     # ... while the eager network turns the agents it drives.
     turned = (env.sim_state.pose[0, :, 2] - other[:, 2]).abs()
     assert float(turned.max()) > 1.0
+
+
+def _line_of_two(gap: float = 30.0, speed: float = 8.0) -> tuple[Scenario, int]:
+    """A generated scene cut down to two vehicles on the SDC's heading line: the SDC standing
+    still and a vehicle ``gap`` metres (centre to centre) behind it driving at ``speed``
+    towards it over the whole log; (scene, the follower's track row)."""
+    sc = generate_scenario("merge", 10007)
+    t, now = sc.tracks, sc.current_index
+    sdc = sc.sdc_index
+    row = next(i for i in range(t.num_tracks) if i != sdc)
+    p0, h0 = t.xyz[sdc, now].copy(), float(t.heading[sdc, now])
+    ahead = np.array([np.cos(h0), np.sin(h0), 0.0])
+    steps = np.arange(t.valid.shape[1]) - now
+    xyz = np.zeros_like(t.xyz)
+    xyz[sdc] = p0
+    xyz[row] = p0 + (steps * 0.1 * speed - gap)[:, None] * ahead
+    valid = np.zeros_like(t.valid)
+    valid[[sdc, row]] = True
+    velocity = np.zeros_like(t.velocity)
+    velocity[row] = speed * ahead[:2]
+    size = np.broadcast_to(np.float32([4.5, 1.9, 1.6]), t.size.shape).copy()
+    tracks = dataclasses.replace(
+        t,
+        xyz=xyz,
+        heading=np.full_like(t.heading, h0),
+        velocity=velocity,
+        size=size,
+        valid=valid,
+        object_type=np.full_like(t.object_type, VEH),
+        raw_heading=None,
+    )
+    scene = dataclasses.replace(
+        sc,
+        tracks=tracks,
+        tracks_to_predict=np.array([row]),
+        predict_difficulty=np.zeros(1, np.int8),
+    )
+    return scene, row
+
+
+class _ForwardHead(torch.nn.Module):
+    """An action head that always wants to speed up straight ahead (raw (1, 0))."""
+
+    def forward(self, x: torch.Tensor, ag_type: torch.Tensor) -> torch.Tensor:
+        raw = torch.zeros(*x.shape[:-1], 2, dtype=x.dtype, device=x.device)
+        return raw + torch.tensor([1.0, 0.0], dtype=x.dtype, device=x.device)
+
+
+def _closest_bumper_gap(inference: InferenceConfig) -> float:
+    """Smallest bumper gap (m) over 60 steps of ``_line_of_two`` in ``TrafficEnv``, the SDC
+    held still, the follower driven by a small model with ``_ForwardHead``."""
+    sc, row = _line_of_two()
+    model = TrafficBots(TrafficBotsConfig.small(), inference)
+    model.action_head = _ForwardHead()
+    never = EnvConfig(termination=TerminationConfig(collision=False, goal=False))
+    env = TrafficEnv([sc], npc_policy=TrafficBotsPolicy(model.eval(), trim=True), config=never)
+    env.reset(seed=0)
+    slots = env.sim_state.agents.track_index[0].numpy().tolist()
+    sdc, follower = slots.index(sc.sdc_index), slots.index(row)
+    gaps = []
+    for _ in range(60):
+        env.step({a: np.zeros(2, np.float32) for a in env.agents})
+        pose = env.sim_state.pose[0]
+        gaps.append(float(torch.hypot(*(pose[sdc, :2] - pose[follower, :2]))) - 4.5)
+    return min(gaps)
+
+
+def test_gap_keeping_stops_a_follower_behind_a_standing_vehicle():
+    assert _closest_bumper_gap(InferenceConfig(gap_keeping=GapKeeping())) > 1.0
+    # Without the rule the same network drives into it.
+    assert _closest_bumper_gap(InferenceConfig(gap_keeping=None)) < 0.0
+
+
+def test_gap_keeping_cap_sees_only_the_agent_ahead_in_the_lane():
+    # follower at 10 m/s; a standing car 20 m ahead; one 20 m ahead in the next lane; one
+    # 10 m behind the follower at 10 m/s; a pedestrian-sized agent far ahead (beyond 40 m).
+    pose = torch.tensor([[[0.0, 0, 0], [20, 0, 0.1], [20, 4, 0], [-10, 0, 0], [60, 0, 0]]])
+    speed = torch.tensor([[10.0, 0.0, 0.0, 10.0, 0.0]])
+    valid = torch.ones(1, 5, dtype=torch.bool)
+    size = torch.tensor([[4.5, 2.0]] * 4 + [[0.5, 0.5]])[None]
+    cap = gap_keeping_cap(pose, speed, valid, size, GapKeeping())
+    assert float(cap[0, 0]) < -2.0  # brakes for the standing car
+    assert float(cap[0, 3]) < 0.0  # 5.5 m behind a car at the same speed: too close
+    assert torch.isinf(cap[0, [1, 2, 4]]).all()  # nothing ahead within the corridor / horizon
+    valid[0, 1] = False  # an absent agent is no obstacle
+    assert torch.isinf(gap_keeping_cap(pose, speed, valid, size, GapKeeping())[0, 0])
+
+
+def test_gap_keeping_cap_is_invariant_to_a_rigid_motion_of_the_world():
+    gen = torch.Generator().manual_seed(0)
+    pose = torch.rand(3, 12, 3, generator=gen) * torch.tensor([60.0, 60.0, 6.28])
+    speed = torch.rand(3, 12, generator=gen) * 15
+    valid = torch.rand(3, 12, generator=gen) > 0.2
+    size = torch.tensor([4.5, 2.0]).expand(3, 12, 2)
+    cap = gap_keeping_cap(pose, speed, valid, size, GapKeeping())
+    th = 2.3
+    rot = torch.tensor([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]], dtype=torch.float32)
+    moved_xy = pose[..., :2] @ rot.T + torch.tensor([3000.0, -1200.0])
+    moved = torch.cat([moved_xy, pose[..., 2:] + th], -1)
+    cap2 = gap_keeping_cap(moved, speed, valid, size, GapKeeping())
+    assert torch.isfinite(cap).sum() > 3
+    assert torch.equal(torch.isinf(cap), torch.isinf(cap2))
+    finite = torch.isfinite(cap)
+    assert torch.allclose(cap[finite], cap2[finite], atol=1e-2, rtol=1e-3)
+
+
+def test_keep_gap_only_lowers_vehicle_accelerations_within_limits():
+    action = torch.tensor([[[3.0, 0.4], [3.0, 0.4], [-1.0, 0.2]]])
+    speed = torch.tensor([[15.0, 1.0, 15.0]])
+    pose = torch.tensor([[[0.0, 0, 0], [6.0, 0, 0], [12.0, 0, 0]]])
+    valid = torch.ones(1, 3, dtype=torch.bool)
+    typ = torch.tensor([[VEH, PED, VEH]])
+    size = torch.tensor([[[4.5, 2.0], [0.6, 0.6], [4.5, 2.0]]])
+    out = keep_gap(action, speed, (pose, valid), (typ, size), GapKeeping())
+    assert float(out[0, 0, 0]) == -5.0  # 15 m/s, 3.2 m behind a pedestrian: the braking limit
+    assert float(out[0, 1, 0]) == 3.0  # pedestrians keep their actions
+    assert float(out[0, 2, 0]) == -1.0  # nothing ahead: unchanged
+    assert torch.equal(out[..., 1], action[..., 1])
+
+
+def test_gap_keeping_parameters_are_checked():
+    with pytest.raises(ValueError, match="time_headway"):
+        GapKeeping(time_headway=-1.0)
+    with pytest.raises(ValueError):
+        GapKeeping(min_gap=0.0)

@@ -164,6 +164,38 @@ class TrafficBotsConfig:
 
 
 @dataclass(frozen=True)
+class GapKeeping:
+    """Parameters of the gap-keeping rule (``rules.gap_keeping_cap``): a vehicle's
+    acceleration is capped by the Intelligent Driver Model's interaction term with the agent
+    ahead of it in its lane, so that it brakes for slower or standing traffic.
+
+    Attributes:
+        max_accel: IDM's a (m/s^2): the cap with nothing near ahead.
+        comfort_decel: IDM's b (m/s^2).
+        time_headway: IDM's T (s).
+        standstill_gap: IDM's s0 (m), the bumper gap kept at rest.
+        lateral_margin: metres added on each side of the vehicle's width to its corridor.
+        horizon: metres ahead beyond which nothing counts.
+        min_gap: metres; a smaller (or overlapping) gap counts as this one.
+    """
+
+    max_accel: float = 2.0
+    comfort_decel: float = 3.0
+    time_headway: float = 1.0
+    standstill_gap: float = 2.0
+    lateral_margin: float = 0.3
+    horizon: float = 40.0
+    min_gap: float = 0.1
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            if not getattr(self, f.name) >= 0.0:
+                raise ValueError(f"GapKeeping.{f.name} must be >= 0, got {getattr(self, f.name)}")
+        if not (self.max_accel > 0 and self.comfort_decel > 0 and self.min_gap > 0):
+            raise ValueError("GapKeeping.max_accel, comfort_decel and min_gap must be > 0")
+
+
+@dataclass(frozen=True)
 class InferenceConfig:
     """Rules applied around the network at inference (eval mode), not saved with the weights.
 
@@ -187,6 +219,8 @@ class InferenceConfig:
         dest_temperature: destination logits are divided by it before sampling (1: the spec).
         clip_history_motion: the history's acceleration and yaw rate (finite differences of
             the logged states, spec 1.4) enter the network clipped to the type's action limits.
+        gap_keeping: cap vehicles' accelerations by the IDM term of the agent ahead
+            (``GapKeeping``); None for the network's accelerations.
     """
 
     hold_parked: bool = True
@@ -196,6 +230,7 @@ class InferenceConfig:
     vehicle_yaw_rate_slack: float = 0.05
     dest_temperature: float = 1.0
     clip_history_motion: bool = False
+    gap_keeping: GapKeeping | None = None
 
     def __post_init__(self) -> None:
         for name in ("still_displacement", "parked_lane_radius", "vehicle_yaw_rate_slack"):
@@ -214,4 +249,5 @@ class InferenceConfig:
             vehicle_max_curvature=None,
             dest_temperature=1.0,
             clip_history_motion=False,
+            gap_keeping=None,
         )

@@ -31,6 +31,7 @@ from policies.trafficbots.map_encoder import MapEncoder, MapTokens
 from policies.trafficbots.rules import (
     clip_history_motion,
     hold_action,
+    keep_gap,
     limit_vehicle_curvature,
     parked_vehicles,
 )
@@ -428,10 +429,18 @@ class TrafficBots(nn.Module):
         return parked.repeat_interleave(n, 0)
 
     def _apply_rules(
-        self, ctx: RolloutContext, action: torch.Tensor, speed: torch.Tensor
+        self,
+        ctx: RolloutContext,
+        action: torch.Tensor,
+        speed: torch.Tensor,
+        now: tuple[torch.Tensor, torch.Tensor],
     ) -> torch.Tensor:
-        """Eval-mode rules of ``InferenceConfig`` on physical actions [B', N, 2]."""
+        """Eval-mode rules of ``InferenceConfig`` on physical actions [B', N, 2]; ``now`` =
+        (pose [B', N, 3], valid [B', N]) of the agents at this step."""
         rules = self.inference
+        if rules.gap_keeping is not None:
+            size = ctx.ag_attr[..., :2]
+            action = keep_gap(action, speed, now, (ctx.ag_type, size), rules.gap_keeping)
         if rules.vehicle_max_curvature is not None:
             action = limit_vehicle_curvature(
                 action,
@@ -576,7 +585,7 @@ class TrafficBots(nn.Module):
         raw = self.action_head(x, ctx.ag_type)
         action = squash_action(raw, ctx.ag_type)
         if not self.training:
-            action = self._apply_rules(ctx, action, ag_speed)
+            action = self._apply_rules(ctx, action, ag_speed, (ag_pose, ag_valid))
         action = action * vmask
         known = torch.ones_like(state.tl_known)
         nxt = state.replace(dest_reached=reached, tl_feat=tl_feat.detach(), tl_known=known)

@@ -25,10 +25,15 @@ remove that without retraining (the first is shipped):
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from tbsim_env import constants as C
 from tbsim_env.sim.dynamics import action_limits
+
+if TYPE_CHECKING:
+    from policies.trafficbots.config import GapKeeping
 
 _VEHICLE_LANE_CLASSES = (
     int(C.MapClass.FREEWAY),
@@ -162,6 +167,93 @@ def limit_vehicle_curvature(
     yaw = torch.maximum(torch.minimum(action[..., 1], cap), -cap)
     vehicle = ag_type == int(C.ObjectType.VEHICLE)
     return torch.stack([action[..., 0], torch.where(vehicle, yaw, action[..., 1])], dim=-1)
+
+
+def gap_keeping_cap(
+    pose: torch.Tensor,
+    speed: torch.Tensor,
+    valid: torch.Tensor,
+    size: torch.Tensor,
+    gap: GapKeeping,
+) -> torch.Tensor:
+    """The acceleration above which each agent would close on the agent ahead of it (IDM).
+
+    Agent j is *ahead* of agent i when its box reaches into i's straight corridor (i's width
+    plus ``gap.lateral_margin`` on each side) in front of i, within ``gap.horizon`` metres.
+    With s the bumper gap to the nearest such agent (at least ``gap.min_gap``), v = i's speed
+    and dv = v minus j's velocity along i's heading, the Intelligent Driver Model's
+    interaction term gives the cap
+
+        a_max (1 - (s* / s)^2),  s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b)))
+
+    with a_max = ``gap.max_accel``, b = ``gap.comfort_decel``, T = ``gap.time_headway``,
+    s0 = ``gap.standstill_gap`` (Treiber, Hennecke & Helbing 2000). +inf where nothing is
+    ahead.
+
+    Args:
+        pose: [B, N, 3] (x m, y m, yaw rad) now.
+        speed: [B, N] signed speed m/s.
+        valid: [B, N] bool.
+        size: [B, N, 2] (length, width) m.
+        gap: the rule's parameters.
+
+    Returns:
+        [B, N] m/s^2.
+    """
+    yaw = pose[..., 2]
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    dx = pose[:, None, :, 0] - pose[:, :, None, 0]  # [B, i, j]
+    dy = pose[:, None, :, 1] - pose[:, :, None, 1]
+    ahead = c[..., None] * dx + s[..., None] * dy  # along i's heading
+    side = -s[..., None] * dx + c[..., None] * dy
+    rel = yaw[:, None, :] - yaw[:, :, None]
+    rc, rs = torch.cos(rel).abs(), torch.sin(rel).abs()
+    length, width = size[..., 0], size[..., 1]
+    # Half extents of j's box along and across i's heading.
+    j_along = 0.5 * (length[:, None, :] * rc + width[:, None, :] * rs)
+    j_across = 0.5 * (length[:, None, :] * rs + width[:, None, :] * rc)
+    bumper = ahead - 0.5 * length[..., None] - j_along
+    in_lane = side.abs() < 0.5 * width[..., None] + j_across + gap.lateral_margin
+    pair = valid[:, :, None] & valid[:, None, :]
+    pair &= ~torch.eye(pose.shape[1], dtype=torch.bool, device=pose.device)
+    blocked = pair & in_lane & (ahead > 0) & (bumper < gap.horizon)
+    s_gap = torch.where(blocked, bumper.clamp_min(gap.min_gap), float("inf")).amin(-1)
+    lead = torch.where(blocked, bumper, float("inf")).argmin(-1, keepdim=True)  # [B, N, 1]
+    lead_speed = (speed[:, None, :] * torch.cos(rel)).gather(-1, lead)[..., 0]
+    v = speed.clamp_min(0.0)
+    dv = v - lead_speed
+    brake = 2.0 * (gap.max_accel * gap.comfort_decel) ** 0.5
+    wanted = gap.standstill_gap + (v * gap.time_headway + v * dv / brake).clamp_min(0.0)
+    cap = gap.max_accel * (1.0 - (wanted / s_gap) ** 2)
+    return torch.where(torch.isfinite(s_gap), cap, float("inf"))
+
+
+def keep_gap(
+    action: torch.Tensor,
+    speed: torch.Tensor,
+    now: tuple[torch.Tensor, torch.Tensor],
+    agents: tuple[torch.Tensor, torch.Tensor],
+    gap: GapKeeping,
+) -> torch.Tensor:
+    """Vehicle accelerations capped by ``gap_keeping_cap`` (never below the type's braking
+    limit); other agents' actions and every yaw rate unchanged.
+
+    Args:
+        action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s).
+        speed: [B, N] signed speed m/s.
+        now: (pose [B, N, 3], valid [B, N] bool) of every agent at this step.
+        agents: (``ObjectType`` [B, N], (length, width) [B, N, 2] m).
+        gap: the rule's parameters.
+
+    Returns:
+        [B, N, 2].
+    """
+    ag_type, size = agents
+    cap = gap_keeping_cap(now[0], speed, now[1], size, gap)
+    max_acc = action_limits(ag_type)[0].to(action.dtype)
+    capped = torch.maximum(torch.minimum(action[..., 0], cap), -max_acc)
+    vehicle = ag_type == int(C.ObjectType.VEHICLE)
+    return torch.stack([torch.where(vehicle, capped, action[..., 0]), action[..., 1]], dim=-1)
 
 
 def clip_history_motion(motion: torch.Tensor, ag_type: torch.Tensor) -> torch.Tensor:
