@@ -139,13 +139,6 @@ def parked_motion(sc: Scenario, rollouts: Rollouts, out: dict[str, list[float]])
         out["heading_change"] += dyaw.tolist()
 
 
-def parse_gap_keeping(text: str) -> GapKeeping:
-    """``GapKeeping`` from "name=value,..." (its defaults for the names not given; "" for all
-    of them)."""
-    values = dict(item.split("=", 1) for item in text.split(",") if item)
-    return GapKeeping(**{k: float(v) for k, v in values.items()})
-
-
 def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
     """Roll out, score and count every scene of the split."""
     model = load_checkpoint(args.checkpoint) if args.checkpoint else load_default_model()
@@ -153,7 +146,7 @@ def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
         model.inference = InferenceConfig.spec()
     if args.gap_keeping is not None:
         model.inference = dataclasses.replace(
-            model.inference, gap_keeping=parse_gap_keeping(args.gap_keeping)
+            model.inference, gap_keeping=GapKeeping.parse(args.gap_keeping)
         )
     entries = json.loads(SPLITS.read_text())[args.split]
     scores, events, parked = [], collections.Counter(), {"displacement": [], "heading_change": []}
@@ -241,8 +234,8 @@ def main() -> None:
     p.add_argument("--rules", default="shipped", choices=("shipped", "spec"))
     p.add_argument(
         "--gap-keeping",
-        metavar="NAME=VALUE,...",
-        help='add the gap-keeping rule (GapKeeping fields; "" for its defaults)',
+        metavar="off|NAME=VALUE,...",
+        help='the gap-keeping rule: "off", or GapKeeping fields to change ("" for the shipped)',
     )
     p.add_argument("--samples", type=int, default=16)
     p.add_argument("--keep", type=int, default=16)

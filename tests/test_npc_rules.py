@@ -111,8 +111,10 @@ def test_clip_history_motion_keeps_speed_and_clips_to_type_limits():
 def test_inference_config_defaults_are_the_shipped_rules_and_spec_turns_them_off():
     shipped = InferenceConfig()
     assert shipped.hold_parked and shipped.dest_temperature == 1.0
+    assert shipped.gap_keeping == GapKeeping()
     spec = InferenceConfig.spec()
     assert not spec.hold_parked and spec.vehicle_max_curvature is None
+    assert spec.gap_keeping is None
     assert not spec.clip_history_motion
     with pytest.raises(ValueError):
         InferenceConfig(dest_temperature=0.0)
@@ -302,7 +304,8 @@ def _closest_bumper_gap(inference: InferenceConfig) -> float:
 
 
 def test_gap_keeping_stops_a_follower_behind_a_standing_vehicle():
-    assert _closest_bumper_gap(InferenceConfig(gap_keeping=GapKeeping())) > 1.0
+    # It stops about the standstill gap (1 m) short of the standing vehicle.
+    assert _closest_bumper_gap(InferenceConfig()) > 0.5
     # Without the rule the same network drives into it.
     assert _closest_bumper_gap(InferenceConfig(gap_keeping=None)) < 0.0
 
@@ -354,8 +357,15 @@ def test_keep_gap_only_lowers_vehicle_accelerations_within_limits():
     assert torch.equal(out[..., 1], action[..., 1])
 
 
-def test_gap_keeping_parameters_are_checked():
+def test_gap_keeping_parameters_are_checked_and_parsed():
     with pytest.raises(ValueError, match="time_headway"):
         GapKeeping(time_headway=-1.0)
     with pytest.raises(ValueError):
         GapKeeping(min_gap=0.0)
+    assert GapKeeping.parse("off") is None
+    assert GapKeeping.parse("") == GapKeeping()
+    assert GapKeeping.parse("time_headway=1.5, standstill_gap=2") == GapKeeping(
+        time_headway=1.5, standstill_gap=2.0
+    )
+    with pytest.raises(ValueError, match="NAME=VALUE"):
+        GapKeeping.parse("headway=1")

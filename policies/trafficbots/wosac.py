@@ -17,6 +17,7 @@ import numpy as np
 import torch
 
 from policies.trafficbots.checkpoint import load_checkpoint
+from policies.trafficbots.config import InferenceConfig
 from policies.trafficbots.inference import sample_rollouts
 from policies.trafficbots.model import TrafficBots
 from tbsim_env.config import TokenConfig
@@ -127,13 +128,17 @@ def trafficbots_rollout_fn(
     device: str = "cpu",
     num_samples: int = 128,
     road_edge_weight: float = 0.0,
+    inference: InferenceConfig | None = None,
 ) -> Callable[[Scenario, int, int], Rollouts]:
-    """``(scenario, num_rollouts, seed) -> Rollouts`` with a loaded model (default: shipped)."""
+    """``(scenario, num_rollouts, seed) -> Rollouts`` with a loaded model (default: shipped)
+    and its inference rules (default: the shipped ``InferenceConfig()``)."""
     model = (
         load_checkpoint(checkpoint, map_location=device)
         if checkpoint
         else load_default_model(device)
     )
+    if inference is not None:
+        model.inference = inference
 
     def fn(scenario: Scenario, num_rollouts: int, seed: int) -> Rollouts:
         return trafficbots_rollouts(
