@@ -1,9 +1,10 @@
 """Inference-side rules around the TrafficBots network, each a measured deviation from the spec.
 
 The shipped small model, trained mostly on generated scenes, moves vehicles that stand parked
-in real WOMD logs: it creeps them forward and turns them on the spot (docs/MODEL_CARD.md, "Why
-it leaves real roads"). Two rules, applied in eval mode only (``TrafficBots.training`` False),
-remove that without retraining (the first is shipped):
+in real WOMD logs (it creeps them forward and turns them on the spot) and does not yield to
+the traffic ahead of it (docs/MODEL_CARD.md, "Why it leaves real roads"). These rules, applied
+in eval mode only (``TrafficBots.training`` False), act on the network's actions without
+retraining (the first two are shipped):
 
 * **Hold parked vehicles.** A vehicle that is *parked* by the spec's own test (spec 1.6,
   filters c and d: still over the history, i.e. the speed summed over the valid history steps
@@ -14,13 +15,16 @@ remove that without retraining (the first is shipped):
   every scene, and the held vehicle stays a token the other agents see. Unlike the spec's
   filter it also holds relevant vehicles (the held vehicle is scored as any other). A vehicle
   queued in a lane is not parked by this test and stays driven by the network.
+* **Keep a gap** (``gap_keeping_cap``, ``keep_gap``). A vehicle's acceleration is capped by
+  the Intelligent Driver Model's interaction term with the agent ahead of it in its straight
+  corridor, so it brakes for slower or standing traffic; the yaw rate stays the network's.
 * **No turning on the spot** (off in the shipped config: no measurable gain). A vehicle's yaw
   rate is limited to ``vehicle_max_curvature`` times its speed over the step (plus
   ``vehicle_yaw_rate_slack``): the unicycle (spec 4) lets a standing vehicle turn, which a car
   cannot.
-* **History motion inside the action limits** (``clip_history_motion``).
+* **History motion inside the action limits** (``clip_history_motion``, off).
 
-``InferenceConfig.spec()`` switches both off (the spec's behaviour, for comparison).
+``InferenceConfig.spec()`` switches every rule off (the spec's behaviour, for comparison).
 """
 
 from __future__ import annotations
