@@ -211,7 +211,8 @@ def gap_keeping_cap(
     ahead = c[..., None] * dx + s[..., None] * dy  # along i's heading
     side = -s[..., None] * dx + c[..., None] * dy
     rel = yaw[:, None, :] - yaw[:, :, None]
-    rc, rs = torch.cos(rel).abs(), torch.sin(rel).abs()
+    cos_rel = torch.cos(rel)
+    rc, rs = cos_rel.abs(), torch.sin(rel).abs()
     length, width = size[..., 0], size[..., 1]
     # Half extents of j's box along and across i's heading.
     j_along = 0.5 * (length[:, None, :] * rc + width[:, None, :] * rs)
@@ -221,9 +222,9 @@ def gap_keeping_cap(
     pair = valid[:, :, None] & valid[:, None, :]
     pair &= ~torch.eye(pose.shape[1], dtype=torch.bool, device=pose.device)
     blocked = pair & in_lane & (ahead > 0) & (bumper < gap.horizon)
-    s_gap = torch.where(blocked, bumper.clamp_min(gap.min_gap), float("inf")).amin(-1)
-    lead = torch.where(blocked, bumper, float("inf")).argmin(-1, keepdim=True)  # [B, N, 1]
-    lead_speed = (speed[:, None, :] * torch.cos(rel)).gather(-1, lead)[..., 0]
+    s_gap, lead = torch.where(blocked, bumper, float("inf")).min(-1)  # [B, N] each
+    s_gap = s_gap.clamp_min(gap.min_gap)
+    lead_speed = (speed[:, None, :] * cos_rel).gather(-1, lead[..., None])[..., 0]
     v = speed.clamp_min(0.0)
     dv = v - lead_speed
     brake = 2.0 * (gap.max_accel * gap.comfort_decel) ** 0.5
