@@ -107,11 +107,9 @@ def gather_columns(
     index shared by all; ``gather_rows`` of each column would compute that index C times.
     """
     _, c, e = x.shape
-    flat = (index + (rows * (c * e)).view(-1, *([1] * (index.dim() - 1)))).reshape(-1)
-    values = x.reshape(-1)
-    return tuple(
-        values.index_select(0, flat if j == 0 else flat + j * e).view(index.shape) for j in range(c)
-    )
+    flat = (index + (rows * (c * e)).view(-1, *([1] * (index.dim() - 1)))).reshape(1, -1)
+    flat = (flat + cached_arange(c, index.device).view(c, 1) * e).reshape(-1)  # [C * n]
+    return x.reshape(-1).index_select(0, flat).view(c, *index.shape).unbind(0)
 
 
 def gather_rows(
