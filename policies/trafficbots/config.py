@@ -163,6 +163,26 @@ class TrafficBotsConfig:
         return cls(**data)
 
 
+def parse_rule(cls: type, text: str) -> Any:
+    """A rule's parameters from a command line: "off" -> None (no rule), "" -> the defaults,
+    "name=value,..." -> the defaults with those fields replaced (a tuple field takes values
+    joined by "/", e.g. "yaw_offsets=0.1/0.2")."""
+    if text.strip() == "off":
+        return None
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    values: dict[str, Any] = {}
+    for item in filter(None, text.split(",")):
+        name, sep, value = (x.strip() for x in item.partition("="))
+        if not sep or name not in fields:
+            raise ValueError(f"{cls.__name__}: expected NAME=VALUE with NAME in {sorted(fields)}")
+        default = getattr(cls(), name)
+        if isinstance(default, tuple):
+            values[name] = tuple(float(v) for v in value.split("/"))
+        else:
+            values[name] = type(default)(float(value))
+    return cls(**values)
+
+
 @dataclass(frozen=True)
 class GapKeeping:
     """Parameters of the gap-keeping rule (``rules.gap_keeping_cap``): a vehicle's
@@ -201,18 +221,39 @@ class GapKeeping:
 
     @classmethod
     def parse(cls, text: str) -> GapKeeping | None:
-        """From a command line: "off" -> None (no rule), "" -> the defaults, "name=value,..."
-        -> the defaults with those fields replaced."""
-        if text.strip() == "off":
-            return None
-        names = {f.name for f in dataclasses.fields(cls)}
-        values = {}
-        for item in filter(None, text.split(",")):
-            name, sep, value = item.partition("=")
-            if not sep or name.strip() not in names:
-                raise ValueError(f"gap keeping: expected NAME=VALUE with NAME in {sorted(names)}")
-            values[name.strip()] = float(value)
-        return cls(**values)
+        """From a command line (``parse_rule``)."""
+        return parse_rule(cls, text)
+
+
+@dataclass(frozen=True)
+class RoadKeeping:
+    """Parameters of the road-keeping rule (``policies.trafficbots.road_keeping``): a moving
+    vehicle whose action would carry a front corner over a road edge, out of the road, within
+    ``horizon`` seconds steers by the smallest of ``yaw_offsets`` that keeps it in, or brakes.
+
+    Attributes:
+        horizon: seconds of constant action looked ahead.
+        pieces: road-edge map pieces (nearest by first node) whose segments are tested.
+        yaw_offsets: rad/s added to the network's yaw rate, in the order tried (each with
+            both signs).
+        min_speed: m/s below which a vehicle is left alone.
+    """
+
+    horizon: float = 1.0
+    pieces: int = 8
+    yaw_offsets: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3, 0.5)
+    min_speed: float = 1.0
+
+    @classmethod
+    def parse(cls, text: str) -> RoadKeeping | None:
+        """From a command line (``parse_rule``)."""
+        return parse_rule(cls, text)
+
+    def __post_init__(self) -> None:
+        if not (self.horizon > 0 and self.pieces >= 1 and self.min_speed >= 0):
+            raise ValueError("RoadKeeping: horizon > 0, pieces >= 1 and min_speed >= 0")
+        if not self.yaw_offsets or not all(o > 0 for o in self.yaw_offsets):
+            raise ValueError("RoadKeeping.yaw_offsets must be positive and not empty")
 
 
 @dataclass(frozen=True)
@@ -241,6 +282,8 @@ class InferenceConfig:
             the logged states, spec 1.4) enter the network clipped to the type's action limits.
         gap_keeping: cap vehicles' accelerations by the IDM term of the agent ahead
             (``GapKeeping``; shipped); None for the network's accelerations.
+        road_keeping: steer (or brake) vehicles that would leave the road (``RoadKeeping``);
+            None for the network's actions.
     """
 
     hold_parked: bool = True
@@ -251,6 +294,7 @@ class InferenceConfig:
     dest_temperature: float = 1.0
     clip_history_motion: bool = False
     gap_keeping: GapKeeping | None = dataclasses.field(default_factory=GapKeeping)
+    road_keeping: RoadKeeping | None = None
 
     def __post_init__(self) -> None:
         for name in ("still_displacement", "parked_lane_radius", "vehicle_yaw_rate_slack"):
@@ -270,4 +314,5 @@ class InferenceConfig:
             dest_temperature=1.0,
             clip_history_motion=False,
             gap_keeping=None,
+            road_keeping=None,
         )

@@ -28,6 +28,7 @@ from policies.trafficbots.destination import (
 )
 from policies.trafficbots.latent import AddNaviLatent, Posterior
 from policies.trafficbots.map_encoder import MapEncoder, MapTokens
+from policies.trafficbots.road_keeping import keep_on_road
 from policies.trafficbots.rules import (
     clip_history_motion,
     hold_action,
@@ -441,6 +442,11 @@ class TrafficBots(nn.Module):
         if rules.gap_keeping is not None:
             size = ctx.ag_attr[..., :2]
             action = keep_gap(action, speed, now, (ctx.ag_type, size), rules.gap_keeping)
+        if rules.road_keeping is not None:
+            size = ctx.ag_attr[..., :2]
+            action = keep_on_road(
+                action, speed, now, (ctx.ag_type, size, ctx.mp), rules.road_keeping
+            )
         if rules.vehicle_max_curvature is not None:
             action = limit_vehicle_curvature(
                 action,
