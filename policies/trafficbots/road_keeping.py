@@ -13,6 +13,9 @@ stands in a lot and drives onto the road crosses edges the other way and is left
 The edges are the road-edge map tokens the network sees (``MapTokens.node_pose``, classes
 ``ROAD_EDGE_BOUNDARY`` / ``ROAD_EDGE_MEDIAN``); each vehicle tests the segments of its
 ``RoadKeeping.pieces`` edge pieces nearest (by first node) to the middle of its path.
+
+Off in the shipped config (``InferenceConfig(road_keeping=RoadKeeping())`` turns it on): it
+breaks the NPC's frame invariance (``RoadKeeping`` says by how much and why).
 """
 
 from __future__ import annotations
@@ -70,33 +73,41 @@ def front_corner_paths(
 
 
 def nearest_edge_segments(
-    mp: MapTokens, at: torch.Tensor, pieces: int
+    mp: MapTokens, at: torch.Tensor, pieces: int, rows: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The road-edge segments of the ``pieces`` edge pieces nearest to each point.
 
     Args:
         mp: the map tokens (B rows, M pieces of P nodes).
-        at: [B, N, 2] query points m.
+        at: [R, N, 2] query points m.
         pieces: pieces per point.
+        rows: optional [R] int64 map row of each query row (default: row r itself).
 
     Returns:
-        (start [B, N, S, 2], direction [B, N, S, 2] m, valid [B, N, S] bool), S = pieces *
+        (start [R, N, S, 2], direction [R, N, S, 2] m, valid [R, N, S] bool), S = pieces *
         (P - 1); invalid where the piece is not a road edge or a node is missing.
     """
-    node, node_ok = mp.node_pose[..., :2], mp.node_valid
+    node = mp.node_pose[..., :2]  # [B, M, P, 2]
     edge = torch.zeros_like(mp.valid)
     for c in _EDGE_CLASSES:
         edge |= mp.cls == c
-    seg_ok = node_ok[..., :-1] & node_ok[..., 1:] & edge[..., None]  # [B, M, P-1]
-    table = torch.cat([node[..., :-1, :], node[..., 1:, :] - node[..., :-1, :]], -1)
     anchor = torch.where(edge[..., None], node[..., 0, :], float("inf"))  # [B, M, 2]
+    if rows is not None:
+        anchor = anchor.index_select(0, rows)
     d = torch.hypot(
         anchor[:, None, :, 0] - at[..., 0, None], anchor[:, None, :, 1] - at[..., 1, None]
-    )  # [B, N, M]
+    )  # [R, N, M]
     k = min(pieces, d.shape[-1])
-    near = torch.topk(d, k, dim=-1, largest=False).indices  # [B, N, k]
-    seg = gather_rows(table.flatten(2), near).unflatten(-1, (-1, 4)).flatten(2, 3)
-    return seg[..., :2], seg[..., 2:], gather_rows(seg_ok, near).flatten(2)
+    near = torch.topk(d, k, dim=-1, largest=False).indices  # [R, N, k]
+    # Only the pieces found are cut into segments.
+    xy = gather_rows(node.flatten(2), near, rows).unflatten(-1, node.shape[-2:])  # [R, N, k, P, 2]
+    ok = gather_rows(mp.node_valid, near, rows) & gather_rows(edge, near, rows)[..., None]
+    start = xy[..., :-1, :]
+    return (
+        start.flatten(2, 3),
+        (xy[..., 1:, :] - start).flatten(2, 3),
+        (ok[..., :-1] & ok[..., 1:]).flatten(2),
+    )
 
 
 def leaves_road(
@@ -151,27 +162,28 @@ def keep_on_road(
     """
     (pose, valid), (ag_type, size, mp) = now, agents
     moving = valid & (ag_type == int(C.ObjectType.VEHICLE)) & (speed >= rule.min_speed)
-    if not bool(moving.any()):
-        return action
-    mid = front_corner_paths(pose, speed, action[:, :, None], size, 0.5 * rule.horizon)[1]
-    segments = nearest_edge_segments(mp, mid[:, :, 0].mean(-2), rule.pieces)  # [B, N, S, ...]
-    paths = front_corner_paths(pose, speed, action[:, :, None], size, rule.horizon)
-    b, n = (leaves_road(*paths, segments)[..., 0] & moving).nonzero(as_tuple=True)
+    b, n = moving.nonzero(as_tuple=True)
     if len(b) == 0:
         return action
-    # The leaving vehicles as rows of their own, [L, 1, ...], each with its candidate actions.
-    max_acc, max_yaw = (x[b, n] for x in action_limits(ag_type))
-    base = action[b, n]  # [L, 2]
+    # The moving vehicles as rows of their own, [V, 1, ...] (map row b of vehicle row v).
+    p, v, sz = pose[b, n][:, None], speed[b, n][:, None], size[b, n][:, None]
+    base = action[b, n]  # [V, 2]
+    mid = front_corner_paths(p, v, base[:, None, None], sz, 0.5 * rule.horizon)[1]
+    segments = nearest_edge_segments(mp, mid[:, :, 0].mean(-2), rule.pieces, b)  # [V, 1, S]
+    paths = front_corner_paths(p, v, base[:, None, None], sz, rule.horizon)
+    go = leaves_road(*paths, segments)[:, 0, 0].nonzero()[:, 0]  # [L] leaving vehicle rows
+    if len(go) == 0:
+        return action
+    max_acc, max_yaw = (x[b[go], n[go]] for x in action_limits(ag_type))
+    base = base[go]
     offsets = torch.tensor(rule.yaw_offsets, dtype=action.dtype, device=action.device)
     offsets = torch.stack([offsets, -offsets], -1).flatten()  # +o1, -o1, +o2, ...
     yaw = torch.maximum(torch.minimum(base[:, 1:] + offsets, max_yaw[:, None]), -max_yaw[:, None])
     tried = torch.stack([base[:, :1].expand_as(yaw), yaw], -1)  # [L, A, 2]
-    paths = front_corner_paths(
-        pose[b, n][:, None], speed[b, n][:, None], tried[:, None], size[b, n][:, None], rule.horizon
-    )
-    ok = ~leaves_road(*paths, tuple(s[b, n][:, None] for s in segments))[:, 0]  # [L, A]
-    fixed = tried[torch.arange(len(b), device=b.device), ok.to(torch.uint8).argmax(-1)]
+    paths = front_corner_paths(p[go], v[go], tried[:, None], sz[go], rule.horizon)
+    ok = ~leaves_road(*paths, tuple(x[go] for x in segments))[:, 0]  # [L, A]
+    fixed = tried[torch.arange(len(go), device=go.device), ok.to(torch.uint8).argmax(-1)]
     brake = torch.stack([-max_acc, base[:, 1]], -1)
     out = action.clone()
-    out[b, n] = torch.where(ok.any(-1, keepdim=True), fixed, brake)
+    out[b[go], n[go]] = torch.where(ok.any(-1, keepdim=True), fixed, brake)
     return out
