@@ -439,14 +439,12 @@ class TrafficBots(nn.Module):
         """Eval-mode rules of ``InferenceConfig`` on physical actions [B', N, 2]; ``now`` =
         (pose [B', N, 3], valid [B', N]) of the agents at this step."""
         rules = self.inference
+        size = ctx.ag_attr[..., :2]  # (length, width)
         if rules.gap_keeping is not None:
-            size = ctx.ag_attr[..., :2]
             action = keep_gap(action, speed, now, (ctx.ag_type, size), rules.gap_keeping)
         if rules.road_keeping is not None:
-            size = ctx.ag_attr[..., :2]
-            action = keep_on_road(
-                action, speed, now, (ctx.ag_type, size, ctx.mp), rules.road_keeping
-            )
+            agents = (ctx.ag_type, size, ctx.mp)
+            action = keep_on_road(action, speed, now, agents, rules.road_keeping)
         if rules.vehicle_max_curvature is not None:
             action = limit_vehicle_curvature(
                 action,

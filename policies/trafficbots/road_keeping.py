@@ -25,8 +25,10 @@ from typing import TYPE_CHECKING
 import torch
 
 from tbsim_env import constants as C
+from tbsim_env.sim.collision import corners_from_offsets
 from tbsim_env.sim.dynamics import action_limits
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.sim.geometry import cos_sin
+from tbsim_env.torch_utils import const, gather_rows
 
 if TYPE_CHECKING:
     from policies.trafficbots.config import RoadKeeping
@@ -57,13 +59,11 @@ def front_corner_paths(
     """
     x, y, yaw = (v[..., None] for v in pose.unbind(-1))  # [B, N, 1]
     half_l, half_w = (0.5 * v[..., None, None] for v in size.unbind(-1))  # [B, N, 1, 1]
-    side = torch.tensor([1.0, -1.0], dtype=pose.dtype, device=pose.device) * half_w  # left, right
+    front = (half_l, const((1.0, -1.0), pose) * half_w)  # left and right front corner offsets
 
     def corners(cx, cy, heading):  # [B, N, A] each -> [B, N, A, 2, 2]
-        c, s = torch.cos(heading)[..., None], torch.sin(heading)[..., None]
-        px = cx[..., None] + c * half_l - s * side
-        py = cy[..., None] + s * half_l + c * side
-        return torch.stack([px, py], -1)
+        at = corners_from_offsets(cx[..., None], cy[..., None], cos_sin(heading[..., None]), front)
+        return torch.stack(at, -1)
 
     travelled = (speed[..., None] + 0.5 * t * action[..., 0]).clamp_min(0.0) * t
     mid = yaw + 0.5 * t * action[..., 1]
@@ -176,7 +176,7 @@ def keep_on_road(
         return action
     max_acc, max_yaw = (x[b[go], n[go]] for x in action_limits(ag_type))
     base = base[go]
-    offsets = torch.tensor(rule.yaw_offsets, dtype=action.dtype, device=action.device)
+    offsets = const(rule.yaw_offsets, action)
     offsets = torch.stack([offsets, -offsets], -1).flatten()  # +o1, -o1, +o2, ...
     yaw = torch.maximum(torch.minimum(base[:, 1:] + offsets, max_yaw[:, None]), -max_yaw[:, None])
     tried = torch.stack([base[:, :1].expand_as(yaw), yaw], -1)  # [L, A, 2]

@@ -35,6 +35,7 @@ import torch
 
 from tbsim_env import constants as C
 from tbsim_env.sim.dynamics import action_limits
+from tbsim_env.sim.geometry import to_local_xy
 
 if TYPE_CHECKING:
     from policies.trafficbots.config import GapKeeping
@@ -205,11 +206,8 @@ def gap_keeping_cap(
         [B, N] m/s^2.
     """
     yaw = pose[..., 2]
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    dx = pose[:, None, :, 0] - pose[:, :, None, 0]  # [B, i, j]
-    dy = pose[:, None, :, 1] - pose[:, :, None, 1]
-    ahead = c[..., None] * dx + s[..., None] * dy  # along i's heading
-    side = -s[..., None] * dx + c[..., None] * dy
+    # j's centre in i's frame, [B, i, j]: along (ahead) and across i's heading.
+    ahead, side = to_local_xy(pose[:, None, :, 0], pose[:, None, :, 1], pose[:, :, None])
     rel = yaw[:, None, :] - yaw[:, :, None]
     cos_rel = torch.cos(rel)
     rc, rs = cos_rel.abs(), torch.sin(rel).abs()
@@ -219,8 +217,8 @@ def gap_keeping_cap(
     j_across = 0.5 * (length[:, None, :] * rs + width[:, None, :] * rc)
     bumper = ahead - 0.5 * length[..., None] - j_along
     in_lane = side.abs() < 0.5 * width[..., None] + j_across + gap.lateral_margin
+    # An agent is not ahead of itself: its own ``ahead`` is 0.
     pair = valid[:, :, None] & valid[:, None, :]
-    pair &= ~torch.eye(pose.shape[1], dtype=torch.bool, device=pose.device)
     blocked = pair & in_lane & (ahead > 0) & (bumper < gap.horizon)
     s_gap, lead = torch.where(blocked, bumper, float("inf")).min(-1)  # [B, N] each
     s_gap = s_gap.clamp_min(gap.min_gap)
