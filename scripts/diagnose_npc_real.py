@@ -35,7 +35,7 @@ import numpy as np
 import torch
 
 from policies.trafficbots.checkpoint import load_checkpoint
-from policies.trafficbots.config import GapKeeping, InferenceConfig, RoadKeeping
+from policies.trafficbots.config import InferenceConfig
 from policies.trafficbots.rules import still_agents
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
 from tbsim_env import constants as C
@@ -144,14 +144,7 @@ def run_split(args: argparse.Namespace) -> tuple[list[dict], dict]:
     model = load_checkpoint(args.checkpoint) if args.checkpoint else load_default_model()
     if args.rules == "spec":
         model.inference = InferenceConfig.spec()
-    if args.gap_keeping is not None:
-        model.inference = dataclasses.replace(
-            model.inference, gap_keeping=GapKeeping.parse(args.gap_keeping)
-        )
-    if args.road_keeping is not None:
-        model.inference = dataclasses.replace(
-            model.inference, road_keeping=RoadKeeping.parse(args.road_keeping)
-        )
+    model.inference = model.inference.with_rule_flags(args.gap_keeping, args.road_keeping)
     entries = json.loads(SPLITS.read_text())[args.split]
     scores, events, parked = [], collections.Counter(), {"displacement": [], "heading_change": []}
     samples: dict[str, list] = {}
@@ -244,7 +237,8 @@ def main() -> None:
     p.add_argument(
         "--road-keeping",
         metavar="off|NAME=VALUE,...",
-        help='the road-keeping rule: "off", or RoadKeeping fields to change ("" for defaults)',
+        help='the road-keeping rule (off when shipped): "off", or RoadKeeping fields to change '
+        '("" for its defaults)',
     )
     p.add_argument("--samples", type=int, default=16)
     p.add_argument("--keep", type=int, default=16)

@@ -18,7 +18,8 @@ Prints markdown tables (wosac2025 and wosac2024, 32 rollouts each) and writes a 
 per-scenario field, plus a rollout picture.
 
     python scripts/evaluate_default_npc.py --out docs/model_card [--checkpoint PATH]
-        [--samples 64] [--road-edge-weight 0] [--gap-keeping off] [--sets real,generated]
+        [--samples 64] [--road-edge-weight 0] [--gap-keeping off] [--road-keeping ""]
+        [--sets real,generated]
         [--policies log_replay,trafficbots] [--keep] [--workers 2]
 
 With ``--keep``, the sets and policies not evaluated in this run keep their results from the
@@ -73,28 +74,31 @@ COLUMNS = (
 
 @functools.cache
 def rollout_fn(
-    policy: str, checkpoint: str | None, samples: int, road_edge_weight: float, gap: str
+    policy: str,
+    checkpoint: str | None,
+    samples: int,
+    road_edge_weight: float,
+    rules: tuple[str | None, str | None],
 ):
     """The ``(scenario, num_rollouts, seed) -> Rollouts`` of ``policy``, built once per process
-    (``gap``: TrafficBots' gap-keeping rule, as ``GapKeeping.parse`` reads it)."""
+    (``rules``: TrafficBots' gap- and road-keeping flags, ``InferenceConfig.with_rule_flags``)."""
     if policy == "trafficbots":
-        from policies.trafficbots.config import GapKeeping, InferenceConfig
+        from policies.trafficbots.config import InferenceConfig
         from policies.trafficbots.wosac import trafficbots_rollout_fn
 
         return trafficbots_rollout_fn(
             checkpoint=checkpoint,
             num_samples=samples,
             road_edge_weight=road_edge_weight,
-            inference=InferenceConfig(gap_keeping=GapKeeping.parse(gap)),
+            inference=InferenceConfig().with_rule_flags(*rules),
         )
     return make_rollout_fn(policy)
 
 
-def score_scene(
-    policy: str, checkpoint: str | None, samples: int, trafficbots: tuple[float, str], sc
-) -> dict:
+def score_scene(policy: str, checkpoint: str | None, samples: int, trafficbots: tuple, sc) -> dict:
     """{version: ``ScenarioScore``} of 32 rollouts of ``policy`` on ``sc``, seeded by its id;
-    ``trafficbots``: (road-edge weight, gap keeping) of that policy."""
+    ``trafficbots``: (road-edge weight, (gap-keeping flag, road-keeping flag)) of that
+    policy."""
     fn = rollout_fn(policy, checkpoint, samples, *trafficbots)
     r = fn(sc, 32, scenario_seed(0, sc.scenario_id))
     return {v: score_scenario(sc, r, v) for v in VERSIONS}
@@ -156,10 +160,15 @@ def main() -> None:
     )
     p.add_argument(
         "--gap-keeping",
-        default="",
         metavar="off|NAME=VALUE,...",
         help='TrafficBots\' gap-keeping rule: "off", or GapKeeping fields to change (default: '
         "the shipped rule)",
+    )
+    p.add_argument(
+        "--road-keeping",
+        metavar="off|NAME=VALUE,...",
+        help="TrafficBots' road-keeping rule (off when shipped): RoadKeeping fields to change "
+        '("" for its defaults)',
     )
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument(
@@ -219,7 +228,7 @@ def main() -> None:
     for set_name, scenarios in sets.items():
         for pol in policies:
             weight = args.road_edge_weight if pol == "trafficbots" else 0.0
-            options = (weight, args.gap_keeping)
+            options = (weight, (args.gap_keeping, args.road_keeping))
             job = functools.partial(score_scene, pol, args.checkpoint, args.samples, options)
             # In scene order either way; each scene's seed comes from its id, so the scores do
             # not depend on the number of workers.

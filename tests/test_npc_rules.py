@@ -369,6 +369,9 @@ def test_gap_keeping_parameters_are_checked_and_parsed():
     )
     with pytest.raises(ValueError, match="NAME=VALUE"):
         GapKeeping.parse("headway=1")
+    flags = InferenceConfig().with_rule_flags("off", "horizon=1.5")
+    assert flags.gap_keeping is None and flags.road_keeping.horizon == 1.5
+    assert InferenceConfig().with_rule_flags() == InferenceConfig()
 
 
 def _first_sdc_collision(path, gap_keeping: bool, seed: int) -> int | None:

@@ -314,6 +314,17 @@ class InferenceConfig:
         if not self.dest_temperature > 0.0:
             raise ValueError("InferenceConfig.dest_temperature must be > 0")
 
+    def with_rule_flags(self, gap: str | None = None, road: str | None = None) -> InferenceConfig:
+        """This config with the rules of command-line flags replaced (``parse_rule`` text;
+        None keeps the rule as it is): ``gap_keeping`` from ``gap``, ``road_keeping`` from
+        ``road``."""
+        out = self
+        if gap is not None:
+            out = dataclasses.replace(out, gap_keeping=GapKeeping.parse(gap))
+        if road is not None:
+            out = dataclasses.replace(out, road_keeping=RoadKeeping.parse(road))
+        return out
+
     @classmethod
     def spec(cls) -> InferenceConfig:
         """The spec's inference: no rule around the network."""
