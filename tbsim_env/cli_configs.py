@@ -212,7 +212,8 @@ class Preprocess:
 
     Attributes:
         sources: files / globs / folders, or generated:LAYOUTS:A-B, e.g.
-            generated:intersection,merge:0-99.
+            generated:intersection,merge:0-99 (generated-recorded:LAYOUTS:A-B for scenes with
+            parked vehicles and tracker jitter as real logs have them).
         out: cache folder (shards + manifest.json).
         workers: preprocessing processes.
         shard_size: scenes per shard file.

@@ -45,7 +45,9 @@ from tbsim_env.errors import TbsimError
 
 FORMAT = "tbsim-tokens-v1"
 _ARRAY_FIELDS = tuple(f.name for f in dataclasses.fields(SceneTokens) if f.name != "scenario_id")
-_GENERATED = re.compile(r"^generated:(?P<layouts>[a-z_,]+):(?P<start>\d+)-(?P<stop>\d+)$")
+_GENERATED = re.compile(
+    r"^generated(?P<recorded>-recorded)?:(?P<layouts>[a-z_,]+):(?P<start>\d+)-(?P<stop>\d+)$"
+)
 _ADDED_FIELDS = {"frame_yaw": np.zeros((), np.float64)}
 """Fields that shards written before them lack, with the value that keeps such a shard's
 meaning (``frame_yaw`` 0: its ``map_boundary`` is axis-aligned in the token frame)."""
@@ -96,35 +98,41 @@ def _read_field(f, keys: set[str], key: str) -> np.ndarray:
     return f.get_tensor(key)
 
 
-def parse_generated(spec: str) -> list[tuple[str, int]]:
-    """``"generated:intersection,merge:0-99"`` -> [(layout, seed), ...], layouts alternating."""
+def parse_generated(spec: str) -> list[tuple[str, int, bool]]:
+    """``"generated:intersection,merge:0-99"`` -> [(layout, seed, recorded), ...], layouts
+    alternating; ``generated-recorded:...`` marks the scenes to be generated with the fitted
+    recording (parked vehicles, tracker jitter: ``generator.recording.RECORDED``)."""
     m = _GENERATED.match(spec)
     if not m:
         raise ValueError(
             f"bad generator source {spec!r}; use e.g. generated:intersection,merge:0-99"
         )
     layouts = m["layouts"].split(",")
-    return [(layouts[s % len(layouts)], s) for s in range(int(m["start"]), int(m["stop"]) + 1)]
+    recorded = m["recorded"] is not None
+    first, last = int(m["start"]), int(m["stop"])
+    return [(layouts[s % len(layouts)], s, recorded) for s in range(first, last + 1)]
 
 
-def _iter_sources(sources: Sequence[str]) -> Iterator[Scenario | tuple[str, int]]:
+def _iter_sources(sources: Sequence[str]) -> Iterator[Scenario | tuple[str, int, bool]]:
     from tbsim_env.data.loader import iter_scenarios
 
     for src in sources:
-        if str(src).startswith("generated:"):
+        if str(src).startswith(("generated:", "generated-recorded:")):
             yield from parse_generated(str(src))
         else:
             yield from iter_scenarios(src)
 
 
-def _work(item: Scenario | tuple[str, int], cfg: TokenConfig) -> SceneTokens | str:
+def _work(item: Scenario | tuple[str, int, bool], cfg: TokenConfig) -> SceneTokens | str:
     from tbsim_env.data.preprocess import preprocess_scenario
 
     try:
         if isinstance(item, tuple):
             from tbsim_env.data.generator import generate_scenario
+            from tbsim_env.data.generator.recording import RECORDED
 
-            item = generate_scenario(item[0], item[1])
+            layout, seed, recorded = item
+            item = generate_scenario(layout, seed, recording=RECORDED if recorded else None)
         # Training and validation losses compare with the whole logged episode (of WOMD's
         # 91 steps: 20 s scenes are cut to them, as WOSAC scores them).
         item = item.motion_window()

@@ -9,7 +9,9 @@ served), "t_junction" (minor road with a stop sign yielding to the major road) a
 "permissive_intersection" (signalised, two phases: left turns wait on the green for gaps in
 oncoming traffic, with the queue behind them). ``training_mix(seed)`` cycles through them.
 Speeds, acceleration, headways and walking are set by a ``behaviour.Behaviour``, calibrated
-against the real training scenes (``calibration``, ``scripts/calibrate_generator.py``).
+against the real training scenes (``calibration``, ``scripts/calibrate_generator.py``); a
+``recording.Recording`` (``RECORDED``, fitted the same way) adds parked vehicles and the real
+tracker's jitter to a scene's log.
 """
 
 from __future__ import annotations

@@ -5,7 +5,8 @@ urban layouts a per-scene share of cyclists), pedestrians on the sidewalks (walk
 them with a fluctuating speed, or standing) and, on the junction layouts, pedestrians
 crossing on the crosswalks (``crossings``) whom the vehicles yield to. How they move
 (speeds, acceleration, headways, walking) is a ``behaviour.Behaviour``, by default the one
-calibrated against real scenes (``behaviour.CALIBRATED``). Cyclists and crossing
+calibrated against real scenes (``behaviour.CALIBRATED``); with a ``recording.Recording``
+the log also holds parked vehicles and tracker jitter. Cyclists and crossing
 pedestrians are drawn from a random stream of their own, so the freeway ``merge`` scenes,
 which have neither, were the same as before they were added."""
 
@@ -28,6 +29,7 @@ from tbsim_env.data.generator.driver import (
     kerb_routes,
     simulate,
 )
+from tbsim_env.data.generator.recording import Recording, jitter, parked_vehicles
 from tbsim_env.data.generator.roads import (
     LAYOUT_BUILDERS,
     STOP,
@@ -135,6 +137,12 @@ def _ped_rng(layout: str, seed: int) -> np.random.Generator:
     """Stream of the sidewalk pedestrians' calibrated behaviour (standing, speed fluctuation,
     sway): its own, so that without it every other draw is as before."""
     return np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 3])
+
+
+def _rec_rng(layout: str, seed: int) -> np.random.Generator:
+    """Stream of the recording (parked vehicles, tracker jitter): its own, so that the driven
+    traffic is the same with or without it."""
+    return np.random.default_rng([int(seed), zlib.crc32(layout.encode()), 4])
 
 
 def frame_offset(layout: str, seed: int) -> tuple[float, float]:
@@ -431,6 +439,7 @@ def generate_scenario(
     num_pedestrians: int | None = None,
     num_crossing: int | None = None,
     behaviour: Behaviour = CALIBRATED,
+    recording: Recording | None = None,
 ) -> Scenario:
     """Generate one WOMD-like scenario (91 steps at 10 Hz, current index 10).
 
@@ -449,6 +458,9 @@ def generate_scenario(
         behaviour: how the agents move (speeds, acceleration, headways, walking); the
             calibrated one by default, ``behaviour.UNCALIBRATED`` gives the scenes of the
             generator before its calibration.
+        recording: parked vehicles and tracker jitter as real logs have them
+            (``recording.RECORDED``, fitted to the real training scenes); None (default) for
+            exact tracks and no parked vehicles. The driven traffic is the same either way.
 
     Returns:
         A validated ``Scenario``: vehicles and cyclists, then sidewalk and crossing
@@ -480,6 +492,9 @@ def generate_scenario(
     walkers = _pedestrians(road.net, n_ped, rng, road.observed, behaviour, _ped_rng(layout, seed))
     tracks, n_tracks = _tracks(road, log, crossing, walkers, rng, cfg)
     predict = _tracks_to_predict(tracks, tracks.object_type.astype(np.int64), tracks.valid)
+    if recording is not None:
+        tracks = _record(tracks, road, recording, _rec_rng(layout, seed))
+        n_tracks = tracks.num_tracks
     return (
         Scenario(
             scenario_id=f"gen-{layout}-{seed:04d}",
@@ -550,6 +565,57 @@ def _tracks(
         valid=valid,
     )
     return tracks, len(order)
+
+
+def _record(tracks: Tracks, road: _Road, rec: Recording, rng: np.random.Generator) -> Tracks:
+    """``tracks`` with the tracker's jitter on moving objects and the parked vehicles of the lot
+    rows inserted before the SDC (which stays last; earlier indices keep their objects)."""
+    speed = np.linalg.norm(tracks.velocity, axis=-1).astype(np.float64)
+    head = tracks.heading.astype(np.float64)
+    dxy, dhead = jitter(head, speed, tracks.object_type, rec, rng)
+    valid = tracks.valid
+    xyz = tracks.xyz.copy()
+    xyz[..., :2] += np.where(valid[..., None], dxy, 0.0)
+    # Headings without jitter stay as they are (re-wrapping a float32 -pi would flip it).
+    heading = np.where(valid & (dhead != 0.0), wrap_angle_np(head + dhead), tracks.heading)
+    walks = [_Walk.of(line, road.observed) for line in road.net.sidewalks]
+    size, xy, yaw = parked_vehicles(
+        [(w.a, w.d, w.total, w.outward) for w in walks],
+        road.net.road_edges,
+        rec.parked_occupancy,
+        rng,
+    )
+    keep = (np.abs(xy) <= road.observed).all(axis=-1)
+    size, xy, yaw = size[keep], xy[keep], yaw[keep]
+    k = len(size)
+    ids = tracks.id.max() + 1 + rng.permutation(10 * max(k, 1))[:k]
+    parked = {
+        "id": ids.astype(np.int64),
+        "object_type": np.full(k, int(ObjectType.VEHICLE), np.int8),
+        "xyz": np.broadcast_to(
+            np.concatenate([xy, 0.5 * size[:, 2:3]], axis=-1)[:, None], (k, NUM_STEPS, 3)
+        ),
+        "heading": np.broadcast_to(yaw[:, None], (k, NUM_STEPS)),
+        "velocity": np.zeros((k, NUM_STEPS, 2)),
+        "size": np.broadcast_to(size[:, None], (k, NUM_STEPS, 3)),
+        "valid": np.ones((k, NUM_STEPS), bool),
+    }
+    moved = {
+        "id": tracks.id,
+        "object_type": tracks.object_type,
+        "xyz": xyz,
+        "heading": heading,
+        "velocity": tracks.velocity,
+        "size": tracks.size,
+        "valid": tracks.valid,
+    }
+    dtypes = {n: getattr(tracks, n).dtype for n in moved}
+    return Tracks(
+        **{
+            n: np.concatenate([a[:-1], parked[n], a[-1:]]).astype(dtypes[n])
+            for n, a in moved.items()
+        }
+    )
 
 
 SDC_MIN_TRAVEL_M: float = 10.0
