@@ -32,6 +32,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from tbsim_env.constants import ObjectType
+from tbsim_env.data.generator.driver import CAR_SIZE, VAN_SIZE
 
 LOT_OFFSET_M: float = 6.0
 """The lot row's near side lies this far beyond a sidewalk's walking line, away from the road
@@ -124,10 +125,10 @@ def _car_sizes(rng: np.random.Generator, n: int) -> np.ndarray:
     """[n, 3] (length, width, height) of parked cars and vans, m (the driver's car and van
     ranges)."""
     van = rng.random(n) < 0.15
-    length = np.where(van, rng.uniform(5.0, 6.5, n), rng.uniform(4.2, 5.1, n))
-    width = np.where(van, rng.uniform(2.0, 2.3, n), rng.uniform(1.8, 2.05, n))
-    height = np.where(van, rng.uniform(1.9, 2.8, n), rng.uniform(1.4, 1.8, n))
-    return np.stack([length, width, height], axis=1)
+    sizes = [
+        np.where(van, rng.uniform(*v, n), rng.uniform(*c, n)) for v, c in zip(VAN_SIZE, CAR_SIZE)
+    ]
+    return np.stack(sizes, axis=1)
 
 
 def parked_vehicles(
