@@ -204,7 +204,7 @@ def test_recorded_generator_about_halves_the_distance_to_the_real_train_scenes(
     """With parked vehicles and tracker jitter (``RECORDED``), on all tracks, the range-
     normalised distance of vehicles and pedestrians falls to about half of the uncalibrated
     generator's (issue 25's target) and below the calibrated behaviour's alone. On this sample
-    when written: vehicles 0.505 of before, pedestrians 0.28."""
+    when written: vehicles 0.47 of before, pedestrians 0.28."""
     real = _real_sample(womd_dir)
     before = _normalised(_generated(UNCALIBRATED), real, every=True)
     after = _normalised(_generated(CALIBRATED), real, every=True)

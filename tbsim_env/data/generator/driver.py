@@ -200,10 +200,10 @@ def _trait(
     return r[0] + (r[1] - r[0]) * np.clip(x, 0.0, 1.0)
 
 
-CAR_SIZE: tuple[tuple[float, float], ...] = ((4.2, 5.1), (1.8, 2.05), (1.4, 1.8))
+CAR_SIZE_RANGE: tuple[tuple[float, float], ...] = ((4.2, 5.1), (1.8, 2.05), (1.4, 1.8))
 """Ranges of a car's (length, width, height), m."""
 
-VAN_SIZE: tuple[tuple[float, float], ...] = ((5.0, 6.5), (2.0, 2.3), (1.9, 2.8))
+VAN_SIZE_RANGE: tuple[tuple[float, float], ...] = ((5.0, 6.5), (2.0, 2.3), (1.9, 2.8))
 """Ranges of a van's (length, width, height), m."""
 
 
@@ -232,9 +232,9 @@ def draw_fleet(
         ws = np.where(straight, w, 0.0)
         bent = truck & ~straight[route]
         route[bent] = rng.choice(routes.num_routes, size=int(bent.sum()), p=ws / ws.sum())
-    length = np.where(van, rng.uniform(*VAN_SIZE[0], n), rng.uniform(*CAR_SIZE[0], n))
-    width = np.where(van, rng.uniform(*VAN_SIZE[1], n), rng.uniform(*CAR_SIZE[1], n))
-    height = np.where(van, rng.uniform(*VAN_SIZE[2], n), rng.uniform(*CAR_SIZE[2], n))
+    length = np.where(van, rng.uniform(*VAN_SIZE_RANGE[0], n), rng.uniform(*CAR_SIZE_RANGE[0], n))
+    width = np.where(van, rng.uniform(*VAN_SIZE_RANGE[1], n), rng.uniform(*CAR_SIZE_RANGE[1], n))
+    height = np.where(van, rng.uniform(*VAN_SIZE_RANGE[2], n), rng.uniform(*CAR_SIZE_RANGE[2], n))
     length = np.where(truck, rng.uniform(8.0, 12.0, n), length)
     width = np.where(truck, rng.uniform(2.4, 2.55, n), width)
     height = np.where(truck, rng.uniform(3.0, 3.8, n), height)

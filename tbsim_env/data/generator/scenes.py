@@ -572,7 +572,7 @@ def _record(tracks: Tracks, road: _Road, rec: Recording, rng: np.random.Generato
     rows inserted before the SDC (which stays last; earlier indices keep their objects)."""
     speed = np.linalg.norm(tracks.velocity, axis=-1).astype(np.float64)
     head = tracks.heading.astype(np.float64)
-    dxy, dhead = jitter(head, speed, tracks.object_type, rec, rng)
+    dxy, dhead, dvel = jitter(head, speed, tracks.object_type, rec, rng)
     valid = tracks.valid
     xyz = tracks.xyz.copy()
     xyz[..., :2] += np.where(valid[..., None], dxy, 0.0)
@@ -605,7 +605,7 @@ def _record(tracks: Tracks, road: _Road, rec: Recording, rng: np.random.Generato
         "object_type": tracks.object_type,
         "xyz": xyz,
         "heading": heading,
-        "velocity": tracks.velocity,
+        "velocity": tracks.velocity + np.where(valid[..., None], dvel, 0.0),
         "size": tracks.size,
         "valid": tracks.valid,
     }
