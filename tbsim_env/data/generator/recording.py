@@ -25,7 +25,7 @@ ways that no driving parameter can reproduce (docs/model_card/generator_calibrat
 A ``Recording`` is applied by ``generate_scenario(..., recording=...)`` after the traffic is
 simulated, from random streams of its own: the driven traffic is the same with or without it.
 ``RECORDED`` holds the values fitted by ``scripts/calibrate_generator.py`` on the real training
-scenes. Units: metres, radians.
+scenes (the velocity jitter measured there, not fitted). Units: metres, radians, m/s.
 """
 
 from __future__ import annotations
