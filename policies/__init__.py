@@ -35,7 +35,7 @@ def _trafficbots_rollouts(
     checkpoint: str | None = None,
     device: str = "cpu",
     num_samples: int = 128,
-    road_edge_weight: float = 0.0,
+    road_edge_weight: float | None = None,
 ):
     """TrafficBots' WOSAC sampling: ``num_samples`` rollouts, the 32 least colliding kept."""
     from policies.trafficbots.wosac import trafficbots_rollout_fn

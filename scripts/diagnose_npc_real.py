@@ -246,8 +246,9 @@ def main() -> None:
     p.add_argument(
         "--road-edge-weight",
         type=float,
-        default=0.0,
-        help="also rank the sampled rollouts by agents that leave the road (spec w_road_edge)",
+        default=None,
+        help="rank the sampled rollouts by collided + this x off-road agents (default: the "
+        "inference rules', shipped 1, spec 0)",
     )
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument("--out")

@@ -77,7 +77,7 @@ def rollout_fn(
     policy: str,
     checkpoint: str | None,
     samples: int,
-    road_edge_weight: float,
+    road_edge_weight: float | None,
     rules: tuple[str | None, str | None],
 ):
     """The ``(scenario, num_rollouts, seed) -> Rollouts`` of ``policy``, built once per process
@@ -155,8 +155,9 @@ def main() -> None:
     p.add_argument(
         "--road-edge-weight",
         type=float,
-        default=0.0,
-        help="TrafficBots: keep the rollouts with fewest collided + this x off-road agents",
+        default=None,
+        help="TrafficBots: keep the rollouts with fewest collided + this x off-road agents "
+        "(default: the inference rules', shipped 1)",
     )
     p.add_argument(
         "--gap-keeping",
@@ -227,7 +228,7 @@ def main() -> None:
     )
     for set_name, scenarios in sets.items():
         for pol in policies:
-            weight = args.road_edge_weight if pol == "trafficbots" else 0.0
+            weight = args.road_edge_weight if pol == "trafficbots" else None
             options = (weight, (args.gap_keeping, args.road_keeping))
             job = functools.partial(score_scene, pol, args.checkpoint, args.samples, options)
             # In scene order either way; each scene's seed comes from its id, so the scores do

@@ -103,14 +103,15 @@ class RolloutOptions:
         rollouts: rollouts per scenario (WOSAC: 32).
         seed: seed of the sampled rollouts.
         road_edge_weight: trafficbots: rank sampled rollouts by collided + this x off-road
-            agents (spec: 0, collisions only).
+            agents (default: the shipped inference's 1; the spec's 0 ranks by collisions
+            only).
     """
 
     policy: str = field(metadata=option(choices=_all_policies))
     checkpoint: str | None = None
     rollouts: int = 32
     seed: int = 0
-    road_edge_weight: float = 0.0
+    road_edge_weight: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)

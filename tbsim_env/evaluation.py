@@ -59,15 +59,16 @@ def make_rollout_fn(
     *,
     checkpoint: str | None = None,
     device: str = "cpu",
-    road_edge_weight: float = 0.0,
+    road_edge_weight: float | None = None,
 ) -> Callable[[Scenario, int, int], Rollouts]:
     """A function ``(scenario, num_rollouts, seed) -> Rollouts`` for a registered policy name
     (``policies.registry``: any policy a user registered works here too).
 
     ``road_edge_weight`` (TrafficBots only): weight of off-road agents, beside collided ones,
-    when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``, 0 there).
+    when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``, 0 there);
+    None for the policy's own (TrafficBots: its ``InferenceConfig``, shipped 1).
     """
-    options = {"road_edge_weight": road_edge_weight} if road_edge_weight else {}
+    options = {} if road_edge_weight is None else {"road_edge_weight": road_edge_weight}
     return registry_rollout_fn(policy, checkpoint=checkpoint, device=device, **options)
 
 
@@ -82,7 +83,8 @@ class RolloutSettings:
         checkpoint: weights of the policy (for the policies that take one).
         device: torch device of the rollouts.
         road_edge_weight: TrafficBots only: weight of off-road agents, beside collided ones,
-            when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``).
+            when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``);
+            None for the model's own (shipped 1).
     """
 
     policy: str
@@ -90,7 +92,7 @@ class RolloutSettings:
     seed: int = 0
     checkpoint: str | None = None
     device: str = "cpu"
-    road_edge_weight: float = 0.0
+    road_edge_weight: float | None = None
 
 
 def rollout_settings(policy: str | RolloutSettings, **options: Any) -> RolloutSettings:

@@ -25,7 +25,7 @@ from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
 from tbsim_env.metrics.wosac.rollouts import Rollouts
-from tbsim_env.metrics.wosac.scoring import simulated_offroad
+from tbsim_env.metrics.wosac.scoring import simulated_road_departure
 from tbsim_env.sim.horizon import wosac_scenario
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "trafficbots_small"
@@ -49,17 +49,22 @@ def trafficbots_rollouts(
     num_samples: int = 128,
     seed: int = 0,
     token_config: TokenConfig | None = None,
-    road_edge_weight: float = 0.0,
+    road_edge_weight: float | None = None,
 ) -> Rollouts:
     """``num_rollouts`` joint futures of every sim agent (``num_samples`` sampled, best kept).
 
     A rollout's score is the number of relevant agents that collide in it (spec 7.3), plus
-    ``road_edge_weight`` times the number of evaluated agents that leave the road at some
-    simulated step (``simulated_offroad``: it reads nothing of the logged future); the lowest
-    scores are kept, ties in sampling order. The spec's submission uses ``w_road_edge = 0``,
-    the default here too. Rollouts cover the 80 steps after the current one, also on a
+    ``road_edge_weight`` times the number of evaluated agents on the road at the current step
+    that leave it at some simulated step (``simulated_road_departure``: it reads nothing of
+    the logged future; agents off the road already, such as pedestrians on sidewalks, do not
+    count); the lowest
+    scores are kept, ties in sampling order. None takes the model's
+    ``InferenceConfig.road_edge_weight`` (shipped 1; the spec's submission uses
+    ``w_road_edge = 0``). Rollouts cover the 80 steps after the current one, also on a
     history-only scene (the WOSAC test split).
     """
+    if road_edge_weight is None:
+        road_edge_weight = model.inference.road_edge_weight
     if not math.isfinite(road_edge_weight) or road_edge_weight < 0:
         raise ValueError(f"road_edge_weight must be finite and >= 0, got {road_edge_weight}")
     grid = wosac_scenario(scenario)  # the scenario itself unless its log is shorter
@@ -72,8 +77,8 @@ def trafficbots_rollouts(
     rollouts = _to_rollouts(grid, tokens, samples.pose[0], samples.valid[0])
     if road_edge_weight == 0:
         return rollouts
-    offroad = simulated_offroad(grid, rollouts).sum(-1)  # [n]
-    score = samples.score[0].to(offroad.device) + road_edge_weight * offroad
+    departed = simulated_road_departure(grid, rollouts).sum(-1)  # [n]
+    score = samples.score[0].to(departed.device) + road_edge_weight * departed
     keep = torch.sort(score, stable=True).indices[:num_rollouts]
     return rollouts.select(keep)
 
@@ -127,7 +132,7 @@ def trafficbots_rollout_fn(
     checkpoint: str | None = None,
     device: str = "cpu",
     num_samples: int = 128,
-    road_edge_weight: float = 0.0,
+    road_edge_weight: float | None = None,
     inference: InferenceConfig | None = None,
 ) -> Callable[[Scenario, int, int], Rollouts]:
     """``(scenario, num_rollouts, seed) -> Rollouts`` with a loaded model (default: shipped)

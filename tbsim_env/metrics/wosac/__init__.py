@@ -28,6 +28,7 @@ from tbsim_env.metrics.wosac.scoring import (
     scenario_features,
     score_scenario,
     simulated_offroad,
+    simulated_road_departure,
 )
 from tbsim_env.metrics.wosac.submission import (
     SubmissionError,
@@ -65,6 +66,7 @@ __all__ = [
     "scenario_features",
     "score_scenario",
     "simulated_offroad",
+    "simulated_road_departure",
     "score_submission_file",
     "scores_table",
     "scores_to_json",

@@ -318,7 +318,7 @@ def offroad_indication(
         ScoringError, MissingFutureError, MapFeatureError: as ``score_scenario``.
     """
     offroad, log_valid = _offroad_per_step(scenario, rollouts, device, require_future=True)
-    return _indication(offroad, log_valid)
+    return _indication(offroad[..., 1:], log_valid)
 
 
 def simulated_offroad(
@@ -337,7 +337,26 @@ def simulated_offroad(
     Raises:
         ScoringError, MapFeatureError: as ``score_scenario``.
     """
-    return _offroad_per_step(scenario, rollouts, device, require_future=False)[0].any(-1)
+    return _offroad_per_step(scenario, rollouts, device, require_future=False)[0][..., 1:].any(-1)
+
+
+def simulated_road_departure(
+    scenario: Scenario, rollouts: Rollouts, device: torch.device | str | None = None
+) -> torch.Tensor:
+    """Which evaluated objects on the road at the current step leave it in each rollout.
+
+    ``simulated_offroad`` of the objects whose box is inside the road edges at the current
+    step (the last logged one): an object already off the road then (a pedestrian on the
+    sidewalk, a car in a lot) counts in neither direction. Reads nothing of the log's future.
+
+    Returns:
+        [R, E] bool, E = the evaluated objects.
+
+    Raises:
+        ScoringError, MapFeatureError: as ``score_scenario``.
+    """
+    off = _offroad_per_step(scenario, rollouts, device, require_future=False)[0]
+    return off[..., 1:].any(-1) & ~off[..., 0]
 
 
 def _offroad_per_step(
@@ -346,15 +365,16 @@ def _offroad_per_step(
     device: torch.device | str | None,
     require_future: bool,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(evaluated objects with a box corner past the road edge [R, E, F] bool, the log's
-    validity at those future steps [E, F] bool) of the scenario in WOSAC's motion window."""
+    """(evaluated objects with a box corner past the road edge [R, E, 1 + F] bool at the
+    current step and the F future steps, the log's validity at the future steps [E, F] bool)
+    of the scenario in WOSAC's motion window."""
     scenario = scenario.motion_window()
     objects, log, sim = _trajectories(scenario, rollouts, device, require_future)
-    first = scenario.current_index + 1
+    now = scenario.current_index
     dist = distance_to_road_edge(
-        slice_steps(sim, slice(first, None)), road_edge_segments(scenario, log.x.device)
+        slice_steps(sim, slice(now, None)), road_edge_segments(scenario, log.x.device)
     )
-    return dist > 0.0, log.valid[0, : objects.num_eval, first:]
+    return dist > 0.0, log.valid[0, : objects.num_eval, now + 1 :]
 
 
 def score_scenario(
