@@ -247,8 +247,8 @@ def main() -> None:
         "--road-edge-weight",
         type=float,
         default=None,
-        help="rank the sampled rollouts by collided + this x off-road agents (default: the "
-        "inference rules', shipped 1, spec 0)",
+        help="rank the sampled rollouts by collided + this x road-departing agents (default: "
+        "the inference rules', shipped 1, spec 0)",
     )
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument("--out")

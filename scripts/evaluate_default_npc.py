@@ -156,8 +156,8 @@ def main() -> None:
         "--road-edge-weight",
         type=float,
         default=None,
-        help="TrafficBots: keep the rollouts with fewest collided + this x off-road agents "
-        "(default: the inference rules', shipped 1)",
+        help="TrafficBots: keep the rollouts with fewest collided + this x road-departing "
+        "agents (default: the inference rules', shipped 1)",
     )
     p.add_argument(
         "--gap-keeping",

@@ -102,9 +102,9 @@ class RolloutOptions:
         checkpoint: weights of the policy (TrafficBots).
         rollouts: rollouts per scenario (WOSAC: 32).
         seed: seed of the sampled rollouts.
-        road_edge_weight: trafficbots: rank sampled rollouts by collided + this x off-road
-            agents (default: the shipped inference's 1; the spec's 0 ranks by collisions
-            only).
+        road_edge_weight: trafficbots: rank sampled rollouts by collided + this x departed
+            agents (evaluated agents on the road at the current step that leave it; default:
+            the shipped inference's 1; the spec's 0 ranks by collisions only).
     """
 
     policy: str = field(metadata=option(choices=_all_policies))
