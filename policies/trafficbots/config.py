@@ -266,6 +266,17 @@ class RoadKeeping:
             raise ValueError("RoadKeeping.yaw_offsets must be positive and not empty")
 
 
+def check_road_edge_weight(weight: float) -> float:
+    """``weight`` if it is a valid rollout-selection road-edge weight (finite, >= 0).
+
+    Raises:
+        ValueError: naming ``road_edge_weight``.
+    """
+    if not (math.isfinite(weight) and weight >= 0.0):
+        raise ValueError(f"road_edge_weight must be finite and >= 0, got {weight}")
+    return weight
+
+
 @dataclass(frozen=True)
 class InferenceConfig:
     """Rules applied around the network at inference (eval mode), not saved with the weights.
@@ -321,11 +332,7 @@ class InferenceConfig:
             raise ValueError("InferenceConfig.vehicle_max_curvature must be > 0 or None")
         if not self.dest_temperature > 0.0:
             raise ValueError("InferenceConfig.dest_temperature must be > 0")
-        if not (math.isfinite(self.road_edge_weight) and self.road_edge_weight >= 0.0):
-            raise ValueError(
-                f"InferenceConfig.road_edge_weight must be finite and >= 0, "
-                f"got {self.road_edge_weight}"
-            )
+        check_road_edge_weight(self.road_edge_weight)
 
     def with_rule_flags(self, gap: str | None = None, road: str | None = None) -> InferenceConfig:
         """This config with the rules of command-line flags replaced (``parse_rule`` text;

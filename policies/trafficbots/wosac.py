@@ -9,7 +9,6 @@ boundary) keeps its last pose instead of jumping to the scene origin (spec 8, qu
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import numpy as np
 import torch
 
 from policies.trafficbots.checkpoint import load_checkpoint
-from policies.trafficbots.config import InferenceConfig
+from policies.trafficbots.config import InferenceConfig, check_road_edge_weight
 from policies.trafficbots.inference import sample_rollouts
 from policies.trafficbots.model import TrafficBots
 from tbsim_env.config import TokenConfig
@@ -65,8 +64,7 @@ def trafficbots_rollouts(
     """
     if road_edge_weight is None:
         road_edge_weight = model.inference.road_edge_weight
-    if not math.isfinite(road_edge_weight) or road_edge_weight < 0:
-        raise ValueError(f"road_edge_weight must be finite and >= 0, got {road_edge_weight}")
+    check_road_edge_weight(road_edge_weight)
     grid = wosac_scenario(scenario)  # the scenario itself unless its log is shorter
     tokens = preprocess_scenario(grid, token_config or TokenConfig())
     gen = torch.Generator(device=model.device).manual_seed(int(seed))

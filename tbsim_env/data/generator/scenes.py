@@ -490,11 +490,17 @@ def generate_scenario(
     log, offset_s, crossing = _drive(road, n_init, cfg, (rng, vru), crossing_fn)
     n_ped = traffic.pedestrians if num_pedestrians is None else num_pedestrians
     walkers = _pedestrians(road.net, n_ped, rng, road.observed, behaviour, _ped_rng(layout, seed))
-    tracks, n_tracks = _tracks(road, log, crossing, walkers, rng, cfg)
+    tracks = _tracks(road, log, crossing, walkers, rng, cfg)
     predict = _tracks_to_predict(tracks, tracks.object_type.astype(np.int64), tracks.valid)
     if recording is not None:
         tracks = _record(tracks, road, recording, _rec_rng(layout, seed))
-        n_tracks = tracks.num_tracks
+    return _scenario(layout, seed, road, tracks, predict, offset_s)
+
+
+def _scenario(
+    layout: str, seed: int, road: _Road, tracks: Tracks, predict: np.ndarray, offset_s: float
+) -> Scenario:
+    """The validated ``Scenario`` of a generated log (SDC last), moved by ``frame_offset``."""
     return (
         Scenario(
             scenario_id=f"gen-{layout}-{seed:04d}",
@@ -503,7 +509,7 @@ def generate_scenario(
             tracks=tracks,
             road_map=to_road_map(road.net),
             signals=_signals(road.net, offset_s),
-            sdc_index=n_tracks - 1,
+            sdc_index=tracks.num_tracks - 1,
             tracks_to_predict=predict,
             predict_difficulty=np.ones(predict.size, np.int8),
             objects_of_interest=np.zeros(0, np.int64),
@@ -521,8 +527,8 @@ def _tracks(
     walkers: tuple[np.ndarray, ...],
     rng: np.random.Generator,
     cfg: DriverConfig,
-) -> tuple[Tracks, int]:
-    """(the ``Tracks`` of the episode window, their count): vehicles and cyclists, then
+) -> Tracks:
+    """The ``Tracks`` of the episode window: vehicles and cyclists, then
     sidewalk and crossing pedestrians, objects never in the observed area dropped, the SDC
     last; track ids drawn from ``rng``."""
     warm = int(round(cfg.warmup_s / DT))
@@ -564,7 +570,7 @@ def _tracks(
         size=np.where(mask3, size, 0.0).astype(np.float32),
         valid=valid,
     )
-    return tracks, len(order)
+    return tracks
 
 
 def _record(tracks: Tracks, road: _Road, rec: Recording, rng: np.random.Generator) -> Tracks:
