@@ -91,13 +91,14 @@ def _files(sources: Sequence[str]) -> list[Path]:
 def _items(path: Path, shard_size: int | None) -> list[tuple[ShardItem, bool]]:
     """Pieces of one file, at most ``shard_size`` records each (TFRecords), each with whether
     it is a single-scenario file (JSON, pickle) that may share a shard with others."""
+    from tbsim_env.data.compressed import is_gzip
     from tbsim_env.data.loader import ScenarioFileFormat, detect_format
     from tbsim_env.data.womd import ScenarioFile
 
     fmt = detect_format(path)
     if fmt in (ScenarioFileFormat.SCENARIONET_PICKLE, ScenarioFileFormat.GPUDRIVE_JSON):
         return [(ShardItem(str(path)), True)]
-    if shard_size is None or fmt is not ScenarioFileFormat.TFRECORD:
+    if shard_size is None or fmt is not ScenarioFileFormat.TFRECORD or is_gzip(path):
         return [(ShardItem(str(path)), False)]
     n = len(ScenarioFile(path, verify=False))
     return [
@@ -114,7 +115,7 @@ def plan_shards(sources: Sequence[str], name: str, shard_size: int | None = None
             ``"submission.binproto-{k:05d}-of-{n:05d}"``.
         shard_size: scenarios per shard; None = one shard per input file. Raw Scenario
             TFRecords are cut into record ranges, single-scenario files (JSON, pickles) are
-            grouped; tf.Example files stay whole.
+            grouped; tf.Example files and gzip-compressed TFRecords stay whole.
 
     Raises:
         FileNotFoundError: a missing path, or a glob / folder without scenario files.
@@ -160,16 +161,18 @@ def load_shard(shard: Shard, skip_bad: bool = False) -> list[Scenario]:
 def load_by_id(sources: Sequence[str], wanted: set[str], skip_bad: bool = False) -> list[Scenario]:
     """The scenarios of ``sources`` whose ids are in ``wanted``, in file order.
 
-    Raw Scenario TFRecords are looked up by their id index (only the id field of the other
-    records is decoded); other files (and every file with ``skip_bad``) are read whole.
+    Uncompressed raw Scenario TFRecords are looked up by their id index (only the id field of
+    the other records is decoded); other files (and every file with ``skip_bad``) are read whole.
     """
     from tbsim_env.data import load_scenarios
+    from tbsim_env.data.compressed import is_gzip
     from tbsim_env.data.loader import ScenarioFileFormat, detect_format
     from tbsim_env.data.womd import ScenarioFile
 
     out: list[Scenario] = []
     for path in _files(sources):
-        if not skip_bad and detect_format(path) is ScenarioFileFormat.TFRECORD:
+        indexed = detect_format(path) is ScenarioFileFormat.TFRECORD and not is_gzip(path)
+        if not skip_bad and indexed:
             f = ScenarioFile(path)
             out += [f[sid] for sid in f.ids() if sid in wanted]
         else:

@@ -201,12 +201,23 @@ def test_read_record_at_a_wrong_offset(four: Path) -> None:
         read_record(four, 10**9)
 
 
-def test_gzip_file_is_named(tmp_path: Path) -> None:
+def test_gzip_file_is_streamed(tmp_path: Path) -> None:
     import gzip
 
     path = tmp_path / "z.tfrecord.gz"
-    path.write_bytes(gzip.compress(frame_record(b"payload" * 10)))
-    with pytest.raises(ScenarioFormatError, match="gzip"):
+    path.write_bytes(gzip.compress(b"".join(frame_record(p) for p in PAYLOADS)))
+    assert looks_like_tfrecord(path)
+    assert [p for _, _, p in iter_records(path)] == PAYLOADS
+    assert [o for _, o, _ in iter_records(path)] == _offsets(PAYLOADS)
+
+
+def test_gzip_stream_with_an_absurd_length_is_refused(tmp_path: Path) -> None:
+    import gzip
+
+    head = struct.pack("<Q", 1 << 40)
+    path = tmp_path / "z.tfrecord.gz"
+    path.write_bytes(gzip.compress(head + struct.pack("<I", masked_crc32c(head)) + b"x" * 10))
+    with pytest.raises(ScenarioFormatError, match="absurd record length"):
         list(iter_records(path))
 
 

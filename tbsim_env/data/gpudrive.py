@@ -55,6 +55,7 @@ from tbsim_env.constants import (
     MapFeatureType,
     ObjectType,
 )
+from tbsim_env.data.compressed import read_all
 from tbsim_env.data.conversion import (
     DEFAULT_BOX_HEIGHT_M,
     choose_sdc,
@@ -528,16 +529,17 @@ def scenario_from_gpudrive(data: Any, *, source: str = "<memory>") -> Scenario:
 
 
 def read_gpudrive_json(path: PathLike) -> Scenario:
-    """Read one GPUDrive JSON scenario file.
+    """Read one GPUDrive JSON scenario file, plain or gzip-compressed.
 
     Raises:
         FileNotFoundError: no such file.
-        ScenarioFormatError: not JSON, or not a GPUDrive scenario (names the key at fault).
+        ScenarioFormatError: not JSON, bad gzip data, or not a GPUDrive scenario (names the key
+            at fault).
     """
     name = os.fspath(path)
+    raw = read_all(name)
     try:
-        with open(name, "rb") as fh:
-            data = json.loads(fh.read())
+        data = json.loads(raw)
     except (ValueError, UnicodeDecodeError) as err:  # JSONDecodeError, over-long integers
         raise ScenarioFormatError(f"not valid JSON: {err}", name) from err
     except RecursionError as err:

@@ -4,8 +4,9 @@ Formats are detected by content, then by extension: TFRecords (a valid length he
 WOMD ``Scenario`` records (``tbsim_env.data.womd``) or of WOMD ``tf.train.Example`` records
 (``tbsim_env.data.tf_example``; told apart by decoding the first record), ScenarioNet /
 MetaDrive pickles (protocol header byte 0x80; ``tbsim_env.data.scenarionet``, restricted
-unpickler) and GPUDrive / Nocturne JSON (a JSON object; ``tbsim_env.data.gpudrive``). A folder
-or list may mix them.
+unpickler) and GPUDrive / Nocturne JSON (a JSON object; ``tbsim_env.data.gpudrive``). Each may
+be gzip-compressed (``.json.gz``, ``.pkl.gz``, ``.tfrecord.gz``; detected by content and read as a
+stream, ``tbsim_env.data.compressed``). A folder or list may mix them.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TypeAlias
 
+from tbsim_env.data.compressed import read_head, strip_gz
 from tbsim_env.data.gpudrive import read_gpudrive_json
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.scenarionet import PICKLE_MAGIC, read_scenarionet_pickle
@@ -46,7 +48,8 @@ _PICKLE_SUFFIXES = (".pkl", ".pickle")
 
 
 def _is_scenario_file_name(path: Path) -> bool:
-    return ".tfrecord" in path.name or path.suffix in (".json", *_PICKLE_SUFFIXES)
+    plain = Path(strip_gz(path.name))
+    return ".tfrecord" in path.name or plain.suffix in (".json", *_PICKLE_SUFFIXES)
 
 
 def _tfrecord_kind(path: Path) -> ScenarioFileFormat:
@@ -63,20 +66,21 @@ def _tfrecord_kind(path: Path) -> ScenarioFileFormat:
 
 def detect_format(path: str | os.PathLike) -> ScenarioFileFormat:
     """Format of one file: TFRecord framing (then Scenario or tf.Example records), a pickle
-    header or a JSON object, else by extension.
+    header or a JSON object, else by extension; a gzip file by its decompressed content and
+    its name without ``.gz``.
 
     Raises:
         FileNotFoundError: no such file.
-        ScenarioFormatError: neither format.
+        ScenarioFormatError: neither format, or a gzip file that does not decompress.
     """
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"no such scenario file: {str(p)!r}")
     if looks_like_tfrecord(p):
         return _tfrecord_kind(p)
-    with open(p, "rb") as fh:
-        raw = fh.read(_SNIFF_BYTES)
+    raw = read_head(p, _SNIFF_BYTES)
     head = raw.lstrip()
+    p = p.with_name(strip_gz(p.name))
     if raw.startswith(PICKLE_MAGIC):
         return ScenarioFileFormat.SCENARIONET_PICKLE
     if head.startswith(b"{"):
@@ -102,7 +106,9 @@ def _expand_path(item: str | os.PathLike) -> list[Path]:
     if p.is_dir():
         found = sorted(c for c in p.iterdir() if c.is_file() and _is_scenario_file_name(c))
         if not found:
-            raise FileNotFoundError(f"no *.tfrecord*, *.json or *.pkl files in folder {str(p)!r}")
+            raise FileNotFoundError(
+                f"no *.tfrecord*, *.json or *.pkl files (or *.gz of them) in folder {str(p)!r}"
+            )
         return found
     text = os.fspath(item)
     if isinstance(text, str) and _GLOB_CHARS & set(text):
@@ -173,7 +179,8 @@ def iter_scenarios(source: ScenarioSource, *, skip_bad: bool = False) -> Iterato
 
     Args:
         source: a file path, a glob string, a folder (every ``*.tfrecord*``, ``*.json``,
-            ``*.pkl`` and ``*.pickle`` in it, sorted; not its subfolders), a ``Scenario``
+            ``*.pkl`` and ``*.pickle`` in it, and their ``.gz``, sorted; not its subfolders),
+            a ``Scenario``
             (passed through), or a list of any of those.
         skip_bad: warn about bad records and bad files and go on instead of raising.
 

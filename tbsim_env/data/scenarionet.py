@@ -52,6 +52,7 @@ from tbsim_env.constants import (
     RoadLineType,
     SignalState,
 )
+from tbsim_env.data.compressed import read_all
 from tbsim_env.data.conversion import (
     choose_sdc,
     choose_tracks_to_predict,
@@ -644,14 +645,14 @@ def scenario_from_scenarionet(data: Any, *, source: str = "<memory>") -> Scenari
 
 
 def read_scenarionet_pickle(path: PathLike) -> Scenario:
-    """Read one ScenarioNet / MetaDrive scenario pickle through ``RestrictedUnpickler``.
+    """Read one ScenarioNet / MetaDrive scenario pickle (plain or gzip-compressed) through
+    ``RestrictedUnpickler``.
 
     Raises:
         FileNotFoundError: no such file.
-        ScenarioFormatError: a refused global, not a pickle, or not a ScenarioNet scene
-            (naming the key, track or feature at fault).
+        ScenarioFormatError: a refused global, not a pickle, bad gzip data, or not a ScenarioNet
+            scene (naming the key, track or feature at fault).
     """
     name = os.fspath(path)
-    with open(name, "rb") as fh:
-        data = fh.read()
+    data = read_all(name)
     return scenario_from_scenarionet(load_restricted_pickle(data, source=name), source=name)

@@ -12,7 +12,9 @@ CRC32C is the Castagnoli CRC (``crc32c`` package); the mask is
 
 Every framing problem raises ``ScenarioFormatError`` naming the file, the 0-based record index,
 the byte offset of the record start and what is wrong. Reading is lazy: one record is held in
-memory at a time, so multi-GB shards are fine.
+memory at a time, so multi-GB shards are fine. Gzip-compressed files are read the same way, as
+a stream (``tbsim_env.data.compressed``); random access (``build_index``, ``read_record``) needs
+an uncompressed file.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import BinaryIO
 import crc32c as _crc32c
 import numpy as np
 
+from tbsim_env.data.compressed import GzipStream, is_gzip, open_scenario_file, read_head
 from tbsim_env.errors import ScenarioFormatError
 
 HEADER_BYTES = 12
@@ -36,7 +39,10 @@ FOOTER_BYTES = 4
 FRAMING_BYTES = HEADER_BYTES + FOOTER_BYTES
 _MASK_DELTA = 0xA282EAD8
 _U32 = 0xFFFFFFFF
-_GZIP_MAGIC = b"\x1f\x8b"
+MAX_STREAM_RECORD_BYTES = 1 << 30
+"""Largest payload accepted from a compressed stream, whose size is unknown until read
+(a WOMD Scenario record is a few MB)."""
+_CHUNK_BYTES = 1 << 24
 
 PathLike = str | os.PathLike
 
@@ -69,9 +75,20 @@ def write_records(path: PathLike, payloads: Iterable[bytes]) -> int:
 
 
 def _read_header(
-    fh: BinaryIO, path: str, index: int | None, offset: int, file_size: int, *, verify: bool
+    fh: BinaryIO | GzipStream,
+    path: str,
+    index: int | None,
+    offset: int,
+    file_size: int | None,
+    *,
+    verify: bool,
 ) -> int | None:
     """Read and check the 12-byte header at ``offset``.
+
+    Args:
+        file_size: bytes in the file, bounding the length; ``None`` for a gzip stream, whose
+            lengths are bounded by ``MAX_STREAM_RECORD_BYTES`` (a short payload is caught when
+            it is read).
 
     Returns:
         The payload length, or ``None`` at a clean end of file.
@@ -80,13 +97,6 @@ def _read_header(
     if not head:
         return None
     if len(head) < HEADER_BYTES:
-        if index == 0 and head[:2] == _GZIP_MAGIC:
-            raise ScenarioFormatError(
-                "file is gzip-compressed; WOMD TFRecords are uncompressed (gunzip it first)",
-                path,
-                index,
-                offset,
-            )
         raise ScenarioFormatError(
             f"truncated record header: {len(head)} of {HEADER_BYTES} bytes before end of file",
             path,
@@ -96,14 +106,23 @@ def _read_header(
     (length,) = struct.unpack("<Q", head[:8])
     (length_crc,) = struct.unpack("<I", head[8:])
     if verify and masked_crc32c(head[:8]) != length_crc:
-        hint = " (file is gzip-compressed?)" if head[:2] == _GZIP_MAGIC else ""
         raise ScenarioFormatError(
             f"length CRC mismatch (stored 0x{length_crc:08x}, computed "
-            f"0x{masked_crc32c(head[:8]):08x}): not a TFRecord or corrupt header{hint}",
+            f"0x{masked_crc32c(head[:8]):08x}): not a TFRecord or corrupt header",
             path,
             index,
             offset,
         )
+    if file_size is None:
+        if length > MAX_STREAM_RECORD_BYTES:
+            raise ScenarioFormatError(
+                f"absurd record length: header says {length} payload bytes, more than the "
+                f"{MAX_STREAM_RECORD_BYTES} a record of a compressed stream may hold",
+                path,
+                index,
+                offset,
+            )
+        return length
     remaining = file_size - offset - FRAMING_BYTES
     if length > remaining:
         what = "absurd record length" if length > file_size else "truncated payload"
@@ -117,11 +136,30 @@ def _read_header(
     return length
 
 
+def _read_exact(fh: BinaryIO | GzipStream, size: int) -> bytes:
+    """Up to ``size`` bytes, read in chunks so that a corrupt length allocates no more than
+    the stream holds."""
+    chunks, left = [], size
+    while left > 0:
+        chunk = fh.read(min(left, _CHUNK_BYTES))
+        if not chunk:
+            break
+        chunks.append(chunk)
+        left -= len(chunk)
+    return b"".join(chunks)
+
+
 def _read_payload(
-    fh: BinaryIO, path: str, index: int | None, offset: int, length: int, *, verify: bool
+    fh: BinaryIO | GzipStream,
+    path: str,
+    index: int | None,
+    offset: int,
+    length: int,
+    *,
+    verify: bool,
 ) -> bytes:
     """Read payload and footer after a checked header; verify the data CRC."""
-    payload = fh.read(length)
+    payload = _read_exact(fh, length)
     footer = fh.read(FOOTER_BYTES)
     if len(payload) < length or len(footer) < FOOTER_BYTES:
         raise ScenarioFormatError(
@@ -145,38 +183,51 @@ def _read_payload(
     return payload
 
 
+def _located(err: ScenarioFormatError, index: int, offset: int) -> ScenarioFormatError:
+    """``err`` with the record and offset filled in where the stream did not know them."""
+    if err.record is not None:
+        return err
+    return ScenarioFormatError(err.reason, err.path, index, offset)
+
+
 def iter_records(
     path: PathLike, *, verify: bool = True, skip_bad: bool = False
 ) -> Iterator[tuple[int, int, bytes]]:
     """Yield ``(index, offset, payload)`` for every record, lazily.
 
+    A gzip-compressed file is decompressed as it is read (one record in memory at a time);
+    offsets are then offsets into the decompressed stream.
+
     Args:
-        path: TFRecord file.
+        path: TFRecord file, plain or gzip-compressed.
         verify: check both masked CRCs (the length bound against the file size is always checked).
         skip_bad: on a bad record, ``warnings.warn`` naming it instead of raising. A record whose
             header was fine but whose data CRC fails is skipped and iteration goes on with the
-            next record; a bad header (length CRC, truncation) cannot be resynchronised, so the
-            warning says so and iteration stops.
+            next record; a bad header (length CRC, truncation) or bad gzip data cannot be
+            resynchronised, so the warning says so and iteration stops.
 
     Yields:
         (record index, byte offset of the record start, payload bytes). An empty file yields
         nothing.
 
     Raises:
-        ScenarioFormatError: framing problem (when ``skip_bad`` is False).
+        ScenarioFormatError: framing or gzip problem (when ``skip_bad`` is False).
         FileNotFoundError: ``path`` does not exist.
     """
     name = os.fspath(path)
-    file_size = os.path.getsize(name)
-    with open(name, "rb") as fh:
+    compressed = is_gzip(name)
+    file_size = None if compressed else os.path.getsize(name)
+    with open_scenario_file(name) as fh:
         index, offset = 0, 0
         while True:
             try:
                 length = _read_header(fh, name, index, offset, file_size, verify=verify)
             except ScenarioFormatError as err:
                 if not skip_bad:
-                    raise
-                warnings.warn(f"{err}; cannot resynchronise, stopping", stacklevel=2)
+                    raise _located(err, index, offset) from None
+                warnings.warn(
+                    f"{_located(err, index, offset)}; cannot resynchronise, stopping", stacklevel=2
+                )
                 return
             if length is None:
                 return
@@ -184,14 +235,31 @@ def iter_records(
                 payload = _read_payload(fh, name, index, offset, length, verify=verify)
             except ScenarioFormatError as err:
                 if not skip_bad:
-                    raise
+                    raise _located(err, index, offset) from None
+                if compressed:  # a stream cannot skip what it could not read
+                    warnings.warn(
+                        f"{_located(err, index, offset)}; cannot resynchronise, stopping",
+                        stacklevel=2,
+                    )
+                    return
                 warnings.warn(f"{err}; skipping this record", stacklevel=2)
                 payload = None
             if payload is not None:
                 yield index, offset, payload
             index += 1
             offset += length + FRAMING_BYTES
-            fh.seek(offset)
+            if not compressed:
+                fh.seek(offset)
+
+
+def _refuse_gzip(name: str) -> None:
+    """Random access needs byte offsets into the file: refuse a compressed one."""
+    if is_gzip(name):
+        raise ScenarioFormatError(
+            "gzip-compressed TFRecords are read in order only (load_scenarios, "
+            "iter_scenarios); gunzip the file for access by record index or scenario id",
+            name,
+        )
 
 
 @dataclass(frozen=True)
@@ -231,6 +299,7 @@ def build_index(path: PathLike) -> TFRecordIndex:
         ScenarioFormatError: bad or truncated header.
     """
     name = os.fspath(path)
+    _refuse_gzip(name)
     file_size = os.path.getsize(name)
     offsets: list[int] = []
     lengths: list[int] = []
@@ -267,6 +336,7 @@ def read_record(
         ScenarioFormatError: bad framing at that offset (or no record there).
     """
     name = os.fspath(path)
+    _refuse_gzip(name)
     file_size = os.path.getsize(name)
     if not 0 <= offset < file_size:
         raise ScenarioFormatError(
@@ -281,18 +351,25 @@ def read_record(
 
 
 def looks_like_tfrecord(path: PathLike) -> bool:
-    """Whether the file starts with a valid TFRecord header (length CRC and length bound).
+    """Whether the file starts with a valid TFRecord header (length CRC and length bound),
+    after decompression for a gzip file.
 
-    An empty file counts as a TFRecord with zero records.
+    An empty file (or empty stream) counts as a TFRecord with zero records.
+
+    Raises:
+        ScenarioFormatError: a gzip file whose first bytes do not decompress.
     """
     name = os.fspath(path)
     size = os.path.getsize(name)
     if size == 0:
         return True
-    with open(name, "rb") as fh:
-        head = fh.read(HEADER_BYTES)
+    compressed = is_gzip(name)
+    head = read_head(name, HEADER_BYTES)
+    if compressed and not head:
+        return True
     if len(head) < HEADER_BYTES:
         return False
     (length,) = struct.unpack("<Q", head[:8])
     (length_crc,) = struct.unpack("<I", head[8:])
-    return masked_crc32c(head[:8]) == length_crc and length + FRAMING_BYTES <= size
+    bound = MAX_STREAM_RECORD_BYTES if compressed else size - FRAMING_BYTES
+    return masked_crc32c(head[:8]) == length_crc and length <= bound
