@@ -12,7 +12,9 @@ The rule was fixed before any result on these scenes was looked at:
   {2, 3} -> validation, else train.
 
 Scenes are every scenario ``tbsim_env.load_scenarios`` reads from the data folders under the
-WOMD directory (``SCENE_FOLDERS``, recursively). ``wosac_reference/`` is left out: its one
+WOMD directory (``SCENE_FOLDERS``, recursively, gzip-compressed files included). The rule is a
+function of the scenario id alone, so adding a folder (``gpudrive_codec/``, 168 scenes) extends
+the splits without moving any scene already assigned. ``wosac_reference/`` is left out: its one
 scene is the Nocturne scene ``gpudrive_history/nocturne_format/tfrecord-00082-of-01000_465.json``
 converted for the official metrics (same scenario id), so that id is assigned once.
 
@@ -31,6 +33,7 @@ import os
 import warnings
 from pathlib import Path
 
+from tbsim_env.data.compressed import strip_gz
 from tbsim_env.data.loader import detect_format, load_scenarios
 
 REPO = Path(__file__).resolve().parents[1]
@@ -41,8 +44,12 @@ SCENE_FOLDERS = (
     "scenarionet",
     "scenarionet_more",
     "gpudrive_history",
+    "gpudrive_codec",
 )
 SCENE_SUFFIXES = (".tfrecord", ".json", ".pkl")
+"""Scene files by their name without a trailing ``.gz`` (``gpudrive_codec/`` is gzip JSON)."""
+NOT_SCENES = frozenset({"MANIFEST.json"})
+"""Data-folder files with a scene suffix that describe the folder instead."""
 SPLITS = ("train", "validation", "held_out", "history_only")
 KEEP = {
     "637f20cafde22ff8": "held_out",
@@ -77,7 +84,9 @@ def scene_files(womd_dir: Path) -> list[Path]:
         p
         for folder in SCENE_FOLDERS
         for p in (womd_dir / folder).rglob("*")
-        if p.is_file() and p.suffix in SCENE_SUFFIXES
+        if p.is_file()
+        and Path(strip_gz(p.name)).suffix in SCENE_SUFFIXES
+        and p.name not in NOT_SCENES
     ]
     return sorted(files, key=lambda p: p.relative_to(womd_dir).as_posix())
 

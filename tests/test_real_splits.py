@@ -36,6 +36,7 @@ def test_lists_are_disjoint_and_follow_the_rule(committed: dict) -> None:
         "1c8f1f7b63fc6118",
     }
     assert "tfrecord-00082-of-01000_465" in where  # the wosac_reference scene, once
+    assert committed["counts"]["held_out"] >= 40
 
 
 def test_the_file_is_what_the_script_builds_from_every_scene(
@@ -45,6 +46,6 @@ def test_the_file_is_what_the_script_builds_from_every_scene(
     fresh = SCRIPT["build_splits"](womd_dir)
     assert fresh == committed
     files = SCRIPT["scene_files"](womd_dir)
-    assert len(files) == sum(committed["counts"].values()) == 122
+    assert len(files) == sum(committed["counts"].values()) == 290
     formats = {e["format"] for name in SPLITS for e in committed[name]}
     assert formats == {"tfrecord", "tf_example", "scenarionet_pickle", "gpudrive_json"}
