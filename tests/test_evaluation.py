@@ -5,6 +5,9 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -111,21 +114,50 @@ def test_cli_export_is_byte_identical_and_scores(tmp_path, one_scenario_path, ca
     assert json.dumps(fields).count("realism_meta_metric") >= 1
 
 
-# sha256 of ``export_submission([637f20cafde22ff8], policy, num_rollouts=32, seed=3)``, computed
-# on main before history-only scenes were supported (commit 87e04d9): full WOMD scenes are
-# simulated exactly as before. Change a digest only for a deliberate change of the rollouts.
-FULL_SCENE_EXPORT_SHA256 = {
-    "constant_velocity": "30d47aec32106d5f8112a6bd7781f31eae3b8e81ab6693838dc7716fa8b905a4",
-    "linear_extrapolation": "3a6a60ac444ae1e35ba31d1735efdde096be9031a36ef442049e62476cd8ac55",
-    "log_replay": "b0b92f13f2b1b8fea4c1e3e8bcd6f61d3a9b023f2386e1891d4dd43410a98ff2",
-}
+EXPORT_REFERENCE = Path(__file__).parent / "data" / "full_scene_export_reference.json"
+"""``export_submission([637f20cafde22ff8], policy, num_rollouts=32, seed=3)`` of each policy,
+summarised by ``export_summary``: recorded from exports whose bytes had the sha256 pinned on
+main before history-only scenes were supported (commit 87e04d9), so full WOMD scenes are
+simulated as before. Regenerate (``python tests/test_evaluation.py``) only for a deliberate
+change of the rollouts."""
+EXPORT_POLICIES = ("constant_velocity", "linear_extrapolation", "log_replay")
+SAMPLED_ROLLOUTS, SAMPLED_STEPS = (0, 31), (0, 39, 79)
+EXPORT_ATOL = {"x": 0.01, "y": 0.01, "z": 0.01, "heading": 1e-3}
+"""Metres and radians. The exported floats are float32 world coordinates (~4.6 km: one ulp is
+0.5 mm) that other CPUs round differently; a change of the simulation moves them by far more."""
 
 
-@pytest.mark.parametrize("policy", sorted(FULL_SCENE_EXPORT_SHA256))
-def test_seeded_full_scene_export_is_byte_identical_to_the_pinned_digest(tmp_path, real, policy):
+def export_summary(path) -> dict:
+    """The export at ``path`` as exact structure (a digest of the proto with every trajectory
+    float cleared: ids, counts, header) and the floats of ``SAMPLED_ROLLOUTS`` at
+    ``SAMPLED_STEPS`` (x, y, z, heading [R, A, S] as lists)."""
+    from tbsim_env.metrics.wosac.submission import rollouts_from_proto
+
+    sub = read_submission(path)
+    (scene,) = sub.scenario_rollouts
+    r = rollouts_from_proto(scene)
+    rows, steps = list(SAMPLED_ROLLOUTS), list(SAMPLED_STEPS)
+    for joint in scene.joint_scenes:
+        for traj in joint.simulated_trajectories:
+            for name in ("center_x", "center_y", "center_z", "heading"):
+                traj.ClearField(name)
+    out = {"structure": hashlib.sha256(sub.SerializeToString(deterministic=True)).hexdigest()}
+    for name in EXPORT_ATOL:
+        out[name] = getattr(r, name)[rows][:, :, steps].tolist()
+    return out
+
+
+@pytest.mark.parametrize("policy", EXPORT_POLICIES)
+def test_seeded_full_scene_export_matches_the_recorded_one(tmp_path, real, policy):
     out = tmp_path / "sub.binproto"
     export_submission([real], policy, out, num_rollouts=32, seed=3)
-    assert hashlib.sha256(out.read_bytes()).hexdigest() == FULL_SCENE_EXPORT_SHA256[policy]
+    got, want = export_summary(out), json.loads(EXPORT_REFERENCE.read_text())[policy]
+    assert got["structure"] == want["structure"]
+    for name, atol in EXPORT_ATOL.items():
+        diff = np.subtract(got[name], want[name])
+        if name == "heading":
+            diff = (diff + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(diff).max() <= atol, (policy, name, np.abs(diff).max())
 
 
 def test_export_never_writes_a_trajectory_of_the_wrong_length(tmp_path, real, monkeypatch):
@@ -259,3 +291,18 @@ def test_feature_samples_of_a_scene_logged_beyond_the_wosac_horizon(womd_dir):
     samples = feature_samples(sc, r)
     speed_log, speed_sim = samples["linear_speed"]
     assert len(speed_log) > 0 and len(speed_sim) == pytest.approx(2 * len(speed_log), rel=0.2)
+
+
+if __name__ == "__main__":  # regenerate the export reference after a deliberate change
+    shared = Path(__file__).resolve().parents[2] / "shared" / "data" / "womd"
+    womd = os.environ.get("TBSIM_WOMD_DIR", shared)
+    scene = load_scenarios(Path(womd) / "waymo-open-dataset/motion_data_one_scenario.tfrecord")[0]
+    ref = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in EXPORT_POLICIES:
+            path = Path(tmp) / f"{name}.binproto"
+            export_submission([scene], name, path, num_rollouts=32, seed=3)
+            print(name, hashlib.sha256(path.read_bytes()).hexdigest())
+            ref[name] = export_summary(path)
+    EXPORT_REFERENCE.write_text(json.dumps(ref) + "\n")
+    print(f"wrote {EXPORT_REFERENCE}")

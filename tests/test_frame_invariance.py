@@ -1,10 +1,23 @@
 """TrafficBots does not depend on the world frame (issue 22): the same seed on a scene and on a
 rotated + shifted copy of it gives the same futures, once the copy's are mapped back.
 
-What is left between the two frames is float32 rounding (~1e-5 m at the first step), which the
-closed loop amplifies in places (an agent whose actions oscillate step to step grows it about
-threefold per step), so a few agent-rollouts may part by more than the tolerance; a frame
-dependence parts whole groups of agents in every rollout.
+What is left between the two frames is float32 rounding (~1e-4 m for a move of 3.3 km), which
+the closed loop amplifies in places (an agent whose actions oscillate step to step grows it
+about threefold per step; a stop-or-go decision can tip), so a few agent-rollouts part by
+decimetres; a frame dependence parts most of them. How much rounding is left depends on the
+CPU's kernels, so the bounds below were measured, on the tests' scenes and settings, under
+every kernel path that can be forced on one machine and against injected frame bugs
+(``python bench/frame_invariance.py``; AMD EPYC with AVX-512, torch 2.13.0, numpy 2.4.6):
+
+| per agent-rollout deviation | share <= 10 cm | p90 |
+|---|---|---|
+| move only: native, ATen AVX2 + numpy v3, ATen default + numpy baseline | >= 0.985 | <= 5 mm |
+| bug: moved headings +1 mrad | <= 0.86 | >= 0.16 m |
+| bug: moved tracks +2 cm against their map | <= 0.88 | >= 0.13 m |
+| bug: moved headings +5 mrad, tracks +10 cm | <= 0.29 | >= 0.25 m |
+
+The checks (share >= 0.95, p90 <= 2 cm) sit between the two: on the share 3.5 points from the
+rounding and 7 from the smallest bug, on the p90 4x above the rounding and 6x below the bug.
 """
 
 from __future__ import annotations
@@ -29,14 +42,13 @@ from tests.test_preprocess_support import assert_tokens_equivariant
 YAW, SHIFT = 1.1, (3000.0, -1500.0)
 """The move of the issue's reproduction: 1.1 rad about the origin, then (3000, -1500) m."""
 TOLERANCE = 0.1
-"""Metres an agent-rollout may part from its counterpart over the whole future. Moved 3.3 km,
-the scene's float32 coordinates round by ~1e-4 m, and the closed loop amplifies that: with the
-shipped weights up to 7 cm on the generated scene here (0.5 m on the t-junction 10003, where a
-stop-or-go decision tips), while a move of 0.4 m (rounding ~1e-5 m) stays under 1 mm. A frame
-dependence of a discrete choice (the defects this guards against: 69% of the real scene's
-agent-rollouts within 5 cm) parts them by metres."""
-MIN_FRACTION = 0.99
-"""Share of agent-rollouts that must stay within ``TOLERANCE``."""
+"""Metres an agent-rollout may part from its counterpart over the whole future."""
+MIN_FRACTION = 0.95
+"""Share of agent-rollouts that must stay within ``TOLERANCE`` (measured: >= 0.985 for the
+move alone on every kernel path, <= 0.88 with the smallest injected bug)."""
+MAX_P90 = 0.02
+"""Metres the 90th percentile of the deviations may reach (measured: <= 5 mm for the move
+alone, >= 0.13 m with the smallest injected bug)."""
 SAMPLES, KEPT = 16, 4
 """Rollouts sampled and kept: the submission's 128 -> 32 selection at a quarter of 128 x 1/8."""
 GENERATED = ("intersection", 10002)
@@ -61,6 +73,14 @@ def map_back(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def within(deviation: np.ndarray) -> float:
     """Share of the entries of ``deviation`` [...] (metres) within ``TOLERANCE``."""
     return float((deviation <= TOLERANCE).mean())
+
+
+def assert_frame_free(deviation: np.ndarray) -> None:
+    """The deviations [...] (metres) between a scene's and its moved copy's futures are
+    rounding amplified by the closed loop, not a frame dependence (bounds measured above)."""
+    worst = np.sort(deviation.ravel())[-10:]
+    assert within(deviation) >= MIN_FRACTION, worst
+    assert np.quantile(deviation, 0.9) <= MAX_P90, worst
 
 
 @pytest.fixture(scope="module")
@@ -95,7 +115,7 @@ def test_wosac_rollouts_do_not_depend_on_the_world_frame(model, scene):
     assert a.x.shape == (KEPT, len(a.object_id), 80)
     x, y = map_back(b.x.numpy(), b.y.numpy())
     deviation = np.hypot(x - a.x.numpy(), y - a.y.numpy()).max(-1)  # [R, A]
-    assert within(deviation) >= MIN_FRACTION, np.sort(deviation.ravel())[-10:]
+    assert_frame_free(deviation)
     x0, y0 = a.x.numpy(), a.y.numpy()
     moving = np.hypot(x0[..., -1] - x0[..., 0], y0[..., -1] - y0[..., 0])
     assert (moving > 5.0).mean() > 0.2  # not a scene of parked cars
@@ -127,7 +147,7 @@ def test_env_with_trafficbots_npcs_does_not_depend_on_the_world_frame(scene):
     dist = np.where(valid_a, np.hypot(x - xy_a[..., 0], y - xy_a[..., 1]), 0.0)
     deviation = dist.max(0)[valid_a.any(0)]  # [agents]
     assert deviation.size > 20
-    assert within(deviation) >= MIN_FRACTION, np.sort(deviation)[-10:]
+    assert_frame_free(deviation)
 
 
 def test_map_box_is_axis_aligned_in_the_sdc_frame(real):
