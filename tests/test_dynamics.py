@@ -20,6 +20,8 @@ from tbsim_env.sim.dynamics import (
     unicycle_step,
 )
 
+pytestmark = pytest.mark.float_sensitive
+
 
 def test_midpoint_step_matches_hand_computation():
     pose = torch.tensor([[1.0, 2.0, 0.3]], dtype=torch.float64)

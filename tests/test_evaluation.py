@@ -29,6 +29,8 @@ from tbsim_env.metrics.wosac import read_submission, score_scenario, validate_sc
 from tbsim_env.metrics.wosac.submission import SubmissionError, rollouts_to_proto
 from tbsim_env.sim.rollout import linear_extrapolation_rollouts, simulate_rollouts
 
+pytestmark = pytest.mark.float_sensitive
+
 
 @pytest.fixture(scope="module")
 def real(womd_dir):

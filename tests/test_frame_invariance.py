@@ -54,7 +54,7 @@ SAMPLES, KEPT = 16, 4
 GENERATED = ("intersection", 10002)
 """A held-out generated scene (layout, seed): symmetric lanes, crosswalks and signals."""
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 
 def moved(scenario: Scenario) -> Scenario:

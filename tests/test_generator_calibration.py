@@ -31,6 +31,8 @@ from tbsim_env.data.generator.recording import RECORDED, Recording
 from tbsim_env.data.generator.scenes import TRAFFIC
 from tbsim_env.data.scenario import Scenario, Tracks
 
+pytestmark = pytest.mark.float_sensitive
+
 SPLITS = Path(__file__).resolve().parents[1] / "docs" / "model_card" / "real_splits.json"
 
 PREVIOUS_SCENES = (

@@ -35,7 +35,7 @@ from tbsim_env.data.scenario import Scenario
 from tbsim_env.env import TrafficEnv
 from tbsim_env.sim.dynamics import unicycle_step
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 VEH, PED = int(C.ObjectType.VEHICLE), int(C.ObjectType.PEDESTRIAN)
 LANE, EDGE = int(C.MapClass.SURFACE_STREET), int(C.MapClass.ROAD_EDGE_BOUNDARY)

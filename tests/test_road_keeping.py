@@ -17,7 +17,7 @@ from policies.trafficbots.road_keeping import (
 )
 from tbsim_env import constants as C
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 VEH, PED = int(C.ObjectType.VEHICLE), int(C.ObjectType.PEDESTRIAN)
 EDGE, LANE = int(C.MapClass.ROAD_EDGE_BOUNDARY), int(C.MapClass.SURFACE_STREET)

@@ -19,7 +19,7 @@ REFERENCE = Path(__file__).parent / "data" / "shipped_rollout_reference.json"
 MAX_BYTES = 10 * 1024 * 1024
 
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 
 def test_weights_exist_within_the_size_limit():

@@ -39,7 +39,7 @@ from tbsim_env.metrics.wosac.trajectories import (
     simulated_trajectories,
 )
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 
 def make_traj(

@@ -19,7 +19,7 @@ from tbsim_env.metrics.wosac.evaluate import score_submission_file
 from tbsim_env.metrics.wosac.scoring import scenario_features
 from tbsim_env.metrics.wosac.submission import read_submission, rollouts_from_proto
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 THIRD = "tfrecord-00082-of-01000_465"
 # (rollouts file, official JSON, version); the JSON lists every scenario the file holds.

@@ -63,7 +63,7 @@ SHARED_LIKELIHOODS = {
 LOG_REPLAY_META = {"wosac2024": 0.8070, "wosac2025": 0.8266}
 
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 
 @pytest.fixture(scope="module")
