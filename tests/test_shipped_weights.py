@@ -64,7 +64,9 @@ def _reference_rollout() -> dict:
 
 
 def test_seeded_rollout_matches_stored_reference():
-    """A regression guard: silent changes to the model code change these numbers."""
+    """A regression guard: silent changes to the model code change these numbers. Across
+    kernel paths (native AVX-512, ATen AVX2, ATen default with numpy's baseline) they moved by
+    at most 1e-6 m and rad, a thousandth of the tolerance."""
     ref = json.loads(REFERENCE.read_text())
     got = _reference_rollout()
     assert got["object_id"] == ref["object_id"]
