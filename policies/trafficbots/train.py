@@ -41,6 +41,7 @@ from policies.trafficbots.checkpoint import load_state_into, save_checkpoint
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.losses import training_step
 from policies.trafficbots.model import TrafficBots
+from policies.trafficbots.validate import validation_loss
 from tbsim_env.config_cli import config_parser, parse_config
 from tbsim_env.data.cache import open_training_data
 from tbsim_env.errors import CheckpointError
@@ -92,6 +93,15 @@ class TrainConfig:
             With the small batches of a CPU run, single checkpoints move a lot from one to the
             next; the average evens that out (its horizon is about ``1 / (1 - ema_decay)``
             steps).
+        val_data: token cache(s) of validation scenes (same syntax as ``data``): the
+            validation loss (``policies.trafficbots.validate``) is logged as ``val_*`` every
+            ``val_every`` steps and at the end (and at step 0 for the starting weights), and the
+            weights (the EMA's when there is one) with the lowest so far are kept as
+            ``<out>/best.safetensors`` + ``.json``, their step and scores in ``best_step.json``.
+        val_every: steps between validations (0: only at the end).
+        time_budget_s: end the run (checkpoint and validation included) once this many seconds
+            of training have passed, whatever the step (None: no limit). For a lent machine
+            with a fixed wall time; the schedules still span ``steps``.
     """
 
     data: str
@@ -120,6 +130,9 @@ class TrainConfig:
     init: str | None = None
     warmup_steps: int = 0
     ema_decay: float | None = None
+    val_data: str | None = None
+    val_every: int = 0
+    time_budget_s: float | None = None
 
     def model_config(self) -> TrafficBotsConfig:
         if self.model == "small":
@@ -349,18 +362,69 @@ def _check_replicas(model: TrafficBots, world: int, scalars: dict[str, float]) -
     return {**scalars, "param_checksum": float(checksum)}
 
 
-def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
-    """Train (or resume) a TrafficBots model; returns the last logged scalars.
+@dataclass
+class _Run:
+    """What the loop of one process carries between steps."""
 
-    Runs distributed when launched by ``torchrun`` (``WORLD_SIZE`` > 1): one process per GPU
-    (NCCL) or per CPU worker (Gloo), gradients averaged by ``DistributedDataParallel``.
-    """
+    cfg: TrainConfig
+    proc: _Process
+    out: Path
+    model: TrafficBots
+    opt: torch.optim.Optimizer
+    ema: AveragedModel | None
+    val: Any = None
+    best: float = math.inf
+
+    def weights(self) -> TrafficBots:
+        """The weights to evaluate and keep as ``best``: the EMA's when there is one."""
+        return self.ema.module if self.ema is not None else self.model
+
+    def checkpoint(self, step: int) -> None:
+        save_checkpoint(self.model, self.out / "last")
+        if self.ema is not None:
+            save_checkpoint(self.ema.module, self.out / "ema")
+        _optimizer_state_to_files(self.opt, step, self.out / "optimizer")
+
+    def validate(self, step: int) -> dict[str, float]:
+        """``val_*`` scalars of the weights at ``step``; saves ``best`` on a new low."""
+        scores = validation_loss(
+            self.weights(), self.val, batch_size=self.cfg.batch_size, device=self.proc.device
+        )
+        if scores["loss"] < self.best:
+            self.best = scores["loss"]
+            save_checkpoint(self.weights(), self.out / "best")
+            (self.out / "best_step.json").write_text(json.dumps({"step": step, **scores}))
+        return {f"val_{k}": v for k, v in scores.items() if k != "scenes"}
+
+
+def _optimiser_step(run: _Run, loss: torch.Tensor, scaler: Any, step: int) -> float:
+    """Backward, clip, step (and the EMA); returns the gradient norm."""
+    run.opt.zero_grad(set_to_none=True)
+    for group in run.opt.param_groups:
+        group["lr"] = run.cfg.lr_at(step - 1)
+    scaler.scale(loss).backward()
+    scaler.unscale_(run.opt)
+    grad_norm = float(torch.nn.utils.clip_grad_norm_(run.model.parameters(), run.cfg.grad_clip))
+    scaler.step(run.opt)
+    scaler.update()
+    if run.ema is not None:
+        run.ema.update_parameters(run.model)
+    return grad_norm
+
+
+def _setup(cfg: TrainConfig) -> tuple[_Run, torch.nn.Module, int]:
+    """(run state, the objective to call (DDP-wrapped over several processes), first step)."""
     proc = _start_process(cfg)
     out = Path(cfg.out)
     if proc.main:
         out.mkdir(parents=True, exist_ok=True)
         (out / "train_config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=1))
     model, opt, ema, start = _model_and_optimizer(cfg, proc, out)
+    run = _Run(cfg, proc, out, model, opt, ema)
+    if cfg.val_data and proc.main:
+        run.val = open_training_data(cfg.val_data, max_shards=None)
+        best = out / "best_step.json"
+        run.best = json.loads(best.read_text())["loss"] if best.exists() and start else math.inf
     objective: torch.nn.Module = TrainingObjective(model)
     if proc.world > 1:
         # Prior-latent batches leave the posterior encoders unused: find_unused_parameters.
@@ -369,10 +433,23 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
         objective = torch.nn.parallel.DistributedDataParallel(
             objective, device_ids=None, find_unused_parameters=True
         )
+    return run, objective, start
+
+
+def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
+    """Train (or resume) a TrafficBots model; returns the last logged scalars.
+
+    Runs distributed when launched by ``torchrun`` (``WORLD_SIZE`` > 1): one process per GPU
+    (NCCL) or per CPU worker (Gloo), gradients averaged by ``DistributedDataParallel``.
+    """
+    run, objective, start = _setup(cfg)
+    proc, model = run.proc, run.model
     loader, sampler = _loader(cfg, proc, start)
     use_amp = cfg.amp and proc.device.type == "cuda"
     scaler = torch.amp.GradScaler("cuda", enabled=use_amp)
-    logger = _Logger(out, proc.main)
+    logger = _Logger(run.out, proc.main)
+    if run.val is not None and start == 0:  # the starting weights are the first "best"
+        logger.log(0, run.validate(0))
     roll_gen = torch.Generator(device=proc.device).manual_seed(cfg.seed + 7919 * proc.rank + start)
     model.train()
     end = cfg.steps if cfg.stop_at is None else min(cfg.stop_at, cfg.steps)
@@ -390,32 +467,37 @@ def train(cfg: TrainConfig, *, progress: bool = True) -> dict[str, float]:
             loss, logs = objective(batch, cfg.prior_prob, tf, roll_gen, cfg.rollout_steps)
         if not math.isfinite(float(loss.detach())):
             raise FloatingPointError(f"non-finite loss at step {step - 1}: {logs}")
-        opt.zero_grad(set_to_none=True)
-        for group in opt.param_groups:
-            group["lr"] = cfg.lr_at(step - 1)
-        scaler.scale(loss).backward()
-        scaler.unscale_(opt)
-        grad_norm = float(torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip))
-        scaler.step(opt)
-        scaler.update()
-        if ema is not None:
-            ema.update_parameters(model)
+        grad_norm = _optimiser_step(run, loss, scaler, step)
         seen += len(items) * proc.world
         bar.update(1)
-        if step % cfg.log_every == 0 or step == end:
+        out_of_time = _out_of_time(cfg, t0, proc)
+        last = step == end or out_of_time
+        if step % cfg.log_every == 0 or last:
             rate = seen / (time.perf_counter() - t0)
             scalars = {**logs, "grad_norm": grad_norm, "scenarios_per_s": rate}
             scalars.update(teacher_forcing=tf, lr=cfg.lr_at(step - 1))
+            if run.val is not None and (last or (cfg.val_every and step % cfg.val_every == 0)):
+                scalars.update(run.validate(step))
             logger.log(step, scalars)
             bar.set_postfix(loss=f"{logs['loss']:.3f}", il=f"{logs['imitation']:.3f}")
-        if proc.main and (step % cfg.ckpt_every == 0 or step == end):
-            save_checkpoint(model, out / "last")
-            if ema is not None:
-                save_checkpoint(ema.module, out / "ema")
-            _optimizer_state_to_files(opt, step, out / "optimizer")
+        if proc.main and (step % cfg.ckpt_every == 0 or last):
+            run.checkpoint(step)
+        if out_of_time:
+            break
     bar.close()
     logger.close()
     return _check_replicas(model, proc.world, scalars) if proc.world > 1 else scalars
+
+
+def _out_of_time(cfg: TrainConfig, t0: float, proc: _Process) -> bool:
+    """Whether ``cfg.time_budget_s`` has passed (decided by rank 0 for every process)."""
+    if cfg.time_budget_s is None:
+        return False
+    over = torch.tensor(float(time.perf_counter() - t0 >= cfg.time_budget_s))
+    if proc.world > 1:
+        over = over.to(proc.device)
+        torch.distributed.broadcast(over, src=0)
+    return bool(over.item())
 
 
 def build_parser() -> argparse.ArgumentParser:

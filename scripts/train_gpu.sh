@@ -1,0 +1,84 @@
+#!/usr/bin/env bash
+# The GPU recipe: fine-tune the shipped TrafficBots weights on every real training scene for as
+# long as a lent GPU allows (12 minutes of wall time on one H100 or H200), keeping the weights
+# that do best on the real validation scenes.
+#
+#   bash scripts/train_gpu.sh prepare [DATA_DIR]        # on the CPU, once, beforehand
+#   bash scripts/train_gpu.sh train OUT [MINUTES]       # on the GPU (default 9 minutes)
+#
+# prepare: token caches of the train (172 scenes) and validation (57) splits of
+#   docs/model_card/real_splits.json (tbsim preprocess), gzip-packed into gpu_data/ (about 35 MB,
+#   git-ignored): small enough to travel with the working tree (the device tool's carry, or any
+#   copy). Nothing on the GPU machine needs the WOMD files.
+# train: unpacks gpu_data/ to a temporary folder and runs `tbsim train` from the shipped weights
+#   (--init, fresh AdamW): batch $BATCH (default 32) of full 91-step closed-loop rollouts with
+#   back-propagation through the unicycle, float16 autocast with a grad scaler (AMP), lr 1e-4
+#   after a 20-step warm-up, EMA of the weights (decay 0.99), the validation loss
+#   (policies/trafficbots/validate.py) of the starting weights and then every $VAL_EVERY steps
+#   (default 25) and at the end; the lowest is kept as OUT/best.safetensors + .json (the
+#   shipped weights themselves when nothing beats them), its step and scores in
+#   OUT/best_step.json. The run stops after MINUTES of training, checkpoints included, and
+#   resumes from OUT when started again (OUT/last, OUT/optimizer). Scalars: OUT/metrics.jsonl.
+# Afterwards, on the CPU: score OUT/best on the validation scenes against the shipped weights
+#   (WOSAC metrics, paired over scenes) before shipping anything, e.g.
+#   tbsim evaluate --policy trafficbots --checkpoint OUT/best \
+#     --data $(python scripts/split_files.py validation) --json val_new.json
+#
+# Environment: DEVICE (auto), BATCH (32), VAL_EVERY (25), WORKERS (4), TRAIN_SOURCES and
+# VAL_SOURCES (the splits' files; anything `tbsim preprocess` takes, e.g. generated:merge:0-3,
+# for a test), GPU_DATA (gpu_data).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+STAGE=${1:?usage: train_gpu.sh prepare [DATA_DIR] | train OUT [MINUTES]}
+GPU_DATA=${GPU_DATA:-gpu_data}
+WEIGHTS=policies/trafficbots/weights/trafficbots_small
+
+pack() {  # pack CACHE_DIR DEST_DIR: the manifest as is, each shard gzip-compressed
+  mkdir -p "$2"
+  cp "$1/manifest.json" "$2/"
+  for f in "$1"/*.safetensors; do gzip -c -4 "$f" >"$2/$(basename "$f").gz"; done
+}
+
+unpack() {  # unpack PACKED_DIR DEST_DIR
+  mkdir -p "$2"
+  cp "$1/manifest.json" "$2/"
+  for f in "$1"/*.safetensors.gz; do gunzip -c "$f" >"$2/$(basename "$f" .gz)"; done
+}
+
+case $STAGE in
+prepare)
+  if [[ -n ${2:-} ]]; then export TBSIM_WOMD_DIR=$2; fi
+  tmp=$(mktemp -d)
+  trap 'rm -rf "$tmp"' EXIT
+  # shellcheck disable=SC2046
+  tbsim preprocess ${TRAIN_SOURCES:-$(python scripts/split_files.py train)} \
+    --out "$tmp/train" --workers "${WORKERS:-2}"
+  # shellcheck disable=SC2046
+  tbsim preprocess ${VAL_SOURCES:-$(python scripts/split_files.py validation)} \
+    --out "$tmp/validation" --workers "${WORKERS:-2}"
+  rm -rf "$GPU_DATA"
+  pack "$tmp/train" "$GPU_DATA/train"
+  pack "$tmp/validation" "$GPU_DATA/validation"
+  du -sh "$GPU_DATA"
+  ;;
+train)
+  OUT=${2:?usage: train_gpu.sh train OUT [MINUTES]}
+  MINUTES=${3:-9}
+  tmp=$(mktemp -d)
+  trap 'rm -rf "$tmp"' EXIT
+  unpack "$GPU_DATA/train" "$tmp/train"
+  unpack "$GPU_DATA/validation" "$tmp/validation"
+  budget=$(python -c "print(round(float('$MINUTES') * 60, 1))")
+  tbsim train --data "$tmp/train" --val-data "$tmp/validation" --out "$OUT" \
+    --init "$WEIGHTS" --model small --steps 100000 --batch-size "${BATCH:-32}" --lr 1e-4 \
+    --warmup-steps 20 --ema-decay 0.99 --teacher-forcing-start 0 --teacher-forcing-end 0 \
+    --workers "${WORKERS:-4}" --cache-shards 0 --device "${DEVICE:-auto}" --amp \
+    --time-budget-s "$budget" --val-every "${VAL_EVERY:-25}" --ckpt-every 25 --log-every 5
+  cat "$OUT/best_step.json"
+  echo
+  ;;
+*)
+  echo "unknown stage $STAGE: prepare or train" >&2
+  exit 2
+  ;;
+esac
