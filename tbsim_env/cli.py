@@ -373,6 +373,12 @@ def _cmd_average(args: cfg.Average) -> int:
     return 0
 
 
+def _cmd_benchmark(args: cfg.Benchmark) -> int:
+    from tbsim_env.benchmark.command import run_command
+
+    return run_command(args, _sharded(args), _executor(args) if _sharded(args) else None)
+
+
 _HANDLERS = {
     "demo": _cmd_demo,
     "info": _cmd_info,
@@ -383,6 +389,7 @@ _HANDLERS = {
     "view": _cmd_view,
     "preprocess": _cmd_preprocess,
     "average": _cmd_average,
+    "benchmark": _cmd_benchmark,
 }
 
 

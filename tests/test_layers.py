@@ -22,6 +22,7 @@ TOP_MODULES = (
     "tbsim_env.distributed",
     "tbsim_env.rendering",
     "tbsim_env.integrations",
+    "tbsim_env.benchmark",
     "tbsim_env.__main__",
 )
 """Modules (and packages) above the policies; the rest of ``tbsim_env`` is below them."""

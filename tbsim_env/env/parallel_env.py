@@ -220,6 +220,12 @@ class TrafficEnv(ParallelEnv, EzPickle):
         return self._step_fn
 
     @property
+    def agent_columns(self) -> dict[str, int]:
+        """Each agent's column in the controlled-agent tensors of the episode
+        (``episode.setup.query``, ``episode.progress``): a copy, for this scenario."""
+        return dict(self._slot_of)
+
+    @property
     def episode_steps(self) -> int:
         """Steps of a full episode (from the start step to the last step)."""
         return self.config.last_step - self.config.start_step
