@@ -86,8 +86,8 @@ def pages(
 
 def run_command(args: Any, sharded: bool = False, executor=None) -> int:
     """Run ``tbsim benchmark`` with ``args`` (``cli_configs.Benchmark``)."""
+    load_planner(args.planner)  # a bad spec fails before any scene runs
     settings = settings_of(args)
-    load_planner(settings.planner)  # a bad spec fails before any scene runs
     results = _results(args, settings, sharded, executor)
     title = f"planner {settings.planner}, controlled {settings.controlled}, seed {settings.seed}"
     print(summary_table(results, title))

@@ -261,3 +261,58 @@ def _record(
 
 
 __all__ = ["EpisodeRecord", "EpisodeSpec", "PlannerError", "run_episode"]
+
+
+def log_record(scenario: Scenario, track: int, traffic: str = "log") -> EpisodeRecord:
+    """The log itself as an episode of track row ``track``: what the log earns, scored as a
+    planner's episode is (the road-edge distance by the env's own box test).
+
+    Raises:
+        MissingFutureError: the log does not reach the episode's end.
+    """
+    from tbsim_env.sim.build import build_sim_state
+    from tbsim_env.sim.collision import box_corner_xy
+    from tbsim_env.sim.offroad import box_offroad_distance
+
+    cfg = EnvConfig()
+    start, end = cfg.start_step, cfg.last_step
+    scenario.require_log_until(end, "scoring the log")
+    sim = build_sim_state([scenario], start_step=start)
+    log = sim.log
+    steps = slice(start, end + 1)
+    pose = log.pose[0, :, steps].transpose(0, 1).double()  # [S+1, N, 3] shifted frame
+    speed = log.speed[0, :, steps].transpose(0, 1).double()
+    valid = log.valid[0, :, steps].transpose(0, 1)
+    slot = int(torch.nonzero(sim.agents.track_index[0] == track)[0, 0])
+    size = sim.agents.size[0, :, :2]
+    corners = box_corner_xy(pose[:, slot].float()[None], size[slot, 0], size[slot, 1])
+    offroad = box_offroad_distance(corners, sim.road_edges)[0][0].double()
+    world = pose.clone()
+    world[..., :2] += sim.origin[0].double()
+    others_valid = valid.clone()
+    others_valid[:, slot] = False
+    arc = logged_arc(scenario, track)
+    expert, length = _expert_span(scenario, track, start, end)
+    agents = sim.agents
+    return EpisodeRecord(
+        scenario_id=scenario.scenario_id,
+        traffic=traffic,
+        agent=f"track_{int(scenario.tracks.id[track])}",
+        slot=slot,
+        ego_pose=world[:, slot].numpy(),
+        ego_speed=speed[:, slot].numpy(),
+        ego_size=size[slot].double().numpy(),
+        ego_type=int(agents.object_type[0, slot]),
+        others_pose=world.numpy(),
+        others_speed=speed.numpy(),
+        others_valid=others_valid.numpy(),
+        others_size=size.double().numpy(),
+        others_type=agents.object_type[0].numpy(),
+        others_id=agents.track_id[0].numpy(),
+        track_index=agents.track_index[0].numpy(),
+        offroad_distance=offroad.numpy(),
+        progress=arc[start : end + 1],
+        expert_progress=expert,
+        route_length=length,
+        dt=0.1,
+    )
