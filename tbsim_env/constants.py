@@ -35,7 +35,7 @@ NUM_OBJECT_TYPES = 5
 
 # Unicycle limits per object type, indexed by ``ObjectType`` value.
 # Vehicle 5 m/s^2 and 1.5 rad/s, cyclist 6 and 3, pedestrian 7 and 7 (TrafficBots V1.5,
-# spec section 4). UNSET and OTHER get the vehicle limits (the spec has no slot for them).
+# docs/model.md §4). UNSET and OTHER get the vehicle limits (the spec has no slot for them).
 MAX_ACCEL = (5.0, 5.0, 7.0, 6.0, 5.0)
 """Maximum |acceleration| in m/s^2 per ``ObjectType``."""
 MAX_YAW_RATE = (1.5, 1.5, 7.0, 3.0, 1.5)
@@ -138,7 +138,7 @@ class SignalState(enum.IntEnum):
 
 # --------------------------------------------------------------------------- tokens
 class MapClass(enum.IntEnum):
-    """The 11 map-piece classes of TrafficBots V1.5 (spec section 1.2)."""
+    """The 11 map-piece classes of TrafficBots V1.5 (docs/model.md §1.2)."""
 
     FREEWAY = 0
     SURFACE_STREET = 1
@@ -157,7 +157,7 @@ NUM_MAP_CLASSES = 11
 
 
 class TLState(enum.IntEnum):
-    """The 5 traffic-light classes of TrafficBots V1.5 (spec section 1.3)."""
+    """The 5 traffic-light classes of TrafficBots V1.5 (docs/model.md §1.3)."""
 
     UNKNOWN = 0
     STOP = 1

@@ -65,8 +65,8 @@ def make_rollout_fn(
     (``policies.registry``: any policy a user registered works here too).
 
     ``road_edge_weight`` (TrafficBots only): weight of off-road agents, beside collided ones,
-    when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``, 0 there);
-    None for the policy's own (TrafficBots: its ``InferenceConfig``, shipped 1).
+    when choosing which of the sampled rollouts to keep (docs/model.md §7.3's ``w_road_edge``, 0
+    there); None for the policy's own (TrafficBots: its ``InferenceConfig``, shipped 1).
     """
     options = {} if road_edge_weight is None else {"road_edge_weight": road_edge_weight}
     return registry_rollout_fn(policy, checkpoint=checkpoint, device=device, **options)
@@ -83,8 +83,8 @@ class RolloutSettings:
         checkpoint: weights of the policy (for the policies that take one).
         device: torch device of the rollouts.
         road_edge_weight: TrafficBots only: weight of off-road agents, beside collided ones,
-            when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``);
-            None for the model's own (shipped 1).
+            when choosing which of the sampled rollouts to keep (docs/model.md §7.3's
+            ``w_road_edge``); None for the model's own (shipped 1).
     """
 
     policy: str

@@ -1,4 +1,4 @@
-"""Pairwise-relative observations (TrafficBots V1.5 spec section 2), batched and pure.
+"""Pairwise-relative observations (TrafficBots V1.5, docs/model.md §2), batched and pure.
 
 Every token is described in its own local frame, and its relation to the observer only by its
 relative pose (dx, dy, dyaw) in the observer's frame. Nothing is expressed in scenario
@@ -299,7 +299,8 @@ class IndexedObservation:
 
     The same facts as ``observe``'s dense dict, without copying a token for every observer
     that sees it: every token is described once, in its own frame, and each observer holds
-    the indices of the tokens it sees with their relative poses (docs: README, observations).
+    the indices of the tokens it sees with their relative poses (docs/environments.md, "Indexed
+    layout").
     ``densify`` gathers the dense layout from it, so the two never disagree.
 
     Attributes:

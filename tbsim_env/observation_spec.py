@@ -2,7 +2,8 @@
 
 ``OBS_KEYS`` is the single declaration; the observation space (``observation_space``), the
 shapes (``observation_shapes``), the dense observation's keys (``observation.densify`` is
-tested against it) and the README's table (``observation_table``) are all built from it.
+tested against it) and the table of docs/environments.md (``observation_table``) are all built
+from it.
 
 Shapes use symbols that ``ObsConfig`` sets: H (history steps, the current one included), Ka,
 Km, Kt (nearest agents, map pieces and traffic lights observed) and P (nodes per map piece).
@@ -107,7 +108,7 @@ def observation_space(cfg: ObsConfig) -> gym.spaces.Dict:
 
 
 def observation_table() -> str:
-    """A Markdown table of ``OBS_KEYS`` (the README's)."""
+    """A Markdown table of ``OBS_KEYS`` (the one in docs/environments.md)."""
     rows = ["| key | shape | range | holds |", "|---|---|---|---|"]
     for k in OBS_KEYS:
         shape = ", ".join(str(d) for d in k.dims)

@@ -1,4 +1,4 @@
-"""Agent attributes and gap filling (spec 1.4)."""
+"""Agent attributes and gap filling (docs/model.md §1.4)."""
 
 from __future__ import annotations
 

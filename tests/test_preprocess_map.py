@@ -1,4 +1,7 @@
-"""Map pieces, map filtering and traffic-light tokens (spec 1.2, 1.3, 1.6) on synthetic maps."""
+"""Map pieces, map filtering and traffic-light tokens on synthetic maps.
+
+docs/model.md §1.2, §1.3, §1.6.
+"""
 
 from __future__ import annotations
 

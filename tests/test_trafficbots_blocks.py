@@ -406,8 +406,8 @@ def _tl_case(seed: int):
 
 
 def _tl_reference(enc, state, step_valid, ctx, map_feat) -> torch.Tensor:
-    """The TL encoder as spec 3.2 writes it: the MLP on every step's one-hot inputs, PointNet
-    over the window, decoder layers, on every scene."""
+    """The TL encoder as docs/model.md §3.2 writes it: the MLP on every step's one-hot inputs,
+    PointNet over the window, decoder layers, on every scene."""
     import torch.nn.functional as F
 
     from policies.trafficbots.attention import Neighbours

@@ -1,4 +1,5 @@
-"""TrafficBots training: differentiable step, gradient routing (spec 6.4), overfitting one scene."""
+"""TrafficBots training: differentiable step, gradient routing (docs/model.md §6.4), overfitting one
+scene."""
 
 from __future__ import annotations
 

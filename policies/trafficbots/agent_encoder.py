@@ -1,5 +1,5 @@
-"""Agent encoders (spec 3.3): a window of agent states -> one token per agent, then decoder
-layers over agent neighbours and over the nearest map and TL tokens."""
+"""Agent encoders (docs/model.md §3.3): a window of agent states -> one token per agent, then
+decoder layers over agent neighbours and over the nearest map and TL tokens."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from tbsim_env.constants import ObjectType
 from tbsim_env.map_knn import PieceClusters
 
 N_AGENT_TYPES = 3
-"""Type branches of the model: vehicle, pedestrian, cyclist (spec 1.4)."""
+"""Type branches of the model: vehicle, pedestrian, cyclist (docs/model.md §1.4)."""
 AGENT_ATTR_DIM = 3 + N_AGENT_TYPES
 """(length, width, height) + type one-hot."""
 AGENT_MOTION_DIM = 3

@@ -1,4 +1,4 @@
-"""Batched WOSAC-style collision check between rounded boxes (spec 7.2).
+"""Batched WOSAC-style collision check between rounded boxes (docs/model.md §7.2).
 
 Each box (length, width) is scaled by 1.1; its corners are rounded with radius
 ``s = 0.7 * min(l, w) / 2``, i.e. it is the inner box (l - 2s, w - 2s) dilated by a disc of

@@ -1,4 +1,4 @@
-"""K-nearest-neighbour selection and gathering (spec 2.4)."""
+"""K-nearest-neighbour selection and gathering (docs/model.md §2.4)."""
 
 from __future__ import annotations
 
@@ -29,9 +29,9 @@ def knn_select(
     the same node are equally far from everything, and in a symmetric generated map two lanes
     are equally far from an agent between them. Compared in full float32 precision, such a
     tie is decided by the rounding of the scene frame, so a rotated and shifted copy of the
-    scene picked other neighbours (deviation from spec 2.4, which ranks exact distances). The
-    selection does not depend on the device, on ``topk``'s algorithm or on padding rows after
-    the targets either (``TokenBatch.trim``).
+    scene picked other neighbours (deviation from the reference, docs/model.md §2.4, which ranks
+    exact distances). The selection does not depend on the device, on ``topk``'s algorithm or on
+    padding rows after the targets either (``TokenBatch.trim``).
 
     The search is the observations' (``tbsim_env.map_knn.nearest_pieces``): with the
     targets' ``clusters`` (a large map), eagerly on the CPU, it measures the pieces of the

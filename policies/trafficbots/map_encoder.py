@@ -1,4 +1,4 @@
-"""Map encoder (spec 3.1): per-node MLP + 7-d geometry, PointNet, intra-map self layers.
+"""Map encoder (docs/model.md §3.1): per-node MLP + 7-d geometry, PointNet, intra-map self layers.
 
 Run once per scenario; the output ``MapTokens`` is reused at every step and by every rollout.
 """

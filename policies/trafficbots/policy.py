@@ -2,7 +2,7 @@
 
 The policy drives the (at most 64) agents that preprocessing selects for each scenario
 (``SceneTokens.agent_track_index``); every other agent slot gets a zero action, i.e. keeps its
-speed and heading (the constant-velocity treatment of non-simulated agents, spec 7.4).
+speed and heading (the constant-velocity treatment of non-simulated agents, docs/model.md §7.4).
 Externally controlled agents are observed through the ``SimState`` like any other agent, so
 their real states feed back into the policy every step.
 

@@ -6,7 +6,7 @@ the traffic ahead of it (docs/MODEL_CARD.md, "Why it leaves real roads"). These 
 in eval mode only (``TrafficBots.training`` False), act on the network's actions without
 retraining (the first two are shipped):
 
-* **Hold parked vehicles.** A vehicle that is *parked* by the spec's own test (spec 1.6,
+* **Hold parked vehicles.** A vehicle that is *parked* by the spec's own test (docs/model.md §1.6,
   filters c and d: still over the history, i.e. the speed summed over the valid history steps
   times 0.1 s below 0.5 m, and no vehicle-lane node, classes 0-2, within 3 m whose direction
   points along its heading) gets the action that stops it and keeps its heading. The spec
@@ -20,8 +20,8 @@ retraining (the first two are shipped):
   corridor, so it brakes for slower or standing traffic; the yaw rate stays the network's.
 * **No turning on the spot** (off in the shipped config: no measurable gain). A vehicle's yaw
   rate is limited to ``vehicle_max_curvature`` times its speed over the step (plus
-  ``vehicle_yaw_rate_slack``): the unicycle (spec 4) lets a standing vehicle turn, which a car
-  cannot.
+  ``vehicle_yaw_rate_slack``): the unicycle (docs/model.md §4) lets a standing vehicle turn, which a
+  car cannot.
 * **History motion inside the action limits** (``clip_history_motion``, off).
 
 ``InferenceConfig.spec()`` switches every rule off (the spec's behaviour, for comparison).
@@ -45,7 +45,9 @@ _VEHICLE_LANE_CLASSES = (
     int(C.MapClass.SURFACE_STREET),
     int(C.MapClass.STOP_SIGN),
 )
-"""Map classes that count as a vehicle lane in the parked test (spec 1.6 d: classes 0-2)."""
+"""Map classes that count as a vehicle lane in the parked test.
+
+docs/model.md §1.6 d: classes 0-2."""
 
 
 def still_agents(ag_valid: torch.Tensor, ag_speed: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -54,7 +56,7 @@ def still_agents(ag_valid: torch.Tensor, ag_speed: torch.Tensor, threshold: floa
     Args:
         ag_valid: [B, N, H] bool history validity.
         ag_speed: [B, N, H] signed speed m/s.
-        threshold: metres (spec 1.6 c at validation / test: 0.5 m).
+        threshold: metres (docs/model.md §1.6 c at validation / test: 0.5 m).
 
     Returns:
         [B, N] bool, True only for agents valid at the last history step.
@@ -79,7 +81,7 @@ def aligned_lane_nearby(
         mp_pose: [B, M, P, 3] map nodes (x m, y m, segment heading rad).
         mp_valid: [B, M, P] bool.
         mp_cls: [B, M] int64 ``MapClass``.
-        radius: metres (spec 1.6 d: 3 m).
+        radius: metres (docs/model.md §1.6 d: 3 m).
 
     Returns:
         [B, N] bool.
@@ -107,7 +109,7 @@ def parked_vehicles(
     still_threshold: float,
     lane_radius: float,
 ) -> torch.Tensor:
-    """Vehicles parked by the spec's test (spec 1.6 c + d) over the history window.
+    """Vehicles parked by the spec's test (docs/model.md §1.6 c + d) over the history window.
 
     Args:
         ag_valid: [B, N, H] bool history validity (H = the 11 history steps).
@@ -155,7 +157,7 @@ def limit_vehicle_curvature(
 ) -> torch.Tensor:
     """Vehicle yaw rates limited to ``max_curvature`` * |mean speed over the step| + ``slack``.
 
-    The mean speed is the unicycle's midpoint speed, v + DT / 2 * acceleration (spec 4).
+    The mean speed is the unicycle's midpoint speed, v + DT / 2 * acceleration (docs/model.md §4).
 
     Args:
         action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s).
@@ -263,8 +265,8 @@ def clip_history_motion(motion: torch.Tensor, ag_type: torch.Tensor) -> torch.Te
     """History (speed, acceleration, yaw rate) with the last two inside the type's action limits.
 
     The history's acceleration and yaw rate are finite differences of the logged states
-    (spec 1.4); on real logs they exceed what the unicycle can do (|acc| > 5 m/s^2 in about 1%
-    of vehicle steps), which no closed-loop step of the policy ever produces.
+    (docs/model.md §1.4); on real logs they exceed what the unicycle can do (|acc| > 5 m/s^2 in
+    about 1% of vehicle steps), which no closed-loop step of the policy ever produces.
 
     Args:
         motion: [B, N, W, 3] (speed m/s, acceleration m/s^2, yaw rate rad/s).

@@ -123,7 +123,7 @@ def _synthetic_agents(
 
 def _destinations(types: np.ndarray, final_xy: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     """[N] destination piece: the nearest allowed node to the final position (the rule
-    families of spec 1.7), -1 without one."""
+    families of docs/model.md §1.7), -1 without one."""
     allowed = {
         ObjectType.VEHICLE: [MapClass.SURFACE_STREET, MapClass.STOP_SIGN],
         ObjectType.PEDESTRIAN: [MapClass.ROAD_EDGE_BOUNDARY],

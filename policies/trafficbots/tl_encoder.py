@@ -1,4 +1,4 @@
-"""Traffic-light encoder and TL-state head (spec 3.2).
+"""Traffic-light encoder and TL-state head (docs/model.md §3.2).
 
 TL tokens sit on the map piece of their controlled lane (``tl_mode: lane``): pose = node 0 of
 that piece. Everything that depends only on the static poses (KNN, RPE, map neighbour rows)
@@ -37,7 +37,7 @@ class TLContext:
     Attributes:
         pose: [B, L, 3] token pose (node 0 of the controlled lane piece).
         valid: [B, L] bool token validity.
-        lane_feat: [B, L, d] map feature of the lane piece, detached (spec 3.2 step 3).
+        lane_feat: [B, L, d] map feature of the lane piece, detached (docs/model.md §3.2 step 3).
         self_idx, self_mask, self_rpe: TL -> TL neighbours [B, L, Ks], [B, L, Ks],
             [B, L, Ks, rpe_dim].
         map_idx, map_mask, map_rpe: TL -> map neighbours, rows of the map tokens [B, L, Km],

@@ -1,4 +1,4 @@
-"""Training loop of TrafficBots V1.5 (spec section 6): plain PyTorch, DDP through torchrun.
+"""Training loop of TrafficBots V1.5 (docs/model.md §6): plain PyTorch, DDP through torchrun.
 
 Usage (also ``tbsim train``)::
 

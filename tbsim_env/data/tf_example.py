@@ -3,8 +3,8 @@ without TensorFlow.
 
 Records are framed by ``tbsim_env.data.tfrecord`` and decoded with the generated classes of
 ``tbsim_env/data/protos/tf_example.proto``; the features are then read as fixed-shape arrays
-(docs/womd_schema.md section 6; A agent slots, 128 in WOMD; P past, 1 current and F future
-steps, 10 / 1 / 80; S signal slots, 16):
+(docs/formats.md, "tf.train.Example motion files"; A agent slots, 128 in WOMD; P past, 1 current and
+F future steps, 10 / 1 / 80; S signal slots, 16):
 
 * ``state/{past,current,future}/{x,y,z,bbox_yaw,velocity_x,velocity_y,length,width,height}``
   [A, P | 1 | F] float, ``.../valid`` int64: one track per slot valid at some step (empty

@@ -428,7 +428,7 @@ def map_json(scenario: Scenario) -> dict:
 
 
 def signals_json(scenario: Scenario) -> dict:
-    """Signal stop points and their ``TLState`` per step ([S][T], -1 where no state)."""
+    """Signal stop points and their ``TLState`` per step (``[S][T]``, -1 where no state)."""
     sig = wosac_grid(scenario).signals
     tl = np.asarray(SIGNAL_TO_TL_STATE, np.int64)[sig.state.astype(np.int64)]
     state = np.where(sig.valid, tl, -1)
@@ -463,7 +463,7 @@ def agents_json(scenario: Scenario) -> list[dict]:
 
 
 def rollout_json(rollout: ViewerRollout) -> dict:
-    """One rollout: [A][T] poses and speeds (null where not shown), flag steps per agent."""
+    """One rollout: ``[A][T]`` poses and speeds (null where not shown), flag steps per agent."""
     hide = ~rollout.valid
     return {
         "name": rollout.name,

@@ -83,7 +83,8 @@ class Scores:
         kinematic_metrics, interactive_metrics, map_based_metrics: bucket scores.
         average_displacement_error: ADE (m), over log-valid steps including history.
         min_average_displacement_error: minADE (m), min over rollouts of the object mean.
-        simulated_collision_rate, simulated_offroad_rate,
+        simulated_collision_rate: fraction of (rollout, object) pairs.
+        simulated_offroad_rate: fraction of (rollout, object) pairs.
         simulated_traffic_light_violation_rate: fraction of (rollout, object) pairs.
     """
 
