@@ -24,8 +24,10 @@ class ComfortBounds:
         max_abs_yaw_accel: rad/s^2, |yaw acceleration| (1.93).
         max_abs_lon_jerk: m/s^3, |longitudinal jerk| (4.13).
         max_abs_jerk: m/s^3, magnitude of the jerk vector (8.37).
-        window: samples of the Savitzky-Golay filter that differentiates the trajectory (5,
-            polynomial order 2: nuPlan's derivative approximation).
+        accel_window: samples of the Savitzky-Golay filter (polynomial order 2) that
+            differentiates the speed into accelerations and those into jerks (nuPlan: 15).
+        yaw_window: samples of the filter that differentiates the heading into yaw rate and
+            yaw acceleration (nuPlan's ``approximate_derivatives`` default: 5).
     """
 
     min_lon_accel: float = -4.05
@@ -35,7 +37,8 @@ class ComfortBounds:
     max_abs_yaw_accel: float = 1.93
     max_abs_lon_jerk: float = 4.13
     max_abs_jerk: float = 8.37
-    window: int = 5
+    accel_window: int = 15
+    yaw_window: int = 5
 
 
 @dataclass(frozen=True)

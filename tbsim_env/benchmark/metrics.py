@@ -341,20 +341,22 @@ class Comfort:
 def comfort(record: EpisodeRecord, cfg: BenchmarkConfig) -> Comfort:
     """The ego's ``Comfort``: longitudinal acceleration and jerk from its speed, yaw rate
     and yaw acceleration from its unwrapped heading, lateral acceleration as speed times yaw
-    rate, jerk as the magnitude of the body-frame acceleration's derivative."""
+    rate (smoothed as the accelerations are), jerk as the magnitude of the body-frame
+    acceleration's derivative; Savitzky-Golay windows of ``ComfortBounds``."""
     b = cfg.comfort
     n = len(record.ego_speed)
-    w = min(b.window, n if n % 2 else n - 1)
-    if w < 3:
+    if n < 3:
         return Comfort((0.0, 0.0), 0.0, 0.0, 0.0, 0.0, 0.0, True)
 
-    def d(y: np.ndarray, order: int) -> np.ndarray:
+    def d(y: np.ndarray, order: int, window: int) -> np.ndarray:
+        w = min(window, n if n % 2 else n - 1)
         return savgol_filter(y, w, min(2, w - 1), deriv=order, delta=record.dt, mode="interp")
 
     speed, yaw = record.ego_speed, np.unwrap(record.ego_pose[:, 2])
-    lon_acc, yaw_rate, yaw_acc = d(speed, 1), d(yaw, 1), d(yaw, 2)
-    lat_acc = speed * yaw_rate
-    lon_jerk, lat_jerk = d(lon_acc, 1), d(lat_acc, 1)
+    yaw_rate, yaw_acc = d(yaw, 1, b.yaw_window), d(yaw, 2, b.yaw_window)
+    lon_acc = d(speed, 1, b.accel_window)
+    lat_acc = d(speed * yaw_rate, 0, b.accel_window)
+    lon_jerk, lat_jerk = d(lon_acc, 1, b.accel_window), d(lat_acc, 1, b.accel_window)
     out = Comfort(
         lon_accel=(float(lon_acc.min()), float(lon_acc.max())),
         lat_accel=float(np.abs(lat_acc).max()),
