@@ -111,10 +111,14 @@ def test_exceeding_the_speed_limit_by_half_the_tolerated_margin_scores_half():
 
 
 def test_a_jerky_planner_loses_comfort():
-    flip = FunctionPlanner(lambda x: (3.0 if x.step % 2 else -3.0, 0.0))
+    flip = FunctionPlanner(lambda x: (4.0 if (x.step // 10) % 2 else -4.0, 0.0))  # 1 s each
     jerky = episode([Agent((0.0, 0.0), speed=10.0)], flip)
+    bounds = BenchmarkConfig().comfort
     assert jerky.comfort == 0.0
-    assert jerky.comfort_extremes["lon_jerk"] > BenchmarkConfig().comfort.max_abs_lon_jerk
+    assert jerky.comfort_extremes["lon_jerk"] > bounds.max_abs_lon_jerk
+    assert jerky.comfort_extremes["lon_accel"][1] > bounds.max_lon_accel
+    chatter = FunctionPlanner(lambda x: (0.5 if x.step % 2 else -0.5, 0.0))  # filtered out
+    assert episode([Agent((0.0, 0.0), speed=10.0)], chatter).comfort == 1.0
     want = 100 * (5 * jerky.ego_progress + 5) / 12  # no speed limits on this map
     assert jerky.score == pytest.approx(want)
     smooth = episode([Agent((0.0, 0.0), speed=10.0)], constant(0.5))
