@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
 
 from tbsim_env.data.protos import scenario_pb2
 from tests.pipeline_support import (
@@ -256,11 +255,6 @@ JSON_EDITS = (_json_number, _json_number, _json_number, _json_short, _json_inval
 # ----------------------------------------------------------------------------- the test
 
 
-@pytest.fixture(scope="module")
-def small_scenes(one_scenario_path: Path, scenario_input_path: Path) -> list:
-    return [small_proto(read_proto(p)) for p in (one_scenario_path, scenario_input_path)]
-
-
 def _proto_case(base, rng, path: Path) -> None:
     msg = scenario_pb2.Scenario()
     msg.CopyFrom(base)
@@ -281,23 +275,49 @@ def _json_case(doc, paths, rng, path: Path) -> None:
 CASES = 300
 
 
-def test_fuzz_bad_values_through_the_pipeline(
-    tmp_path: Path, small_scenes: list, womd_dir: Path, torch_one_thread
-) -> None:
-    """Every case is refused naming its file or runs with finite outputs (both must occur)."""
-    rng = np.random.default_rng(20250828)
+def run_fuzz(
+    cases: int, seed: int, work_dir: Path, womd_dir: Path, on_case: Callable | None = None
+) -> dict[str, list[int]]:
+    """Make and run ``cases`` fuzz cases (2 proto cases for each JSON case) in ``work_dir``.
+
+    Args:
+        on_case: called as ``on_case(case, path)`` around each run (``run_pipeline``'s
+            outcome is what it returns; by default ``run_pipeline`` under the time guard).
+
+    Returns:
+        {outcome: [case numbers]} ("ok", "refused", or what ``on_case`` returns).
+    """
+    rng = np.random.default_rng(seed)
+    one = womd_dir / "waymo-open-dataset" / "motion_data_one_scenario.tfrecord"
+    two = womd_dir / "waymo-open-dataset" / "womd_scenario_input.tfrecord"
+    small = [small_proto(read_proto(p)) for p in (one, two)]
     doc = json.loads((womd_dir / "gpudrive" / "tfrecord-00000-of-01000_222.json").read_text())
     paths = _number_paths(doc)
     outcomes: dict[str, list[int]] = {"ok": [], "refused": []}
-    for case in range(CASES):
+    for case in range(cases):
         if case % 3 == 2:
-            path = tmp_path / f"case{case}.json"
+            path = work_dir / f"case{case}.json"
             _json_case(doc, paths, rng, path)
         else:
-            path = tmp_path / f"case{case}.tfrecord"
-            _proto_case(small_scenes[case % 2], rng, path)
-        with time_guard(CASE_LIMIT_S):
-            outcomes[run_pipeline(path)].append(case)
+            path = work_dir / f"case{case}.tfrecord"
+            _proto_case(small[case % 2], rng, path)
+        if on_case is None:
+            with time_guard(CASE_LIMIT_S):
+                outcome = run_pipeline(path)
+        else:
+            outcome = on_case(case, path)
+        outcomes.setdefault(outcome, []).append(case)
+        path.unlink()
+    return outcomes
+
+
+def test_fuzz_bad_values_through_the_pipeline(
+    tmp_path: Path, womd_dir: Path, torch_one_thread
+) -> None:
+    """Every case is refused naming its file or runs with finite outputs (both must occur);
+    ``bench/fuzz.py`` runs the same cases at scale."""
+    outcomes = run_fuzz(CASES, 20250828, tmp_path, womd_dir)
+    assert set(outcomes) == {"ok", "refused"}
     assert len(outcomes["ok"]) >= CASES // 5 and len(outcomes["refused"]) >= CASES // 5, {
         k: len(v) for k, v in outcomes.items()
     }
