@@ -112,7 +112,7 @@ def wosac_grid(scenario: Scenario) -> Scenario:
 
 def sim_agent_objects(scenario: Scenario) -> MetricObjects:
     """Every sim agent (valid at the current step), all of them "evaluated", in track order."""
-    idx = np.flatnonzero(scenario.tracks.valid[:, scenario.current_index]).astype(np.int64)
+    idx = scenario.sim_agent_indices()
     return MetricObjects(
         track_index=idx, object_id=scenario.tracks.id[idx].astype(np.int64), num_eval=len(idx)
     )

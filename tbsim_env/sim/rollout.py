@@ -32,11 +32,6 @@ def tile_state(state: SimState, n: int) -> SimState:
     return take_rows(state, torch.zeros(n, dtype=torch.int64, device=state.device))
 
 
-def sim_agent_mask(scenario: Scenario) -> np.ndarray:
-    """[A] bool: tracks valid at the current step (WOSAC sim agents)."""
-    return scenario.tracks.valid[:, scenario.current_index].copy()
-
-
 def simulate_rollouts(
     scenario: Scenario,
     policy: Policy,
@@ -68,7 +63,7 @@ def simulate_rollouts(
     start = scenario.current_index
     grid = wosac_scenario(scenario)
     base = build_sim_state([grid], start_step=start, device=device)
-    sim = torch.from_numpy(sim_agent_mask(scenario)).to(base.device)[None]
+    sim = torch.from_numpy(scenario.sim_agent_mask()).to(base.device)[None]
     agents = base.agents.mask & torch.nn.functional.pad(sim, (0, base.num_agents - sim.shape[1]))
     base = base.replace(
         agents=dataclasses.replace(base.agents, mask=agents),
@@ -120,7 +115,7 @@ def linear_extrapolation_rollouts(
         noise_std: see above.
     """
     t = scenario.current_index
-    idx = np.flatnonzero(sim_agent_mask(scenario))
+    idx = scenario.sim_agent_indices()
     tr = scenario.tracks
     p10 = tr.xyz[idx, t].astype(np.float64)
     prev_ok = tr.valid[idx, t - 1]
@@ -144,7 +139,6 @@ def linear_extrapolation_rollouts(
 
 __all__ = [
     "linear_extrapolation_rollouts",
-    "sim_agent_mask",
     "simulate_rollouts",
     "tile_state",
 ]

@@ -111,11 +111,6 @@ class Rollouts:
         )
 
 
-def sim_agent_indices(scenario: Scenario) -> np.ndarray:
-    """[A] int64 track indices of the sim agents: tracks valid at the current step."""
-    return np.flatnonzero(scenario.tracks.valid[:, scenario.current_index]).astype(np.int64)
-
-
 def log_replay_rollouts(
     scenario: Scenario,
     num_rollouts: int = NUM_ROLLOUTS,
@@ -130,7 +125,7 @@ def log_replay_rollouts(
         MissingFutureError: the log does not hold the 80 steps after the current one (e.g. a
             WOSAC test-split scene, history only).
     """
-    idx = sim_agent_indices(scenario)
+    idx = scenario.sim_agent_indices()
     start = scenario.current_index + 1
     stop = start + NUM_FUTURE
     scenario.require_log_until(stop - 1, "log replay")
