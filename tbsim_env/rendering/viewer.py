@@ -254,20 +254,10 @@ def simulated_rollouts(
         ViewerError: rollouts of another scenario, of another length, or missing sim agents.
     """
     scenario = wosac_grid(scenario)
-    if rollouts.scenario_id != scenario.scenario_id:
-        raise ViewerError(
-            f"rollouts are for scenario {rollouts.scenario_id!r}, not {scenario.scenario_id!r}"
-        )
-    if rollouts.num_steps != NUM_FUTURE:
-        raise ViewerError(
-            f"scenario {scenario.scenario_id}: rollouts have {rollouts.num_steps} steps, "
-            f"expected {NUM_FUTURE}"
-        )
+    mismatch = rollouts.mismatch(scenario, NUM_FUTURE)
+    if mismatch:
+        raise ViewerError(mismatch)
     objects = sim_agent_objects(scenario)
-    have = set(rollouts.object_id.tolist())
-    missing = [int(i) for i in objects.object_id if int(i) not in have]
-    if missing:
-        raise ViewerError(f"scenario {scenario.scenario_id}: rollouts miss sim agents {missing}")
     log = log_trajectories(scenario, objects)
     sim = simulated_trajectories(log, objects, rollouts.to("cpu"), scenario.current_index)
     flags = _Flags(objects, *_future_flags(scenario, sim))

@@ -82,6 +82,21 @@ class Rollouts:
             heading=self.heading[index],
         )
 
+    def mismatch(self, scenario: Scenario, num_steps: int = NUM_FUTURE) -> str | None:
+        """Why these rollouts cannot be rollouts of ``scenario``, or None: another scenario
+        id, not ``num_steps`` steps, or a sim agent (``Scenario.sim_agent_indices``) missing.
+        The one check of the scorer and the viewer (the submission validator checks the proto
+        the same way, object by object)."""
+        if self.scenario_id != scenario.scenario_id:
+            return f"rollouts are for scenario {self.scenario_id!r}, not {scenario.scenario_id!r}"
+        where = f"scenario {scenario.scenario_id}"
+        if self.num_steps != num_steps:
+            return f"{where}: rollouts have {self.num_steps} steps, expected {num_steps}"
+        have = set(self.object_id.tolist())
+        ids = scenario.tracks.id[scenario.sim_agent_indices()]
+        missing = [int(i) for i in ids if int(i) not in have]
+        return f"{where}: rollouts miss sim agents {missing}" if missing else None
+
     def impossible_value(self) -> str | None:
         """The first value no real rollout holds, described (rollout, object, step, field), or
         None: every value must be finite, positions within ``MAX_ABS_COORDINATE`` and
