@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import torch
 
-from policies.idm.params import CHORDS, IDMConfig
+from policies.idm.params import CHORDS, CROSSING_SIN, GHOST_TIMES, YIELD_SLACK, IDMConfig
 from policies.idm.tracking import points_at
 from tbsim_env.sim.idm import IDMTerms, crowding
 from tbsim_env.torch_utils import valid_order
@@ -59,13 +59,19 @@ def corridor(route: torch.Tensor, progress: torch.Tensor, horizon: float) -> Cor
 
 
 def candidate_pairs(
-    xy: torch.Tensor, valid: torch.Tensor, query: torch.Tensor, disc: torch.Tensor
+    xy: torch.Tensor,
+    valid: torch.Tensor,
+    query: torch.Tensor,
+    disc: torch.Tensor,
+    reach: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Pairs (query agent i, valid agent j != i) with j's centre inside i's disc.
+    """Pairs (query agent i, valid agent j != i) with j's centre within i's disc widened by
+    j's reach.
 
     Args:
         xy: [B, N, 2] m; valid: [B, N] bool; query: [B, N] bool (a subset of ``valid``).
         disc: [B, N, 3] (centre x, centre y, radius) m of each query agent.
+        reach: [B, N] m, how far each agent's tested boxes lie from its centre.
 
     Returns:
         (row, i, j), three [Q] int64 tensors of batch rows and agent slots.
@@ -78,7 +84,8 @@ def candidate_pairs(
     cx, cy, r = (take(disc[..., k]) for k in range(3))
     dx = x.unsqueeze(1) - cx.unsqueeze(2)  # [B, C (i), C (j)]
     dy = y.unsqueeze(1) - cy.unsqueeze(2)
-    near = (dx * dx + dy * dy) < (r * r).unsqueeze(2)
+    r = r.unsqueeze(2) + take(reach).unsqueeze(1)
+    near = (dx * dx + dy * dy) < r * r
     near = near & ok.unsqueeze(1) & q.unsqueeze(2)
     near.diagonal(dim1=1, dim2=2).zero_()
     row, qi, cj = near.nonzero(as_tuple=True)
@@ -105,8 +112,14 @@ def pair_gaps(
     agents: Agents,
     lanes: Corridor,
     half_width: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Bumper gap along i's route to j, and j's speed along it, of every pair.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bumper gap along i's route to j and j's speed along it, and the gap to where j will
+    cross i's route, of every pair.
+
+    Besides j's box now, its boxes ``GHOST_TIMES`` ahead (constant velocity) are tested when
+    j crosses i's route (more than ``CROSSING_ANGLE`` off the route's direction): such a box
+    in the corridor is a standing obstacle for i unless i would be past it well before j
+    (``YIELD_SLACK``), so that i yields to crossing traffic instead of meeting it.
 
     Args:
         pairs: (row, i, j) [Q] each.
@@ -116,31 +129,37 @@ def pair_gaps(
             the margin).
 
     Returns:
-        (gap [Q] m, +inf where j is not in i's corridor; lead speed [Q] m/s, >= 0).
+        (gap [Q] m, +inf where j is not in i's corridor; lead speed [Q] m/s, >= 0; gap [Q] m
+        to j's crossing, +inf where none is yielded to).
     """
     row, i, j = pairs
     n = agents.speed.shape[1]
     fi, fj = row * n + i, row * n + j
     yaw = agents.pose[..., 2]
-    own = torch.stack([agents.size[..., 0], half_width], -1).flatten(0, 1)[fi]  # [Q, 2]
+    own = torch.stack([agents.size[..., 0], half_width, agents.speed], -1)
+    own = own.flatten(0, 1)[fi].unsqueeze(-1)  # [Q, 3, 1]
     cols = [*agents.pose[..., :2].unbind(-1), yaw.cos(), yaw.sin(), agents.speed]
     other = torch.stack([*cols, *agents.size.unbind(-1)], -1).flatten(0, 1)[fj]  # [Q, 7]
     chords = torch.cat(
         [lanes.origin, lanes.direction, lanes.length.unsqueeze(-1), lanes.offset.unsqueeze(-1)], -1
     ).flatten(0, 1)[fi]  # [Q, M, 6]
-    ox, oy, ux, uy, length, offset = chords.unbind(-1)
-    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))
-    dx, dy = xj - ox, yj - oy
+    ox, oy, ux, uy, length, offset = (c.unsqueeze(1) for c in chords.unbind(-1))  # [Q, 1, M]
+    xj, yj, cj, sj, vj, lj, wj = (c.view(-1, 1, 1) for c in other.unbind(-1))
+    tau = torch.tensor((0.0, *GHOST_TIMES), device=xj.device).view(1, -1, 1)  # [1, G, 1]
+    dx = xj + (vj * cj) * tau - ox  # [Q, G, M]
+    dy = yj + (vj * sj) * tau - oy
     along, across = dx * ux + dy * uy, dy * ux - dx * uy
-    cos_rel, sin_rel = (cj * ux + sj * uy), (sj * ux - cj * uy)
+    cos_rel, sin_rel = (cj * ux + sj * uy), (sj * ux - cj * uy)  # [Q, 1, M]
     half_along = 0.5 * (lj * cos_rel.abs() + wj * sin_rel.abs())
     half_across = 0.5 * (lj * sin_rel.abs() + wj * cos_rel.abs())
     inside = (along >= 0) & (along < length) & (across.abs() < own[:, 1:2] + half_across)
-    gap = offset + along - half_along - 0.5 * own[:, 0:1]
-    gap = torch.where(inside, gap, float("inf"))
-    best, m = gap.min(-1)
-    lead = (vj[:, 0] * cos_rel.gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
-    return best, lead
+    gap = torch.where(inside, offset + along - half_along - 0.5 * own[:, 0:1], float("inf"))
+    now, m = gap[:, 0].min(-1)
+    lead = (vj[:, 0, 0] * cos_rel[:, 0].gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
+    crossing = sin_rel.abs() > CROSSING_SIN
+    late = gap[:, 1:] >= own[:, 2:3].clamp_min(1.0) * (tau[:, 1:] - YIELD_SLACK)
+    ghost = torch.where(crossing & late, gap[:, 1:], float("inf")).flatten(1).amin(-1)
+    return now, lead, ghost
 
 
 def leader_crowding(
@@ -169,16 +188,20 @@ def leader_crowding(
     reach = 0.5 * torch.linalg.vector_norm(size, dim=-1)  # half diagonal of each box
     far = (reach * valid).amax(1, keepdim=True)  # the largest box of each row
     half_width = 0.5 * size[..., 1] + cfg.lateral_margin
-    # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead.
+    # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead, and
+    # j's boxes ahead in time within its speed times the last ghost time of j's centre.
     radius = 0.5 * cfg.horizon + half_width + far + 1.0
     disc = torch.cat([lanes.origin[..., CHORDS // 2, :], radius.unsqueeze(-1)], -1)
-    pairs = candidate_pairs(agents.pose[..., :2], valid, asks, disc)
-    gap, lead = pair_gaps(pairs, agents, lanes, half_width)
+    reach = agents.speed.abs() * GHOST_TIMES[-1]
+    pairs = candidate_pairs(agents.pose[..., :2], valid, asks, disc, reach)
+    gap, lead, ghost = pair_gaps(pairs, agents, lanes, half_width)
     row, i, _ = pairs
     fi = row * n + i
     pick = lambda x: x.flatten()[fi] if isinstance(x, torch.Tensor) else x  # noqa: E731
     pair_terms = IDMTerms(*(pick(getattr(terms, f)) for f in _TERM_FIELDS))
-    ratio = crowding(pick(agents.speed), gap, lead, pair_terms, cfg.min_gap)
+    v = pick(agents.speed)
+    ratio = crowding(v, gap, lead, pair_terms, cfg.min_gap)
+    ratio = torch.maximum(ratio, crowding(v, ghost, torch.zeros_like(v), pair_terms, cfg.min_gap))
     out = torch.zeros(b * n, dtype=agents.speed.dtype, device=agents.speed.device)
     return out.scatter_reduce(0, fi, ratio, "amax").view(b, n)
 

@@ -31,6 +31,13 @@ ROUTE_POINTS = 128
 """Points per route: 317.5 m, more than 80 steps at 30 m/s plus the leader horizon."""
 CHORDS = 8
 """Straight pieces the route ahead (the leader horizon) is cut into for the corridor test."""
+GHOST_TIMES = (1.0, 2.0)
+"""s: a crossing agent's boxes this far ahead in time (constant velocity) are tested too."""
+CROSSING_SIN = 0.5
+"""An agent crosses a route when its heading is more than 30 deg off the route's (sine)."""
+YIELD_SLACK = 0.5
+"""s: an agent does not yield to a crossing agent's box of time tau when it would reach that
+point more than this before tau (at its speed now, at least 1 m/s)."""
 MAX_SIGNAL_STOPS = 4
 """Signal-controlled stop lines kept per route (the first along it)."""
 MAX_SIGN_STOPS = 2
@@ -116,14 +123,14 @@ class TypeParams:
 
 
 VEHICLE = TypeParams(
-    max_accel=1.0,
-    comfort_decel=1.5,
+    max_accel=1.5,
+    comfort_decel=2.0,
     time_headway=1.0,
     standstill_gap=2.0,
     max_decel=5.0,
     default_speed=15.0,
-    min_lookahead=4.0,
-    lookahead_time=0.6,
+    min_lookahead=3.0,
+    lookahead_time=0.3,
 )
 CYCLIST = TypeParams(
     max_accel=1.0,
@@ -186,7 +193,7 @@ class IDMConfig:
     vehicle: TypeParams | dict = VEHICLE
     cyclist: TypeParams | dict = CYCLIST
     pedestrian: TypeParams | dict = PEDESTRIAN
-    speed_spread: float = 0.1
+    speed_spread: float = 0.2
     headway_spread: float = 0.2
     lateral_accel: float = 2.5
     horizon: float = 50.0

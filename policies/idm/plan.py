@@ -77,7 +77,8 @@ def desired_speeds(
 
     An agent on a lane wants the lane's speed limit (the type's default where the map has
     none) or its highest history speed if that is higher; an agent on no lane and every
-    pedestrian its highest history speed (0 for one that stood still).
+    pedestrian its highest history speed (0 for one that stood still); an agent whose logged
+    path starts behind it (reversing) 0.
 
     Args:
         routes: the routes (``on_lane``, ``lane_speed``).
@@ -86,7 +87,8 @@ def desired_speeds(
     """
     lane = np.where(routes.lane_speed > 0, routes.lane_speed, defaults)
     moving = np.where(hist >= STILL_HISTORY_SPEED, hist, 0.0)
-    return np.where(routes.on_lane & ~pedestrian, np.maximum(hist, lane), moving)
+    speed = np.where(routes.on_lane & ~pedestrian, np.maximum(hist, lane), moving)
+    return np.where(routes.backward, 0.0, speed)
 
 
 def scene_plan(

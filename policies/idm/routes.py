@@ -51,6 +51,8 @@ class RoutePlan:
         on_lane: [A] bool, the agent starts on a lane (its desired speed then draws on the
             lane's speed limit or the type's default).
         lane_speed: [A] float64 m/s, that lane's speed limit (0: unknown or no lane).
+        backward: [A] bool, the logged path starts behind the agent (it reverses in the log,
+            out of a parking space say; the policy does not reverse, so it holds such agents).
         valid: [A] bool, the agent has a route (it is valid at some step from the start on).
     """
 
@@ -58,6 +60,7 @@ class RoutePlan:
     end: np.ndarray
     on_lane: np.ndarray
     lane_speed: np.ndarray
+    backward: np.ndarray
     valid: np.ndarray
 
 
@@ -267,17 +270,19 @@ def build_routes(
         lane[lanes_for], arc[lanes_for] = match_lanes(graph, xy[lanes_for], yaw[lanes_for])
     points = np.zeros((a, ROUTE_POINTS, 2))
     end = np.full(a, np.inf)
+    backward = np.zeros(a, bool)
     for k in np.flatnonzero(present):
         kind = int(t.object_type[k])
         vehicle = kind not in (int(ObjectType.PEDESTRIAN), int(ObjectType.CYCLIST))
         log = _log_points(scenario, k, first[k])
         agent = _Agent(xy[k], float(yaw[k]), int(lane[k]), float(arc[k]), log, vehicle)
+        backward[k] = len(log) > 1 and (log[1] - log[0]) @ [np.cos(yaw[k]), np.sin(yaw[k])] < 0
         path, end[k] = _route(agent, graph, mode, rng)
         points[k], _ = resample(path, float(yaw[k]))
     on_lane = lane >= 0
     limits = graph.speed_limit if graph.num_lanes else np.zeros(1)
     speed = np.where(on_lane, limits[np.maximum(lane, 0)], 0.0)
-    return RoutePlan(points=points, end=end, on_lane=on_lane, lane_speed=speed, valid=present)
+    return RoutePlan(points, end, on_lane, speed, backward, present)
 
 
 __all__ = [
