@@ -20,7 +20,14 @@ from dataclasses import dataclass
 
 import torch
 
-from policies.idm.params import CHORDS, CROSSING_SIN, GHOST_TIMES, YIELD_SLACK, IDMConfig
+from policies.idm.params import (
+    CHORDS,
+    CROSSING_SIN,
+    GHOST_TIMES,
+    MOVING_SPEED,
+    YIELD_SLACK,
+    IDMConfig,
+)
 from policies.idm.tracking import points_at
 from tbsim_env.sim.idm import IDMTerms, crowding
 from tbsim_env.torch_utils import valid_order
@@ -28,13 +35,13 @@ from tbsim_env.torch_utils import valid_order
 
 @dataclass(frozen=True)
 class Corridor:
-    """The route ahead of each agent as ``CHORDS`` straight pieces.
+    """The route ahead of each of L agents as ``CHORDS`` straight pieces.
 
     Attributes:
-        origin: [B, N, M, 2] m, chord starts.
-        direction: [B, N, M, 2] unit chord directions.
-        length: [B, N, M] m.
-        offset: [B, N, M] m, arc length from the agent's progress to each chord's start.
+        origin: [L, M, 2] m, chord starts.
+        direction: [L, M, 2] unit chord directions.
+        length: [L, M] m.
+        offset: [L, M] m, arc length from the agent's progress to each chord's start.
     """
 
     origin: torch.Tensor
@@ -43,19 +50,21 @@ class Corridor:
     offset: torch.Tensor
 
 
-def corridor(route: torch.Tensor, progress: torch.Tensor, horizon: float) -> Corridor:
-    """The chords of the next ``horizon`` metres of every route.
+def corridor(
+    route: torch.Tensor, agent: torch.Tensor, progress: torch.Tensor, horizon: torch.Tensor
+) -> Corridor:
+    """The chords of the next ``horizon`` metres of the agents' routes.
 
     Args:
-        route: [B, N, P, 2] m; progress: [B, N] m; horizon: m.
+        route: [B, N, P, 2] m; agent: [L] int64 flat slot indices; progress: [L] m;
+        horizon: [L] m.
     """
-    steps = torch.linspace(0.0, horizon, CHORDS + 1, device=route.device)
-    pts = points_at(route, progress.unsqueeze(-1) + steps)  # [B, N, M + 1, 2]
-    vec = pts[..., 1:, :] - pts[..., :-1, :]
-    length = torch.linalg.vector_norm(vec, dim=-1)
+    steps = horizon.unsqueeze(-1) * torch.linspace(0.0, 1.0, CHORDS + 1, device=route.device)
+    pts = points_at(route, agent, progress.unsqueeze(-1) + steps)  # [L, M + 1, 2]
+    vec = pts[:, 1:] - pts[:, :-1]
+    length = torch.hypot(vec[..., 0], vec[..., 1])
     direction = vec / length.clamp_min(1e-6).unsqueeze(-1)
-    offset = steps[:-1].expand_as(length)
-    return Corridor(pts[..., :-1, :], direction, length, offset)
+    return Corridor(pts[:, :-1], direction, length, steps[:, :-1])
 
 
 def candidate_pairs(
@@ -76,20 +85,23 @@ def candidate_pairs(
     Returns:
         (row, i, j), three [Q] int64 tensors of batch rows and agent slots.
     """
-    cols = valid_order(valid) if valid.device.type == "cpu" else None
-    if cols is None:  # every slot (a GPU: no host sync for the counts)
+    if valid.device.type == "cpu":  # each row's valid (asking) slots first
+        cols, asks = valid_order(valid), valid_order(query)
+    else:  # every slot (a GPU: no host sync for the counts)
         cols = torch.arange(valid.shape[1], device=valid.device).expand_as(valid)
-    take = lambda x: x.gather(1, cols)  # noqa: E731  [B, C]
-    x, y, ok, q = take(xy[..., 0]), take(xy[..., 1]), take(valid), take(query)
-    cx, cy, r = (take(disc[..., k]) for k in range(3))
-    dx = x.unsqueeze(1) - cx.unsqueeze(2)  # [B, C (i), C (j)]
+        asks = cols
+    take = lambda x, c: x.gather(1, c)  # noqa: E731  [B, C]
+    x, y, ok, reach = (take(v, cols) for v in (xy[..., 0], xy[..., 1], valid, reach))
+    q = take(query, asks)
+    cx, cy, r = (take(disc[..., k], asks) for k in range(3))
+    dx = x.unsqueeze(1) - cx.unsqueeze(2)  # [B, Ci, Cj]
     dy = y.unsqueeze(1) - cy.unsqueeze(2)
-    r = r.unsqueeze(2) + take(reach).unsqueeze(1)
-    near = (dx * dx + dy * dy) < r * r
-    near = near & ok.unsqueeze(1) & q.unsqueeze(2)
-    near.diagonal(dim1=1, dim2=2).zero_()
+    r = r.unsqueeze(2) + reach.unsqueeze(1)
+    near = (dx * dx + dy * dy < r * r) & ok.unsqueeze(1) & q.unsqueeze(2)
     row, qi, cj = near.nonzero(as_tuple=True)
-    return row, cols[row, qi], cols[row, cj]
+    i, j = asks[row, qi], cols[row, cj]
+    keep = i != j
+    return row[keep], i[keep], j[keep]
 
 
 @dataclass(frozen=True)
@@ -107,106 +119,190 @@ class Agents:
     size: torch.Tensor
 
 
-def pair_gaps(
-    pairs: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-    agents: Agents,
-    lanes: Corridor,
-    half_width: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Bumper gap along i's route to j and j's speed along it, and the gap to where j will
-    cross i's route, of every pair.
+def _others(agents: Agents, fj: torch.Tensor) -> torch.Tensor:
+    """[Q, 7] (x, y, cos yaw, sin yaw, speed, length, width) of the slots ``fj`` [Q]."""
+    yaw = agents.pose[..., 2]
+    cols = [*agents.pose[..., :2].unbind(-1), yaw.cos(), yaw.sin(), agents.speed]
+    return torch.stack([*cols, *agents.size.unbind(-1)], -1).flatten(0, 1)[fj]
 
-    Besides j's box now, its boxes ``GHOST_TIMES`` ahead (constant velocity) are tested when
-    j crosses i's route (more than ``CROSSING_ANGLE`` off the route's direction): such a box
-    in the corridor is a standing obstacle for i unless i would be past it well before j
-    (``YIELD_SLACK``), so that i yields to crossing traffic instead of meeting it.
+
+def _near_corridor(chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor) -> torch.Tensor:
+    """[Q] bool: j's path over the last ghost time comes near i's corridor: within one of
+    the discs around the corridor's quarters (chords 2k, 2k + 1 lie within their length of
+    the start of chord 2k + 1) widened by the corridor's and j's half sizes.
 
     Args:
-        pairs: (row, i, j) [Q] each.
-        agents: every slot's pose, speed and size.
-        lanes: every slot's corridor.
-        half_width: [B, N] m, half the corridor's width of each agent (half its width plus
-            the margin).
+        chords: [Q, M, 6] i's chords (origin x, y, direction x, y, length, offset).
+        other: [Q, 7] j (``_others``).
+        mine: [Q, 3] i's (length, half corridor width, speed).
+    """
+    centre = chords[:, 1::2, :2]  # [Q, M / 2, 2]
+    radius = chords[:, 0::2, 4] + mine[:, 1:2]
+    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))
+    travel = vj * GHOST_TIMES[-1]  # j's centre moves along (cj, sj) by this
+    rx, ry = centre[..., 0] - xj, centre[..., 1] - yj
+    t = (rx * cj + ry * sj).clamp(min=torch.zeros_like(travel), max=travel.clamp_min(0.0))
+    dx, dy = rx - t * cj, ry - t * sj
+    reach = radius + 0.5 * torch.sqrt(lj * lj + wj * wj)
+    return (dx * dx + dy * dy < reach * reach).any(-1)
+
+
+def _chord_gaps(
+    chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor, ghosts: tuple[float, ...]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The corridor test of j's box now and at the ``ghosts`` times ahead (see ``pair_gaps``).
+
+    Args:
+        chords, other, mine: as ``_near_corridor`` ([Q, M, 6], [Q, 7], [Q, 3]).
+        ghosts: s, the times ahead tested (may be empty).
 
     Returns:
-        (gap [Q] m, +inf where j is not in i's corridor; lead speed [Q] m/s, >= 0; gap [Q] m
-        to j's crossing, +inf where none is yielded to).
+        (gap now [Q] m, lead speed [Q] m/s, gap to the crossing yielded to [Q] m).
     """
-    row, i, j = pairs
-    n = agents.speed.shape[1]
-    fi, fj = row * n + i, row * n + j
-    yaw = agents.pose[..., 2]
-    own = torch.stack([agents.size[..., 0], half_width, agents.speed], -1)
-    own = own.flatten(0, 1)[fi].unsqueeze(-1)  # [Q, 3, 1]
-    cols = [*agents.pose[..., :2].unbind(-1), yaw.cos(), yaw.sin(), agents.speed]
-    other = torch.stack([*cols, *agents.size.unbind(-1)], -1).flatten(0, 1)[fj]  # [Q, 7]
-    chords = torch.cat(
-        [lanes.origin, lanes.direction, lanes.length.unsqueeze(-1), lanes.offset.unsqueeze(-1)], -1
-    ).flatten(0, 1)[fi]  # [Q, M, 6]
     ox, oy, ux, uy, length, offset = (c.unsqueeze(1) for c in chords.unbind(-1))  # [Q, 1, M]
     xj, yj, cj, sj, vj, lj, wj = (c.view(-1, 1, 1) for c in other.unbind(-1))
-    tau = torch.tensor((0.0, *GHOST_TIMES), device=xj.device).view(1, -1, 1)  # [1, G, 1]
+    mine = mine.unsqueeze(-1)  # [Q, 3, 1]
+    tau = torch.tensor((0.0, *ghosts), device=xj.device).view(1, -1, 1)  # [1, G, 1]
     dx = xj + (vj * cj) * tau - ox  # [Q, G, M]
     dy = yj + (vj * sj) * tau - oy
     along, across = dx * ux + dy * uy, dy * ux - dx * uy
     cos_rel, sin_rel = (cj * ux + sj * uy), (sj * ux - cj * uy)  # [Q, 1, M]
     half_along = 0.5 * (lj * cos_rel.abs() + wj * sin_rel.abs())
     half_across = 0.5 * (lj * sin_rel.abs() + wj * cos_rel.abs())
-    inside = (along >= 0) & (along < length) & (across.abs() < own[:, 1:2] + half_across)
-    gap = torch.where(inside, offset + along - half_along - 0.5 * own[:, 0:1], float("inf"))
+    inside = (along >= 0) & (along < length) & (across.abs() < mine[:, 1:2] + half_across)
+    gap = torch.where(inside, offset + along - half_along - 0.5 * mine[:, 0:1], float("inf"))
     now, m = gap[:, 0].min(-1)
     lead = (vj[:, 0, 0] * cos_rel[:, 0].gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
+    if not ghosts:
+        return now, lead, torch.full_like(now, float("inf"))
     crossing = sin_rel.abs() > CROSSING_SIN
-    late = gap[:, 1:] >= own[:, 2:3].clamp_min(1.0) * (tau[:, 1:] - YIELD_SLACK)
+    late = gap[:, 1:] >= mine[:, 2:3].clamp_min(1.0) * (tau[:, 1:] - YIELD_SLACK)
     ghost = torch.where(crossing & late, gap[:, 1:], float("inf")).flatten(1).amin(-1)
     return now, lead, ghost
 
 
-def leader_crowding(
+def pair_gaps(
+    pairs: tuple[torch.Tensor, torch.Tensor],
     agents: Agents,
     lanes: Corridor,
-    query: tuple[torch.Tensor, torch.Tensor],
-    terms: IDMTerms,
-    cfg: IDMConfig,
-) -> torch.Tensor:
-    """The IDM ``crowding`` (s* / s)^2 of every agent's most constraining leader (0: none).
+    own: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bumper gap along i's route to j and j's speed along it, and the gap to where j will
+    cross i's route, of every pair.
+
+    Besides j's box now, its boxes ``GHOST_TIMES`` ahead (constant velocity) are tested when
+    j moves and crosses i's route (more than 30 deg off the route's direction,
+    ``CROSSING_SIN``): such a box in the corridor is a standing obstacle for i unless i would
+    be past it well before j (``YIELD_SLACK``), so that i yields to crossing traffic instead
+    of meeting it. Pairs whose j comes nowhere near the corridor are left out first.
 
     Args:
-        agents: every slot's pose, speed and size (valid or not).
-        lanes: every slot's corridor (``corridor`` over ``cfg.horizon``).
-        query: (valid [B, N] bool: agents that can lead; asks [B, N] bool: agents that look
-            for leaders, a subset).
-        terms: IDM parameters, [B, N] tensors (or floats).
-        cfg: the corridor's margin, the horizon and the smallest gap.
+        pairs: (i [Q] row of the L agents, j [Q] flat slot index b * N + n).
+        agents: every slot's pose, speed and size.
+        lanes: the L agents' corridors.
+        own: [L, 3] (length m, half the corridor's width m, speed m/s) of the L agents.
 
     Returns:
-        [B, N] >= 0.
+        (gap [Q] m, +inf where j is not in i's corridor; lead speed [Q] m/s, >= 0; gap [Q] m
+        to j's crossing, +inf where none is yielded to).
     """
-    valid, asks = query
+    li, fj = pairs
+    other = _others(agents, fj)  # [Q, 7]
+    table = torch.cat(
+        [lanes.origin, lanes.direction, lanes.length.unsqueeze(-1), lanes.offset.unsqueeze(-1)], -1
+    )
+    chords, mine = table[li], own[li]  # [Q, M, 6], [Q, 3]
+    gap = torch.full_like(other[:, 0], float("inf"))
+    lead, ghost = torch.zeros_like(gap), gap.clone()
+    near = _near_corridor(chords, other, mine)
+    moving = other[:, 4].abs() > MOVING_SPEED
+    for part, times in ((near & ~moving, ()), (near & moving, GHOST_TIMES)):
+        k = part.nonzero()[:, 0]
+        if k.numel():
+            out = _chord_gaps(chords[k], other[k], mine[k], times)
+            for dst, src in zip((gap, lead, ghost), out):
+                dst[k] = src
+    return gap, lead, ghost
+
+
+@dataclass(frozen=True)
+class Leader:
+    """The most constraining leader of each of L followers.
+
+    Attributes:
+        gap: [L] m bumper gap along the route to the leader (+inf: none).
+        speed: [L] m/s, the leader's speed along the route.
+        crossing: [L] m to where a crossing agent will be that the follower yields to
+            (+inf: none).
+    """
+
+    gap: torch.Tensor
+    speed: torch.Tensor
+    crossing: torch.Tensor
+
+
+def find_leaders(
+    agents: Agents,
+    followers: tuple[torch.Tensor, torch.Tensor],
+    lanes: Corridor,
+    terms: IDMTerms,
+    cfg: IDMConfig,
+) -> Leader:
+    """Each follower's most constraining leader: of the agents in its corridor, the one whose
+    IDM ``crowding`` (s* / s)^2 is largest; and the nearest crossing it yields to.
+
+    Args:
+        agents: every slot's pose, speed and size (leaders: the slots with ``valid``).
+        followers: (valid [B, N] bool: the slots that can lead; agent [L] int64 flat slot
+            indices of the agents that look for leaders, valid ones).
+        lanes: the L followers' corridors (``corridor``).
+        terms: the L followers' IDM parameters ([L] tensors or floats).
+        cfg: the corridor's margin and the smallest gap.
+    """
+    valid, agent = followers
     b, n = valid.shape
+    flat_size = agents.size.flatten(0, 1)
+    half_width = 0.5 * flat_size[agent, 1] + cfg.lateral_margin
+    # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead; j's
+    # boxes (now and ahead in time) within its half diagonal plus its travel of its centre.
+    horizon = lanes.offset[:, -1] * CHORDS / (CHORDS - 1)
+    radius = 0.5 * horizon + half_width + 0.5
+    disc = torch.zeros(b * n, 3, device=valid.device, dtype=agents.speed.dtype)
+    disc[agent] = torch.cat([lanes.origin[:, CHORDS // 2], radius.unsqueeze(-1)], -1)
+    asks = torch.zeros(b * n, dtype=torch.bool, device=valid.device)
+    asks[agent] = True
     size = agents.size
-    reach = 0.5 * torch.linalg.vector_norm(size, dim=-1)  # half diagonal of each box
-    far = (reach * valid).amax(1, keepdim=True)  # the largest box of each row
-    half_width = 0.5 * size[..., 1] + cfg.lateral_margin
-    # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead, and
-    # j's boxes ahead in time within its speed times the last ghost time of j's centre.
-    radius = 0.5 * cfg.horizon + half_width + far + 1.0
-    disc = torch.cat([lanes.origin[..., CHORDS // 2, :], radius.unsqueeze(-1)], -1)
-    reach = agents.speed.abs() * GHOST_TIMES[-1]
-    pairs = candidate_pairs(agents.pose[..., :2], valid, asks, disc, reach)
-    gap, lead, ghost = pair_gaps(pairs, agents, lanes, half_width)
-    row, i, _ = pairs
-    fi = row * n + i
-    pick = lambda x: x.flatten()[fi] if isinstance(x, torch.Tensor) else x  # noqa: E731
+    reach = 0.5 * torch.linalg.vector_norm(size, dim=-1) + agents.speed.abs() * GHOST_TIMES[-1]
+    discs = (asks.view(b, n), disc.view(b, n, 3), reach)
+    row, i, j = candidate_pairs(agents.pose[..., :2], valid, *discs)
+    index = torch.full((b * n,), -1, dtype=torch.long, device=valid.device)
+    index[agent] = torch.arange(agent.shape[0], device=valid.device)
+    li = index[row * n + i]
+    speed = agents.speed.flatten()[agent]
+    own = torch.stack([flat_size[agent, 0], half_width, speed], -1)
+    gap, lead, ghost = pair_gaps((li, row * n + j), agents, lanes, own)
+    pick = lambda x: x[li] if isinstance(x, torch.Tensor) else x  # noqa: E731
     pair_terms = IDMTerms(*(pick(getattr(terms, f)) for f in _TERM_FIELDS))
-    v = pick(agents.speed)
-    ratio = crowding(v, gap, lead, pair_terms, cfg.min_gap)
-    ratio = torch.maximum(ratio, crowding(v, ghost, torch.zeros_like(v), pair_terms, cfg.min_gap))
-    out = torch.zeros(b * n, dtype=agents.speed.dtype, device=agents.speed.device)
-    return out.scatter_reduce(0, fi, ratio, "amax").view(b, n)
+    ratio = crowding(speed[li], gap, lead, pair_terms, cfg.min_gap)
+    worst = torch.full_like(speed, -1.0).scatter_reduce(0, li, ratio, "amax")
+    top = (ratio >= worst[li]) & torch.isfinite(gap)
+    inf = torch.full_like(speed, float("inf"))
+    return Leader(
+        gap=inf.index_put((li[top],), gap[top]),
+        speed=torch.zeros_like(speed).index_put((li[top],), lead[top]),
+        crossing=inf.scatter_reduce(0, li, ghost, "amin"),
+    )
 
 
 _TERM_FIELDS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "exponent")
 
 
-__all__ = ["Agents", "Corridor", "candidate_pairs", "corridor", "leader_crowding", "pair_gaps"]
+__all__ = [
+    "Agents",
+    "Corridor",
+    "Leader",
+    "candidate_pairs",
+    "corridor",
+    "find_leaders",
+    "pair_gaps",
+]

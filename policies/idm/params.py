@@ -31,6 +31,16 @@ ROUTE_POINTS = 128
 """Points per route: 317.5 m, more than 80 steps at 30 m/s plus the leader horizon."""
 CHORDS = 8
 """Straight pieces the route ahead (the leader horizon) is cut into for the corridor test."""
+HORIZON_BASE = 10.0
+"""m: the leader horizon of a standing agent; it grows by ``HORIZON_TIME`` per m/s of speed
+up to ``IDMConfig.horizon``."""
+HORIZON_TIME = 3.0
+"""s (see ``HORIZON_BASE``): at 10 m/s a 40 m horizon, where a standing obstacle already
+takes half the IDM's acceleration."""
+LEADER_PERIOD = 2
+"""Steps between two leader searches of an agent (0.2 s, a reaction time; half the agents
+search each step): in between, the gap to the leader found is carried on at the speeds
+then."""
 GHOST_TIMES = (1.0, 2.0)
 """s: a crossing agent's boxes this far ahead in time (constant velocity) are tested too."""
 CROSSING_SIN = 0.5
@@ -181,7 +191,8 @@ class IDMConfig:
         headway_spread: likewise for its time headway (in [0, 1)).
         lateral_accel: m/s^2 (> 0), the speed in a bend of the path is capped at
             sqrt(lateral_accel / curvature), approached with comfortable braking.
-        horizon: m (> 0), how far ahead along the path leaders are looked for.
+        horizon: m (> 0), how far ahead along the path leaders are looked for at most (less
+            at low speed: ``HORIZON_BASE`` + ``HORIZON_TIME`` x speed).
         lateral_margin: m (>= 0) added on each side of the agent's width to its corridor.
         min_gap: m (> 0), smaller gaps (and overlaps) count as this one.
         stop_gap: m (>= 0), the gap kept to a stop line (red light, stop sign, crosswalk).

@@ -25,9 +25,12 @@ import numpy as np
 import torch
 
 from policies.idm.lanes import LaneGraph, lane_graph
-from policies.idm.leaders import Agents, corridor, leader_crowding
+from policies.idm.leaders import Agents, Leader, corridor, find_leaders
 from policies.idm.params import (
     CROSSWALK_VERTICES,
+    HORIZON_BASE,
+    HORIZON_TIME,
+    LEADER_PERIOD,
     ROUTE_SPACING,
     SCENE_CROSSWALKS,
     IDMConfig,
@@ -48,6 +51,7 @@ from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.idm import MIN_DESIRED_SPEED, IDMTerms, acceleration, crowding
 from tbsim_env.sim.state import SimState
 
+_TERMS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "exponent")
 BRANCH_VARIANTS = 4
 """Route variants per scene: a rollout draws one (its random fork branches), so that a scene's
 routes are built at most this many times however many rollouts start from it."""
@@ -73,6 +77,10 @@ class IDMState:
         sign_arc: [B, N, Kt] float32 m (+inf padding).
         sign_stopped: [B, N, Kt] bool, the full stop at that line is made.
         sign_cleared: [B, N, Kt] bool, and the junction was clear after it: the agent goes.
+        lead_gap: [B, N] float32 m, bumper gap to the leader of the last search, carried on
+            since (+inf: none); lead_speed: [B, N] float32 m/s, that leader's speed.
+        yield_gap: [B, N] float32 m to the crossing yielded to (+inf: none), likewise.
+        lead_known: [B, N] bool, the agent has searched for leaders since the start.
         crosswalk_arc: [B, N, Kc] float32 m (+inf padding); crosswalk_row: [B, N, Kc] int64
             row of ``crosswalks`` (-1 padding).
         crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
@@ -91,6 +99,10 @@ class IDMState:
     sign_arc: torch.Tensor
     sign_stopped: torch.Tensor
     sign_cleared: torch.Tensor
+    lead_gap: torch.Tensor
+    lead_speed: torch.Tensor
+    yield_gap: torch.Tensor
+    lead_known: torch.Tensor
     crosswalk_arc: torch.Tensor
     crosswalk_row: torch.Tensor
     crosswalks: torch.Tensor
@@ -197,10 +209,15 @@ class IDMPolicy:
         headway = PARAM_FIELDS.index("time_headway")
         f["params"][..., headway] *= 1.0 + cfg.headway_spread * u[1]
         stops = f["sign_arc"].shape
+        inf = torch.full((b, n), float("inf"), device=dev)
         return IDMState(
             progress=torch.zeros(b, n, device=dev),
             sign_stopped=torch.zeros(stops, dtype=torch.bool, device=dev),
             sign_cleared=torch.zeros(stops, dtype=torch.bool, device=dev),
+            lead_gap=inf,
+            lead_speed=torch.zeros(b, n, device=dev),
+            yield_gap=inf.clone(),
+            lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
             **f,
         )
 
@@ -212,62 +229,118 @@ class IDMPolicy:
         slot has no route or is absent) and the next policy state."""
         del generator  # everything random was drawn in ``initial_state``
         ps, cfg = policy_state, self.config
-        pose, speed = state.pose, state.speed
-        live = state.valid & ps.valid
-        progress = advance_progress(ps.route, ps.progress, pose[..., :2])
-        progress = torch.where(live, progress, ps.progress)
-        a, b, headway, s0, delta, max_decel, look0, look_t = ps.params.unbind(-1)
-        terms = IDMTerms(a, b, headway, s0, delta)
-        stand, stopped, cleared = self._stand_distance(state, ps, progress)
+        b, n = state.batch_size, state.num_agents
+        agent = (state.valid & ps.valid).flatten().nonzero()[:, 0]  # [L] the present agents
+        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
+        progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])
+        a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
+        terms = IDMTerms(a, decel, headway, s0, delta)
+        stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
         crowd = crowding(speed, stand + s0, torch.zeros_like(speed), terms, cfg.min_gap)
-        size = state.agents.size[..., :2]
-        lanes = corridor(ps.route, progress, cfg.horizon)
-        agents = Agents(pose, speed, size)
-        lead = leader_crowding(agents, lanes, (state.valid, live), terms, cfg)
-        crowd = torch.maximum(crowd, lead)
-        idx = (progress / ROUTE_SPACING).round().long().clamp(0, ps.speed_cap.shape[-1] - 1)
-        v0 = torch.minimum(ps.desired_speed, ps.speed_cap.gather(-1, idx.unsqueeze(-1))[..., 0])
-        acc = acceleration(speed, v0, crowd, terms)
-        acc = torch.where(ps.desired_speed < MIN_DESIRED_SPEED, -speed / DT, acc)
+        desired = take(ps.desired_speed)
+        follow = desired >= MIN_DESIRED_SPEED  # held agents need no leader
+        leader, known = self._leaders(state, ps, agent, (progress, follow), terms)
+        zero = torch.zeros_like(speed)
+        crowd = torch.maximum(crowd, crowding(speed, leader.gap, leader.speed, terms, cfg.min_gap))
+        crowd = torch.maximum(crowd, crowding(speed, leader.crossing, zero, terms, cfg.min_gap))
+        cap_index = (progress / ROUTE_SPACING).round().long().clamp(0, ps.speed_cap.shape[-1] - 1)
+        cap = ps.speed_cap.view(-1).index_select(0, agent * ps.speed_cap.shape[-1] + cap_index)
+        acc = acceleration(speed, torch.minimum(desired, cap), crowd, terms)
+        acc = torch.where(follow, acc, -speed / DT)
         acc = torch.maximum(torch.minimum(acc, a), -max_decel)
         acc = torch.maximum(acc, -speed / DT)  # brake to a stop, never into reverse
         lookahead = look0 + look_t * speed.clamp_min(0.0)
-        curvature = pursuit_curvature(ps.route, progress, pose, lookahead)
+        curvature = pursuit_curvature(ps.route, agent, progress, pose, lookahead)
         yaw_rate = curvature * (speed + 0.5 * DT * acc).clamp_min(0.0)
-        action = torch.stack([acc, yaw_rate], -1) * live.unsqueeze(-1)
-        nxt = dataclasses.replace(ps, progress=progress, sign_stopped=stopped, sign_cleared=cleared)
+        action = torch.zeros(b * n, 2, dtype=pose.dtype, device=pose.device)
+        action = action.index_copy(0, agent, torch.stack([acc, yaw_rate], -1)).view(b, n, 2)
+        put = lambda x, v: x.flatten(0, 1).index_copy(0, agent, v).view_as(x)  # noqa: E731
+        nxt = dataclasses.replace(
+            ps,
+            progress=put(ps.progress, progress),
+            sign_stopped=put(ps.sign_stopped, stopped),
+            sign_cleared=put(ps.sign_cleared, cleared),
+            lead_gap=put(ps.lead_gap, leader.gap),
+            lead_speed=put(ps.lead_speed, leader.speed),
+            yield_gap=put(ps.yield_gap, leader.crossing),
+            lead_known=put(ps.lead_known, known),
+        )
         return action, nxt
 
+    def _leaders(
+        self,
+        state: SimState,
+        ps: IDMState,
+        agent: torch.Tensor,
+        now: tuple[torch.Tensor, torch.Tensor],
+        terms: IDMTerms,
+    ) -> tuple[Leader, torch.Tensor]:
+        """The L agents' leaders: searched anew (``leaders.find_leaders``) for the following
+        agents whose turn it is (``LEADER_PERIOD``) or that never searched, carried on from
+        the last search for the others. Returns (leaders, ``lead_known`` [L])."""
+        progress, follow = now
+        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        speed, n = take(state.speed), state.num_agents
+        gap = take(ps.lead_gap) - (speed - take(ps.lead_speed)) * DT
+        lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
+        known = take(ps.lead_known)
+        turn = (agent % n + state.step.index_select(0, agent // n)) % LEADER_PERIOD == 0
+        search = (follow & (turn | ~known)).nonzero()[:, 0]
+        if search.numel() == 0:
+            return lead, known
+        speed_now = speed.index_select(0, search).clamp_min(0.0)
+        horizon = (HORIZON_BASE + HORIZON_TIME * speed_now).clamp_max(self.config.horizon)
+        ask = agent.index_select(0, search)
+        lanes = corridor(ps.route, ask, progress.index_select(0, search), horizon)
+        agents = Agents(state.pose, state.speed, state.agents.size[..., :2])
+        sub = IDMTerms(*(getattr(terms, f).index_select(0, search) for f in _TERMS))
+        found = find_leaders(agents, (state.valid, ask), lanes, sub, self.config)
+        lead = Leader(
+            gap=lead.gap.index_copy(0, search, found.gap),
+            speed=lead.speed.index_copy(0, search, found.speed),
+            crossing=lead.crossing.index_copy(0, search, found.crossing),
+        )
+        return lead, known.index_fill(0, search, True)
+
     def _stand_distance(
-        self, state: SimState, ps: IDMState, progress: torch.Tensor
+        self,
+        state: SimState,
+        ps: IDMState,
+        agent: torch.Tensor,
+        where: tuple[torch.Tensor, torch.Tensor],
     ) -> tuple[torch.Tensor, ...]:
-        """(distance to stand [B, N] m: the nearest of the stop lines that hold the agent and
-        the end of its route; stop-sign flags ``sign_stopped``, ``sign_cleared`` [B, N, Kt])."""
+        """(distance to stand [L] m: the nearest of the stop lines that hold the agent and the
+        end of its route; stop-sign flags ``sign_stopped``, ``sign_cleared`` [L, Kt]) of the L
+        agents ``agent`` at progress [L] with sizes [L, 3]."""
         cfg = self.config
-        speed = state.speed
-        front = (progress + 0.5 * state.agents.size[..., 0]).unsqueeze(-1) + cfg.stop_gap
-        comfort = ps.params[..., PARAM_FIELDS.index("comfort_decel")]
-        d_signal = signal_distance(
-            ps.signal_arc - front, ps.signal_row, state.tl_state_now(), speed, comfort
-        )
-        sign_gap = ps.sign_arc - front
-        stopped = sign_progress(sign_gap, ps.sign_stopped, ps.sign_cleared, speed)
-        waiting = stopped & ~ps.sign_cleared & torch.isfinite(ps.sign_arc)
-        xy = state.pose[..., :2]
-        clear = junction_clear(
-            waiting,
-            line_points(ps.route, ps.sign_arc),
-            (xy, speed, state.valid),
-            cfg.junction_radius,
-        )
-        cleared = ps.sign_cleared | (waiting & clear)
+        progress, size = where
+        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        speed = take(state.speed)
+        row = agent // state.num_agents
+        front = (progress + 0.5 * size[:, 0]).unsqueeze(-1) + cfg.stop_gap
+        comfort = take(ps.params)[:, PARAM_FIELDS.index("comfort_decel")]
+        signal = (take(ps.signal_arc) - front, (row, take(ps.signal_row)))
+        d_signal = signal_distance(*signal, state.tl_state_now(), speed, comfort)
+        sign_arc = take(ps.sign_arc)
+        sign_gap = sign_arc - front
+        cleared_before = take(ps.sign_cleared)
+        stopped = sign_progress(sign_gap, take(ps.sign_stopped), cleared_before, speed)
+        waiting = stopped & ~cleared_before & torch.isfinite(sign_arc)
+        line = line_points(ps.route, agent, sign_arc)
+        others = (state.pose[..., :2], state.speed, state.valid)
+        clear = junction_clear(waiting, line, agent, others, cfg.junction_radius)
+        cleared = cleared_before | (waiting & clear)
         d_sign = sign_distance(sign_gap, cleared)
         walker = state.valid & (state.agents.object_type == int(ObjectType.PEDESTRIAN))
-        occupied = crosswalks_occupied(ps.crosswalks, walker.nonzero(as_tuple=True), xy)
-        d_cross = crosswalk_distance(ps.crosswalk_arc - front, ps.crosswalk_row, occupied)
+        used = max(int(ps.crosswalk_row.max()) + 1, 1)  # the polygons some route crosses
+        polygons = ps.crosswalks[:, :used]
+        occupied = crosswalks_occupied(polygons, walker.nonzero(as_tuple=True), others[0])
+        cross = (take(ps.crosswalk_arc) - front, (row, take(ps.crosswalk_row)))
+        d_cross = crosswalk_distance(*cross, occupied)
         lines = torch.minimum(torch.minimum(d_signal, d_sign), d_cross)
-        lines = torch.where(ps.obeys, lines, float("inf"))
-        return torch.minimum(lines, ps.end - progress), stopped, cleared
+        lines = torch.where(take(ps.obeys), lines, float("inf"))
+        return torch.minimum(lines, take(ps.end) - progress), stopped, cleared
 
 
 __all__ = ["BRANCH_VARIANTS", "IDMPolicy", "IDMState"]

@@ -1,7 +1,7 @@
 """Where an IDM agent must stand (torch, per step): red and yellow signals, stop signs (a
 full stop at the line, then go when the junction is clear) and crosswalks with a pedestrian
-on them. Each gives a *distance to stand*: metres the agent's front bumper (the centre, for
-the end of a route) may still travel, +inf where nothing holds it.
+on them. Each gives a *distance to stand*: metres the agent's front bumper may still travel,
++inf where nothing holds it. Functions take L agents (``tracking``): [L, K] per stop line.
 """
 
 from __future__ import annotations
@@ -13,33 +13,40 @@ from policies.idm.tracking import points_at
 from tbsim_env.constants import TLState
 
 
+def _per_agent(table: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:
+    """``table[row[l], col[l, k]]`` [L, K] of a [B, S] table (``col`` -1 reads column 0)."""
+    s = table.shape[1]
+    flat = row.unsqueeze(-1) * s + col.clamp_min(0)
+    return table.flatten().index_select(0, flat.flatten()).view_as(col)
+
+
 def signal_distance(
     line_gap: torch.Tensor,
-    row: torch.Tensor,
+    line: tuple[torch.Tensor, torch.Tensor],
     tl: tuple[torch.Tensor, torch.Tensor],
     speed: torch.Tensor,
     comfort_decel: torch.Tensor,
 ) -> torch.Tensor:
     """Distance to stand before the first signal stop line that holds the agent.
 
-    A stop line holds the agent while it lies ahead of the front bumper and its light is red,
-    or yellow and the agent can stop before it braking at no more than twice its comfortable
-    deceleration (else it goes on through the yellow).
+    A stop line holds the agent while it lies ahead and its light is red, or yellow and the
+    agent can stop before it braking at no more than twice its comfortable deceleration (else
+    it goes on through the yellow).
 
     Args:
-        line_gap: [B, N, K] m from the front bumper to each stop line (+inf padding).
-        row: [B, N, K] int64 signal row of each line (-1 padding).
+        line_gap: [L, K] m from the front bumper (plus the stop gap) to each stop line.
+        line: (batch row [L] int64 of each agent, signal row [L, K] int64 of each line,
+            -1 padding).
         tl: (state [B, S] ``TLState``, valid [B, S] bool) of the signals now.
-        speed: [B, N] m/s.
-        comfort_decel: [B, N] m/s^2.
+        speed: [L] m/s.
+        comfort_decel: [L] m/s^2.
 
     Returns:
-        [B, N] m.
+        [L] m.
     """
-    state, valid = tl
-    idx = row.clamp_min(0).flatten(1)
-    light = state.gather(1, idx).view_as(row)
-    known = valid.gather(1, idx).view_as(row) & (row >= 0)
+    row, sig = line
+    light = _per_agent(tl[0], row, sig)
+    known = _per_agent(tl[1], row, sig) & (sig >= 0)
     ahead = line_gap > 0.0
     need = speed.unsqueeze(-1).clamp_min(0.0) ** 2 / (2.0 * line_gap.clamp_min(0.1))
     can_stop = need <= 2.0 * comfort_decel.unsqueeze(-1)
@@ -52,7 +59,7 @@ def signal_distance(
 def sign_progress(
     line_gap: torch.Tensor, stopped: torch.Tensor, cleared: torch.Tensor, speed: torch.Tensor
 ) -> torch.Tensor:
-    """[B, N, K] bool: the stop-sign lines the agent has now made its full stop at (slower
+    """[L, K] bool: the stop-sign lines the agent has now made its full stop at (slower
     than ``STOPPED_SPEED`` within ``SIGN_STOP_ZONE`` of the line), or had before."""
     close = (line_gap > -1.0) & (line_gap < SIGN_STOP_ZONE)
     return stopped | (close & (speed.unsqueeze(-1).abs() < STOPPED_SPEED)) | cleared
@@ -61,33 +68,37 @@ def sign_progress(
 def junction_clear(
     waiting: torch.Tensor,
     line: torch.Tensor,
-    agents: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    agent: torch.Tensor,
+    others: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     radius: float,
 ) -> torch.Tensor:
-    """[B, N, K] bool: no other agent moves (faster than ``MOVING_SPEED``) within ``radius``
+    """[L, K] bool: no other agent moves (faster than ``MOVING_SPEED``) within ``radius``
     of the stop lines where agents wait (False elsewhere).
 
     Args:
-        waiting: [B, N, K] bool, stopped at the line and not yet cleared.
-        line: [B, N, K, 2] m, the stop lines.
-        agents: (xy [B, N, 2] m, speed [B, N] m/s, valid [B, N] bool) of every slot.
+        waiting: [L, K] bool, stopped at the line and not yet cleared.
+        line: [L, K, 2] m, the stop lines.
+        agent: [L] int64 flat slot indices (b * N + n) of the L agents.
+        others: (xy [B, N, 2] m, speed [B, N] m/s, valid [B, N] bool) of every slot.
         radius: m.
     """
     out = torch.zeros_like(waiting)
     if not bool(waiting.any()):
         return out
-    xy, speed, valid = agents
-    b, i, k = waiting.nonzero(as_tuple=True)
-    d = xy[b] - line[b, i, k].unsqueeze(1)  # [W, N, 2]
+    xy, speed, valid = others
+    n = valid.shape[1]
+    li, k = waiting.nonzero(as_tuple=True)
+    b, i = agent[li] // n, agent[li] % n
+    d = xy[b] - line[li, k].unsqueeze(1)  # [W, N, 2]
     near = (d * d).sum(-1) < radius * radius
     moving = valid[b] & (speed[b].abs() > MOVING_SPEED)
     moving[torch.arange(b.shape[0], device=b.device), i] = False
-    out[b, i, k] = ~(near & moving).any(-1)
+    out[li, k] = ~(near & moving).any(-1)
     return out
 
 
 def sign_distance(line_gap: torch.Tensor, cleared: torch.Tensor) -> torch.Tensor:
-    """[B, N] m to stand before the first stop-sign line ahead not yet cleared."""
+    """[L] m to stand before the first stop-sign line ahead not yet cleared."""
     holds = (line_gap > -1.0) & ~cleared
     return torch.where(holds, line_gap, float("inf")).amin(-1)
 
@@ -121,22 +132,24 @@ def crosswalks_occupied(
 
 
 def crosswalk_distance(
-    entry_gap: torch.Tensor, row: torch.Tensor, occupied: torch.Tensor
+    entry_gap: torch.Tensor, line: tuple[torch.Tensor, torch.Tensor], occupied: torch.Tensor
 ) -> torch.Tensor:
-    """[B, N] m to stand before the first occupied crosswalk ahead.
+    """[L] m to stand before the first occupied crosswalk ahead.
 
     Args:
-        entry_gap: [B, N, K] m from the front bumper to where the route enters each crosswalk.
-        row: [B, N, K] int64 crosswalk row (-1 padding).
+        entry_gap: [L, K] m from the front bumper (plus the stop gap) to where the route
+            enters each crosswalk.
+        line: (batch row [L] int64, crosswalk row [L, K] int64, -1 padding).
         occupied: [B, W] bool.
     """
-    busy = occupied.gather(1, row.clamp_min(0).flatten(1)).view_as(row) & (row >= 0)
+    row, cw = line
+    busy = _per_agent(occupied, row, cw) & (cw >= 0)
     return torch.where(busy & (entry_gap > 0.0), entry_gap, float("inf")).amin(-1)
 
 
-def line_points(route: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
-    """[B, N, K, 2] the route points at arc lengths [B, N, K] (+inf clamped to the route)."""
-    return points_at(route, arc.clamp(max=float(route.shape[2]) * 1e3))
+def line_points(route: torch.Tensor, agent: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
+    """[L, K, 2] the route points at arc lengths [L, K] (+inf padding clamped)."""
+    return points_at(route, agent, arc.clamp(max=1e6))
 
 
 __all__ = [
