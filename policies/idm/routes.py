@@ -3,7 +3,9 @@
 
 * ``route="log"``: the agent's logged path from the start step on (positions only; the speed
   is the policy's), continued past the log's end along the lane graph from the lane the agent
-  ends on (seeded random branches); a vehicle that ends on no lane stops at the log's end.
+  ends on (seeded random branches); a vehicle that ends on no lane stops at the log's end, one
+  that stands all along its log stays, one the log holds at the start step only takes the
+  lanes.
 * ``route="lanes"``: from the lane the agent is on along the lane graph; at a fork the branch
   that best matches the agent's logged future where the scene logs one, else a seeded random
   branch. A vehicle on no lane follows its log (or drives straight on without one); a lane
@@ -208,21 +210,22 @@ class _Agent:
     lane: int  # lane row, -1 none
     arc: float  # m along that lane
     log: np.ndarray  # [k, 2] thinned logged path from the first step (k >= 1)
+    logged: bool  # the log holds the agent at some step after the first
     vehicle: bool
 
 
 def _route(agent: _Agent, graph: LaneGraph, mode: Route, rng: np.random.Generator) -> tuple:
     """(path [n, 2], stop arc m or inf) of one agent."""
     length = ROUTE_POINTS * ROUTE_SPACING
-    has_future = len(agent.log) >= 2
+    moves = len(agent.log) >= 2
     if not agent.vehicle:
-        return (agent.log if has_future else agent.xy[None]), np.inf
-    if mode is Route.LANES and agent.lane >= 0:
-        choose = fork_chooser(graph, agent.log[1:] if has_future else None, rng)
+        return (agent.log if moves else agent.xy[None]), np.inf
+    if agent.lane >= 0 and (mode is Route.LANES or not agent.logged):
+        choose = fork_chooser(graph, agent.log[1:] if moves else None, rng)
         path, dead_end = lane_path(graph, agent.lane, agent.arc, length, choose)
         return path, _path_length(path) if dead_end else np.inf
-    if not has_future:  # on no lane and no log to follow: straight on
-        return agent.xy[None], np.inf
+    if not moves:  # standing all along the log: stays; on no lane, no log: straight on
+        return agent.xy[None], 0.0 if agent.logged else np.inf
     path = agent.log
     end_yaw = np.arctan2(*(path[-1] - path[-2])[::-1])
     lane, arc = match_lanes(graph, path[-1:], np.array([end_yaw]))
@@ -275,7 +278,8 @@ def build_routes(
         kind = int(t.object_type[k])
         vehicle = kind not in (int(ObjectType.PEDESTRIAN), int(ObjectType.CYCLIST))
         log = _log_points(scenario, k, first[k])
-        agent = _Agent(xy[k], float(yaw[k]), int(lane[k]), float(arc[k]), log, vehicle)
+        logged = bool(t.valid[k, first[k] + 1 :].any())
+        agent = _Agent(xy[k], float(yaw[k]), int(lane[k]), float(arc[k]), log, logged, vehicle)
         backward[k] = len(log) > 1 and (log[1] - log[0]) @ [np.cos(yaw[k]), np.sin(yaw[k])] < 0
         path, end[k] = _route(agent, graph, mode, rng)
         points[k], _ = resample(path, float(yaw[k]))
