@@ -318,7 +318,7 @@ class IDMPolicy:
         take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
         speed = take(state.speed)
         row = agent // state.num_agents
-        front = (progress + 0.5 * size[:, 0]).unsqueeze(-1) + cfg.stop_gap
+        front = (progress + 0.5 * size[:, 0]).unsqueeze(-1)
         comfort = take(ps.params)[:, PARAM_FIELDS.index("comfort_decel")]
         signal = (take(ps.signal_arc) - front, (row, take(ps.signal_row)))
         d_signal = signal_distance(*signal, state.tl_state_now(), speed, comfort)
@@ -338,7 +338,7 @@ class IDMPolicy:
         occupied = crosswalks_occupied(polygons, walker.nonzero(as_tuple=True), others[0])
         cross = (take(ps.crosswalk_arc) - front, (row, take(ps.crosswalk_row)))
         d_cross = crosswalk_distance(*cross, occupied)
-        lines = torch.minimum(torch.minimum(d_signal, d_sign), d_cross)
+        lines = torch.minimum(torch.minimum(d_signal, d_sign), d_cross) - cfg.stop_gap
         lines = torch.where(take(ps.obeys), lines, float("inf"))
         return torch.minimum(lines, take(ps.end) - progress), stopped, cleared
 

@@ -1,7 +1,7 @@
 """Where an IDM agent must stand (torch, per step): red and yellow signals, stop signs (a
 full stop at the line, then go when the junction is clear) and crosswalks with a pedestrian
-on them. Each gives a *distance to stand*: metres the agent's front bumper may still travel,
-+inf where nothing holds it. Functions take L agents (``tracking``): [L, K] per stop line.
+on them. Each gives the distance (m) from the agent's front bumper to the line that holds it,
++inf where none does (the policy stands ``IDMConfig.stop_gap`` before it). Functions take L agents (``tracking``): [L, K] per stop line.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def signal_distance(
     it goes on through the yellow).
 
     Args:
-        line_gap: [L, K] m from the front bumper (plus the stop gap) to each stop line.
+        line_gap: [L, K] m from the front bumper to each stop line.
         line: (batch row [L] int64 of each agent, signal row [L, K] int64 of each line,
             -1 padding).
         tl: (state [B, S] ``TLState``, valid [B, S] bool) of the signals now.
@@ -137,8 +137,7 @@ def crosswalk_distance(
     """[L] m to stand before the first occupied crosswalk ahead.
 
     Args:
-        entry_gap: [L, K] m from the front bumper (plus the stop gap) to where the route
-            enters each crosswalk.
+        entry_gap: [L, K] m from the front bumper to where the route enters each crosswalk.
         line: (batch row [L] int64, crosswalk row [L, K] int64, -1 padding).
         occupied: [B, W] bool.
     """
