@@ -191,20 +191,16 @@ def inside_polygons(xy: np.ndarray, polygons: np.ndarray) -> np.ndarray:
 
 def route_events(points: np.ndarray, scenario: Scenario, graph: LaneGraph) -> RouteEvents:
     """Stop lines and crosswalks along routes [A, P, 2] of the scenario's tracks."""
-    hits, arcs = [], []
-    for line in signal_lines(scenario, graph):
-        ok, arc = _passes(points, line)
-        hits.append(ok)
-        arcs.append(arc)
-    signal_arc, signal_row = _first_k(arcs, hits, MAX_SIGNAL_STOPS, len(points))
-    hits, arcs = [], []
-    for line in sign_lines(scenario, graph):
-        ok, arc = _passes(points, line)
-        hits.append(ok)
-        arcs.append(arc)
-    sign_arc, _ = _first_k(arcs, hits, MAX_SIGN_STOPS, len(points))
+    signal_arc, signal_row = _first_lines(points, signal_lines(scenario, graph), MAX_SIGNAL_STOPS)
+    sign_arc, _ = _first_lines(points, sign_lines(scenario, graph), MAX_SIGN_STOPS)
     cw_arc, cw_row = _crosswalk_entries(points, crosswalk_polygons(scenario))
     return RouteEvents(signal_arc, signal_row, sign_arc, cw_arc, cw_row)
+
+
+def _first_lines(points: np.ndarray, lines: list[StopLine], k: int) -> tuple[np.ndarray, ...]:
+    """The first ``k`` of ``lines`` along each route [A, P, 2]: ``_first_k`` of their arcs."""
+    passed = [_passes(points, line) for line in lines]
+    return _first_k([p[1] for p in passed], [p[0] for p in passed], k, len(points))
 
 
 def _crosswalk_entries(points: np.ndarray, polygons: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -1,7 +1,8 @@
 """Where an IDM agent must stand (torch, per step): red and yellow signals, stop signs (a
 full stop at the line, then go when the junction is clear) and crosswalks with a pedestrian
 on them. Each gives the distance (m) from the agent's front bumper to the line that holds it,
-+inf where none does (the policy stands ``IDMConfig.stop_gap`` before it). Functions take L agents (``tracking``): [L, K] per stop line.
++inf where none does (the policy stands ``IDMConfig.stop_gap`` before it). Functions take L
+agents (``tracking``): [L, K] per stop line.
 """
 
 from __future__ import annotations
