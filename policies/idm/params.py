@@ -202,6 +202,9 @@ class IDMConfig:
         stop_gap: m (>= 0), the gap kept to a stop line (red light, stop sign, crosswalk).
         junction_radius: m (> 0), a stop sign's junction is clear when no other agent moves
             within this distance of the stop line.
+        cruise_speed: m/s (>= 0): an agent at least this fast at the start keeps its highest
+            history speed as its desired speed; a slower one on a lane (queued, starting off)
+            wants the lane's speed limit (``plan.desired_speeds``).
     """
 
     route: Route | str = Route.LOG
@@ -216,6 +219,7 @@ class IDMConfig:
     min_gap: float = 0.1
     stop_gap: float = 1.0
     junction_radius: float = 12.0
+    cruise_speed: float = 8.0
 
     def __post_init__(self) -> None:
         try:
@@ -235,6 +239,7 @@ class IDMConfig:
             "min_gap": self.min_gap > 0.0,
             "stop_gap": self.stop_gap >= 0.0,
             "junction_radius": self.junction_radius > 0.0,
+            "cruise_speed": self.cruise_speed >= 0.0,
         }
         for name, ok in checks.items():
             value = getattr(self, name)

@@ -59,35 +59,45 @@ def type_params(cfg: IDMConfig, object_type: np.ndarray) -> list[TypeParams]:
     return [table.get(int(t), cfg.vehicle) for t in object_type]
 
 
-def history_speed(scenario: Scenario, start: int) -> np.ndarray:
-    """[A] m/s, each track's highest speed over its valid steps up to ``start`` (or up to the
-    first step it is valid, for a track that appears later)."""
+def history_speed(scenario: Scenario, start: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each track's (highest speed over its valid steps up to ``start``, speed at ``start``)
+    [A] m/s each (for a track that appears later: up to and at its first valid step)."""
     t = scenario.tracks
     speed = np.linalg.norm(t.velocity.astype(np.float64), axis=-1)  # [A, T]
     later = t.valid[:, start:]
     first = np.where(later.any(1), np.argmax(later, axis=1) + start, start)
     upto = np.arange(t.num_steps)[None] <= first[:, None]
-    return np.where(t.valid & upto, speed, 0.0).max(1)
+    rows = np.arange(t.num_tracks)
+    now = np.where(t.valid[rows, first], speed[rows, first], 0.0)
+    return np.where(t.valid & upto, speed, 0.0).max(1), now
 
 
 def desired_speeds(
-    routes: RoutePlan, hist: np.ndarray, defaults: np.ndarray, pedestrian: np.ndarray
+    routes: RoutePlan,
+    hist: tuple[np.ndarray, np.ndarray],
+    defaults: np.ndarray,
+    pedestrian: np.ndarray,
+    cruise: float,
 ) -> np.ndarray:
     """[A] m/s before the per-rollout factor.
 
-    An agent on a lane wants the lane's speed limit (the type's default where the map has
-    none) or its highest history speed if that is higher; an agent on no lane and every
-    pedestrian its highest history speed (0 for one that stood still); an agent whose logged
-    path starts behind it (reversing) 0.
+    An agent on a lane slower than ``cruise`` now (standing in a queue, starting off) wants
+    the lane's speed limit (the type's default where the map has none) or its highest history
+    speed if that is higher; every other agent its highest history speed (0 for one that
+    stood still); an agent whose logged path starts behind it (reversing) 0.
 
     Args:
         routes: the routes (``on_lane``, ``lane_speed``).
-        hist: [A] highest history speeds; defaults: [A] the types' default speeds.
+        hist: ([A] highest history speeds, [A] speeds now); defaults: [A] the types' default
+            speeds.
         pedestrian: [A] bool.
+        cruise: m/s (``IDMConfig.cruise_speed``).
     """
+    top, now = hist
     lane = np.where(routes.lane_speed > 0, routes.lane_speed, defaults)
-    moving = np.where(hist >= STILL_HISTORY_SPEED, hist, 0.0)
-    speed = np.where(routes.on_lane & ~pedestrian, np.maximum(hist, lane), moving)
+    moving = np.where(top >= STILL_HISTORY_SPEED, top, 0.0)
+    starting = routes.on_lane & ~pedestrian & (now < cruise)
+    speed = np.where(starting, np.maximum(top, lane), moving)
     return np.where(routes.backward, 0.0, speed)
 
 
@@ -114,7 +124,9 @@ def scene_plan(
         events=route_events(routes.points, scenario, graph),
         crosswalks=crosswalk_polygons(scenario),
         params=params,
-        desired_speed=desired_speeds(routes, history_speed(scenario, start), defaults, pedestrian),
+        desired_speed=desired_speeds(
+            routes, history_speed(scenario, start), defaults, pedestrian, cfg.cruise_speed
+        ),
         obeys=~pedestrian,
     )
 

@@ -35,6 +35,8 @@ BRANCH_MATCH = 2.5
 """m: a fork branch matches the logged future when its points lie this near it (median)."""
 BRANCH_SAMPLE = 20.0
 """m of a branch lane compared with the logged future."""
+CURVATURE_BASE = 4
+"""Route segments (10 m) of the chords a bend's curvature is measured over."""
 MAX_LANES_PER_ROUTE = 256
 """Lanes walked at most per route (a guard against cycles of zero-length lanes)."""
 
@@ -173,7 +175,9 @@ def _branch_distance(poly: np.ndarray, future: np.ndarray) -> float:
 
 def speed_caps(points: np.ndarray, lateral_accel: float, decel: np.ndarray) -> np.ndarray:
     """The speed each route point allows: sqrt(lateral_accel / curvature) in bends, lowered
-    ahead of a bend so that braking at ``decel`` reaches it.
+    ahead of a bend so that braking at ``decel`` reaches it. The curvature at a point is the
+    turn between the chords ``CURVATURE_BASE`` points before and after it over their midpoints'
+    distance, so that the jitter of logged positions reads as no bend.
 
     Args:
         points: [A, P, 2] routes, ``ROUTE_SPACING`` apart.
@@ -183,10 +187,11 @@ def speed_caps(points: np.ndarray, lateral_accel: float, decel: np.ndarray) -> n
     Returns:
         [A, P] m/s.
     """
-    d = np.diff(points, axis=1)  # [A, P-1, 2]
+    k = CURVATURE_BASE
+    d = points[:, k:] - points[:, :-k]  # [A, P - k, 2] chords of k segments
     heading = np.arctan2(d[..., 1], d[..., 0])
-    turn = np.abs(wrap_angle_np(np.diff(heading, axis=1))) / ROUTE_SPACING  # [A, P-2]
-    curv = np.pad(turn, ((0, 0), (1, 1)), mode="edge")  # curvature at every point
+    turn = np.abs(wrap_angle_np(heading[:, k:] - heading[:, :-k])) / (k * ROUTE_SPACING)
+    curv = np.pad(turn, ((0, 0), (k, k)), mode="edge")  # [A, P] curvature at every point
     cap = np.sqrt(lateral_accel / np.maximum(curv, 1e-6))
     out = cap.copy()
     for k in range(points.shape[1] - 2, -1, -1):  # braking ahead of bends
