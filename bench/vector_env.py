@@ -6,14 +6,17 @@ and metrics, and reports agent steps/s = (active controlled agents summed over s
 batched env steps/s. Scenarios are the real WOMD samples when found, else the embedded
 generated scenes.
 
-    python bench/vector_env.py [--npc-policy log_replay constant_velocity] \
+    python bench/vector_env.py [--npc-policy log_replay constant_velocity idm] \
         [--batch-sizes 1 16 64] [--controlled sdc] [--steps 200] [--threads N] [--device cpu]
     python bench/vector_env.py --npc-policy trafficbots [--npc-checkpoint PATH]
+    python bench/vector_env.py --npc-policy log_replay idm --batch-sizes 64 --obs-layout dense
 
 With ``trafficbots`` it also measures the policy on the padded token limits (``trim=False``)
 and prints the speed-up of running on the rows the scenario bank uses. Each row also gives
 the observation bytes per agent step of its layout (``--obs-layout dense indexed``), and the
-ratio of its batched steps/s to the first row of the same B ("x first"). ``--stages`` adds,
+ratio of its batched steps/s to the first row of the same policy and B ("x first") and of its
+agent steps/s to the first policy's row of the same B and layout ("x 1st policy": e.g. ``idm``
+against ``log_replay``, measured in the same run). ``--stages`` adds,
 under each eager row, the share of the step spent per stage (NPC policy, dynamics, collision,
 off-road, the rest of the metrics, rewards, history, observations, densify, autoreset, glue).
 """
@@ -124,7 +127,7 @@ def main() -> None:
     p.add_argument(
         "--npc-policy",
         nargs="+",
-        default=["log_replay", "constant_velocity"],
+        default=["log_replay", "constant_velocity", "idm"],
         help="registered NPC policy names",
     )
     p.add_argument("--npc-checkpoint", default=None, help="TrafficBots checkpoint (optional)")
@@ -158,8 +161,9 @@ def main() -> None:
     )
     print(
         f"{'npc policy':<20} {'obs':<8} {'B':>4} {'agent steps/s':>14} {'env steps/s':>12} "
-        f"{'obs B/agent':>12} {'x first':>8}"
+        f"{'obs B/agent':>12} {'x first':>8} {'x 1st policy':>13}"
     )
+    base: dict[tuple[int, str], float] = {}  # the first policy's agent steps/s per (B, layout)
     for policy in args.npc_policy:
         kwargs = {"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else {}
         # TrafficBots runs on the token rows the bank uses; its padded run is the reference.
@@ -185,10 +189,11 @@ def main() -> None:
                     )
                     asps, esps, nbytes, split = bench(scenarios, case, args.stages)
                     rates.append(esps)
-                    ratio = f"{esps / rates[0]:>8.2f}" if len(rates) > 1 else ""
+                    ratio = f"{esps / rates[0]:>8.2f}" if len(rates) > 1 else " " * 8
+                    first = base.setdefault((b, layout), asps)
                     print(
                         f"{label:<20} {layout:<8} {b:>4} {asps:>14,.0f} {esps:>12,.1f} "
-                        f"{nbytes:>12,.0f} {ratio}",
+                        f"{nbytes:>12,.0f} {ratio} {asps / first:>13.2f}",
                         flush=True,
                     )
                     if split:

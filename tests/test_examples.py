@@ -36,6 +36,7 @@ def test_every_example_is_tested_and_has_help():
         "external_control.py",
         "log_replay_baseline.py",
         "render_video.py",
+        "idm_planner.py",
     }
     for name in SCRIPTS:
         out = run(str(EXAMPLES / name), "--help", timeout=60)
@@ -88,6 +89,16 @@ def test_external_control_writes_a_video(tmp_path):
     )
     assert "[     brake]" in out and "[    expert]" in out
     assert video.stat().st_size > 1000 and "wrote 21 frames" in out
+
+
+def test_idm_planner_drives_the_sdc(tmp_path):
+    video = tmp_path / "plan.gif"
+    out = run(str(EXAMPLES / "idm_planner.py"), "--max-steps=20", f"--out={video}")
+    assert "IDM plans for track_" in out and "planned 20 steps" in out
+    lines = [line for line in out.splitlines() if " speed " in line]
+    speeds = [float(line.split(" speed ")[1].split()[0]) for line in lines]
+    assert speeds and max(speeds) > 1.0  # the planner drives the SDC
+    assert video.stat().st_size > 1000
 
 
 def test_log_replay_baseline_table():

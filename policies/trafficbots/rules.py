@@ -36,6 +36,7 @@ import torch
 from tbsim_env import constants as C
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import to_local_xy
+from tbsim_env.sim.idm import IDMTerms, interaction
 
 if TYPE_CHECKING:
     from policies.trafficbots.config import GapKeeping
@@ -194,8 +195,8 @@ def gap_keeping_cap(
         a_max (1 - (s* / s)^2),  s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b)))
 
     with a_max = ``gap.max_accel``, b = ``gap.comfort_decel``, T = ``gap.time_headway``,
-    s0 = ``gap.standstill_gap`` (Treiber, Hennecke & Helbing 2000). +inf where nothing is
-    ahead.
+    s0 = ``gap.standstill_gap`` (Treiber, Hennecke & Helbing 2000; ``tbsim_env.sim.idm``, the
+    one IDM implementation, shared with the ``idm`` policy). +inf where nothing is ahead.
 
     Args:
         pose: [B, N, 3] (x m, y m, yaw rad) now.
@@ -223,14 +224,9 @@ def gap_keeping_cap(
     pair = valid[:, :, None] & valid[:, None, :]
     blocked = pair & in_lane & (ahead > 0) & (bumper < gap.horizon)
     s_gap, lead = torch.where(blocked, bumper, float("inf")).min(-1)  # [B, N] each
-    s_gap = s_gap.clamp_min(gap.min_gap)
     lead_speed = (speed[:, None, :] * cos_rel).gather(-1, lead[..., None])[..., 0]
-    v = speed.clamp_min(0.0)
-    dv = v - lead_speed
-    brake = 2.0 * (gap.max_accel * gap.comfort_decel) ** 0.5
-    wanted = gap.standstill_gap + (v * gap.time_headway + v * dv / brake).clamp_min(0.0)
-    cap = gap.max_accel * (1.0 - (wanted / s_gap) ** 2)
-    return torch.where(torch.isfinite(s_gap), cap, float("inf"))
+    terms = IDMTerms(gap.max_accel, gap.comfort_decel, gap.time_headway, gap.standstill_gap)
+    return interaction(speed, s_gap, lead_speed, terms, gap.min_gap)
 
 
 def keep_gap(
