@@ -208,3 +208,12 @@ def test_cli_benchmark_writes_tables_json_plot_and_pages(tmp_path, capsys, one_s
     assert "PACKAGE.MODULE:NAME" in capsys.readouterr().err
     bad = ["benchmark", "--planner", "expert", "--traffic", "warp", "--data", "x"]
     assert main(bad) == 2
+
+
+def test_the_idm_planner_stops_behind_a_standing_vehicle_where_constant_velocity_hits_it():
+    agents = [Agent((-40.0, 0.0), speed=10.0), Agent((0.0, 0.0))]
+    hits = episode(agents, ConstantVelocityPlanner())
+    assert hits.no_at_fault_collisions == 0.0
+    stops = episode(agents, load_planner("idm"))
+    assert stops.error is None and stops.collisions == [] and stops.no_at_fault_collisions == 1.0
+    assert stops.score > 0.0

@@ -100,7 +100,7 @@ def _expert_span(scenario: Scenario, track: int, start: int, end: int) -> tuple[
 
 
 def _planner_inputs(env: TrafficEnv) -> dict[str, dict[str, Any]]:
-    """Per live agent: route points, goal (own frame) and speed."""
+    """Per live agent: route points, goal (own frame), speed, slot and the simulator state."""
     ep = env.episode
     setup, sim = ep.setup, ep.sim
     pose = sim.pose.gather(1, setup.query[..., None].expand(-1, -1, 3))  # [1, Q, 3]
@@ -109,7 +109,13 @@ def _planner_inputs(env: TrafficEnv) -> dict[str, dict[str, Any]]:
     goal = to_local(setup.route.goal[..., None, :], pose[..., None, :])[..., 0, :]
     route, goal, speed = route[0].numpy(), goal[0].float().numpy(), speed[0].tolist()
     return {
-        name: {"route": route[j], "goal": goal[j], "speed": speed[j]}
+        name: {
+            "route": route[j],
+            "goal": goal[j],
+            "speed": speed[j],
+            "slot": int(setup.query[0, j]),
+            "sim": sim,
+        }
         for name, j in env.agent_columns.items()
         if name in env.agents
     }

@@ -9,7 +9,8 @@ Stable-Baselines3 model (``SB3Planner``). ``load_planner("package.module:factory
 one from a command line.
 
 Built in: ``expert`` (follows its log through the env's inverse dynamics: the benchmark's
-ceiling), ``constant_velocity`` (holds speed and heading).
+ceiling), ``constant_velocity`` (holds speed and heading), ``idm`` (the rule-based ``idm``
+controller on a lane route; ``idm_log`` on its logged path).
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import numpy as np
 import torch
 
 from tbsim_env.data.scenario import Scenario
+from tbsim_env.sim.state import SimState
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,9 @@ class PlannerInput:
         speed: m/s, its signed speed.
         expert_action: [2] float32, the action that follows its log (privileged: for the
             ``expert`` baseline; a planner under test should not read it).
+        slot: the agent's slot in ``sim`` (its track row in the scenario).
+        sim: the whole simulator state as an NPC policy sees it (privileged: for rule-based
+            baselines such as ``idm``; a planner under test should read ``observation``).
     """
 
     scenario_id: str
@@ -53,6 +58,8 @@ class PlannerInput:
     goal: np.ndarray
     speed: float
     expert_action: np.ndarray
+    slot: int = -1
+    sim: SimState | None = None
 
 
 @runtime_checkable
@@ -146,9 +153,38 @@ class ConstantVelocityPlanner:
         return np.zeros(2, np.float32)
 
 
+class IDMPlanner:
+    """The ``idm`` NPC controller driving the agent (``policies.idm``): IDM along a lane-graph
+    route (or its logged path), keeping its gap, stopping for signals, stop signs and
+    crossing agents. It reads the simulator state (``PlannerInput.sim``), as an NPC does."""
+
+    def __init__(self, route: str = "lanes") -> None:
+        from policies.idm import IDMPolicy
+
+        self.policy = IDMPolicy(route=route)
+        self.name = "idm" if route == "lanes" else f"idm_{route}"
+        self._scenario: Scenario | None = None
+        self._plan: Any = None
+        self._generator = torch.Generator()
+
+    def reset(self, scenario: Scenario, agent: str, seed: int) -> None:
+        self._scenario, self._plan = scenario, None
+        self._generator.manual_seed(int(seed))
+
+    def act(self, x: PlannerInput) -> Any:
+        if x.sim is None or self._scenario is None:
+            raise ValueError("the idm planner needs PlannerInput.sim and a reset() first")
+        if self._plan is None:
+            self._plan = self.policy.initial_state(x.sim, [self._scenario], self._generator)
+        action, self._plan = self.policy.act(x.sim, self._plan, self._generator)
+        return action[0, x.slot].numpy()
+
+
 BUILTIN_PLANNERS: dict[str, Callable[[], Any]] = {
     "expert": ExpertPlanner,
     "constant_velocity": ConstantVelocityPlanner,
+    "idm": IDMPlanner,
+    "idm_log": lambda: IDMPlanner(route="log"),
 }
 """Planners named without a module path."""
 
