@@ -27,7 +27,7 @@ from tbsim_env.metrics.wosac.scoring import simulated_road_departure
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.collision import pairwise_overlap
-from tbsim_env.sim.rollout import sim_agent_mask, simulate_rollouts
+from tbsim_env.sim.rollout import simulate_rollouts
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
@@ -316,7 +316,7 @@ def test_no_idm_vehicle_leaves_the_road_on_the_real_samples(womd_dir):
     checked = 0
     for path in files:
         sc = _load(path).motion_window()
-        vehicles = (sc.tracks.object_type == int(ObjectType.VEHICLE)) & sim_agent_mask(sc)
+        vehicles = (sc.tracks.object_type == int(ObjectType.VEHICLE)) & sc.sim_agent_mask()
         rows = np.flatnonzero(vehicles)
         sc = sc.replace(tracks_to_predict=rows, predict_difficulty=np.zeros(len(rows), np.int8))
         left = simulated_road_departure(sc, simulate_rollouts(sc, policy, num_rollouts=1))
