@@ -15,8 +15,8 @@ from policies.registry import (
     policy_names,
     register_policy,
 )
+from tbsim_env.metrics.wosac.simulate import linear_extrapolation_rollouts
 from tbsim_env.sim.policy import Policy, PolicyState
-from tbsim_env.sim.rollout import linear_extrapolation_rollouts
 
 
 def _trafficbots(checkpoint: str | None = None, device: str = "cpu", **kwargs) -> Policy:

@@ -1,7 +1,7 @@
 """Realism evaluation of policies: WOSAC rollouts, submissions, scores and histogram plots.
 
 The functions behind ``tbsim export-wosac``, ``tbsim wosac-score`` and ``tbsim evaluate``.
-Every policy is rolled out by the same closed-loop simulator (``tbsim_env.sim.rollout``),
+Every policy is rolled out by the same closed-loop simulator (``tbsim_env.metrics.wosac.simulate``),
 except the official linear-extrapolation baseline, which is a formula, and exact log replay.
 
 Every policy but log replay simulates the 80 WOSAC steps of any scene, history-only ones (the

@@ -28,6 +28,7 @@ from tbsim_env.observation_spec import (
     ATTRIBUTE_FEATURES,
     HISTORY_FEATURES,
     NODE_FEATURES,
+    ObsConfig,
     observation_shapes,
     observation_space,
 )
@@ -43,36 +44,6 @@ from tbsim_env.torch_utils import (
     valid_first,
     valid_order,
 )
-
-
-@dataclass(frozen=True)
-class ObsConfig:
-    """Observation sizes.
-
-    Attributes:
-        history: steps of history per agent (current included).
-        num_agents: nearest other agents observed.
-        num_map: nearest map pieces observed.
-        num_traffic_lights: nearest traffic-light tokens observed.
-        agent_radius: m, agents farther away are masked.
-        map_radius: m, map pieces whose start is farther away are masked.
-        traffic_light_radius: m.
-        tokens: limits of the map / traffic-light preprocessing.
-    """
-
-    history: int = C.NUM_HISTORY
-    num_agents: int = C.DEFAULT_OBS_AGENTS
-    num_map: int = C.DEFAULT_OBS_MAP_PIECES
-    num_traffic_lights: int = C.DEFAULT_OBS_TRAFFIC_LIGHTS
-    agent_radius: float = 100.0
-    map_radius: float = 200.0
-    traffic_light_radius: float = 200.0
-    tokens: TokenConfig = TokenConfig()
-
-    def __post_init__(self) -> None:
-        for f in ("history", "num_agents", "num_map", "num_traffic_lights"):
-            if getattr(self, f) < 1:
-                raise ValueError(f"ObsConfig.{f} must be >= 1")
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,8 @@ from tbsim_env.data.tfrecord import iter_records, write_records
 from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
 from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac import score_scenario
+from tbsim_env.metrics.wosac.simulate import simulate_rollouts
 from tbsim_env.metrics.wosac.submission import rollouts_to_proto, validate_scenario_rollouts
-from tbsim_env.sim.rollout import simulate_rollouts
 
 OBJECT_STATE_FLOATS = (
     "center_x",

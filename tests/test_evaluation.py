@@ -26,8 +26,8 @@ from tbsim_env.data.cache import (
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.evaluation import export_submission
 from tbsim_env.metrics.wosac import read_submission, score_scenario, validate_scenario_rollouts
+from tbsim_env.metrics.wosac.simulate import linear_extrapolation_rollouts, simulate_rollouts
 from tbsim_env.metrics.wosac.submission import SubmissionError, rollouts_to_proto
-from tbsim_env.sim.rollout import linear_extrapolation_rollouts, simulate_rollouts
 
 pytestmark = pytest.mark.float_sensitive
 

@@ -27,8 +27,8 @@ from tbsim_env.env.vector_env import BatchedTrafficEnv
 from tbsim_env.errors import MissingFutureError, ScenarioFormatError
 from tbsim_env.evaluation import export_submission
 from tbsim_env.metrics.wosac import read_submission, validate_scenario_rollouts
+from tbsim_env.metrics.wosac.simulate import simulate_rollouts
 from tbsim_env.metrics.wosac.submission import rollouts_from_proto, rollouts_to_proto
-from tbsim_env.sim.rollout import simulate_rollouts
 from tests.conftest import check_parallel_api
 
 HISTORY_ONLY = ("tfrecord-00149-of-00150_111.json", "tfrecord-00000-of-00150_78.json")

@@ -24,10 +24,10 @@ from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals, w
 from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
 from tbsim_env.metrics.wosac.rollouts import log_replay_rollouts
 from tbsim_env.metrics.wosac.scoring import simulated_road_departure
+from tbsim_env.metrics.wosac.simulate import simulate_rollouts
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.collision import pairwise_overlap
-from tbsim_env.sim.rollout import simulate_rollouts
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
