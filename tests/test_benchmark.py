@@ -217,3 +217,20 @@ def test_the_idm_planner_stops_behind_a_standing_vehicle_where_constant_velocity
     stops = episode(agents, load_planner("idm"))
     assert stops.error is None and stops.collisions == [] and stops.no_at_fault_collisions == 1.0
     assert stops.score > 0.0
+
+
+def test_sharded_run_resumes_and_gives_the_same_json(
+    tmp_path, capsys, one_scenario_path, scenario_input_path
+):
+    common = ["benchmark", "--planner", "constant_velocity", "--traffic", "log_replay",
+              "--data", str(one_scenario_path), str(scenario_input_path)]  # fmt: skip
+    assert main([*common, "--json", str(tmp_path / "plain.json")]) == 0
+    work = tmp_path / "work"
+    assert main([*common, "--work-dir", str(work), "--json", str(tmp_path / "a.json")]) == 0
+    assert "2 shards computed, 0 already" in capsys.readouterr().out
+    assert len(list(work.glob("benchmark-*.json"))) == 2
+    assert main([*common, "--work-dir", str(work), "--json", str(tmp_path / "b.json")]) == 0
+    assert "0 shards computed, 2 already" in capsys.readouterr().out
+    a, b, plain = (json.loads((tmp_path / f).read_text()) for f in ("a.json", "b.json",
+                                                                  "plain.json"))  # fmt: skip
+    assert a["episodes"] == b["episodes"] == plain["episodes"]
