@@ -15,6 +15,7 @@ controller on a lane route; ``idm_log`` on its logged path).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import inspect
 from collections.abc import Callable
@@ -174,8 +175,11 @@ class IDMPlanner:
     def act(self, x: PlannerInput) -> Any:
         if x.sim is None or self._scenario is None:
             raise ValueError("the idm planner needs PlannerInput.sim and a reset() first")
-        if self._plan is None:
-            self._plan = self.policy.initial_state(x.sim, [self._scenario], self._generator)
+        if self._plan is None:  # the routes of every agent, the actions of this one alone
+            plan = self.policy.initial_state(x.sim, [self._scenario], self._generator)
+            mine = torch.zeros_like(plan.valid)
+            mine[0, x.slot] = True
+            self._plan = dataclasses.replace(plan, valid=plan.valid & mine)
         action, self._plan = self.policy.act(x.sim, self._plan, self._generator)
         return action[0, x.slot].numpy()
 
