@@ -89,10 +89,11 @@ def _map_points(msg: scenario_pb2.Scenario) -> list:
 
 def _state_float(msg, rng) -> None:
     track = _pick(rng, msg.tracks)
-    step = msg.current_time_index if rng.random() < 0.5 else int(rng.integers(len(track.states)))
+    n = len(track.states)  # an earlier edit of the case may have cut or cleared them
+    step = msg.current_time_index if rng.random() < 0.5 else int(rng.integers(max(n, 1)))
     name = _pick(rng, OBJECT_STATE_FLOATS)
     value = _pick(rng, FLOATS)
-    for k in range(len(track.states)) if name in ("length", "width", "height") else [step]:
+    for k in range(n) if name in ("length", "width", "height") else [step] if step < n else []:
         setattr(track.states[k], name, value)
 
 
@@ -102,6 +103,8 @@ def _map_float(msg, rng) -> None:
 
 def _speed_limit(msg, rng) -> None:
     lanes = [f for f in msg.map_features if f.WhichOneof("feature_data") == "lane"]
+    if not lanes:  # an earlier edit cleared them
+        return _map_float(msg, rng)
     _pick(rng, lanes).lane.speed_limit_mph = _pick(rng, FLOATS)
 
 
@@ -171,10 +174,12 @@ def _short(msg, rng) -> None:
 def _invalid(msg, rng) -> None:
     now = msg.current_time_index
     kind = int(rng.integers(3))
-    tracks = [msg.tracks[msg.sdc_track_index]] if kind == 0 else msg.tracks
+    sdc = msg.sdc_track_index  # an earlier edit of the case may have moved it off the tracks
+    tracks = [msg.tracks[sdc]] if kind == 0 and 0 <= sdc < len(msg.tracks) else msg.tracks
     for t in tracks:
         for k in range(len(t.states)) if kind == 2 else [now]:
-            t.states[k].valid = False
+            if 0 <= k < len(t.states):
+                t.states[k].valid = False
 
 
 def _valid_placeholder(msg, rng) -> None:
