@@ -171,3 +171,16 @@ def listed(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     if mask.device.type != "cpu" or torch.compiler.is_compiling() or bool(mask.all()):
         return None
     return mask.nonzero(as_tuple=True)
+
+
+def aten_op_count(fn, calls: int = 1) -> float:
+    """ATen operations per call of ``fn()`` over ``calls`` calls, as the torch profiler records
+    them (every ``aten::`` event, nested ones included: a view, a copy inside ``.to``). The
+    count of a step does not depend on the machine, while its time per operation does; a
+    step of many small operations costs about its count times one tiny operation."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(calls):
+            fn()
+    return sum(e.name.startswith("aten::") for e in prof.events()) / calls
