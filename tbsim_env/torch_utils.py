@@ -80,10 +80,34 @@ def const(value: float | tuple[float, ...], like: torch.Tensor) -> torch.Tensor 
     return out
 
 
+_SCALARS: dict[tuple, torch.Tensor] = {}
+
+
+def scalar(value: int | float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """A cached 0-dim tensor of ``value`` (any dtype, integers included; ``const`` keeps to
+    floats): an in-place operation with it records one ATen operation where a Python number
+    is first wrapped into a tensor (several). Never modify it. Under ``torch.compile`` a new
+    tensor (a graph holds its constants)."""
+    if torch.compiler.is_compiling():
+        return torch.tensor(value, dtype=dtype, device=device)
+    key = (value, dtype, torch.device(device))
+    out = _SCALARS.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _SCALARS[key] = torch.tensor(value, dtype=dtype, device=device)
+    return out
+
+
+def cast(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``x.to(dtype)`` (a new tensor, the same values; floats to integers truncate) as an
+    empty tensor and a ``copy_``: two ATen operations where ``to`` records four."""
+    return torch.empty(x.shape, dtype=dtype, device=x.device).copy_(x)
+
+
 _ROW_OFFSETS: dict[tuple[int, int, int, torch.device], torch.Tensor] = {}
 
 
-def _row_offsets(b: int, n: int, dim: int, device: torch.device) -> torch.Tensor:
+def row_offsets(b: int, n: int, dim: int, device: torch.device) -> torch.Tensor:
     """``arange(b) * n`` shaped [b, 1, ...] (``dim`` dims) to add to a row index, cached like
     ``cached_arange`` (and, like it, built anew under ``torch.compile``)."""
     shape = (b,) + (1,) * (dim - 1)
@@ -135,7 +159,7 @@ def gather_rows(
     elif b == 1:
         flat = _flat(index, -1)
     else:
-        flat = _flat(index + _row_offsets(b, n, index.dim(), x.device), -1)
+        flat = _flat(index + row_offsets(b, n, index.dim(), x.device), -1)
     return flat_x.index_select(0, flat).view(*index.shape, *x.shape[2:])
 
 

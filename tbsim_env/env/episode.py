@@ -42,7 +42,7 @@ from tbsim_env.observation import (
     ObsConfig,
     agent_static_features,
     build_map_context,
-    densify,
+    densify_flat,
     init_history,
     observe_indexed,
     push_history,
@@ -148,8 +148,9 @@ class StepConfig:
     Attributes:
         env: episode, reward and termination settings.
         obs: observation sizes.
-        dense: ``StepOutput.obs`` in the dense layout (``observe``'s dict) instead of an
-            ``IndexedObservation``.
+        dense: ``StepOutput.obs`` in the dense layout instead of an ``IndexedObservation``:
+            each observer's keys in one row, [B, Q, D] (``observation.densify_flat``;
+            ``observation.dense_views`` reads the keys of ``observe``'s dict from it).
     """
 
     env: EnvConfig
@@ -166,7 +167,7 @@ class StepOutput:
 
     Attributes:
         obs: observations of the query agents in the new state (``IndexedObservation``, or
-            the dense dict of ``StepConfig.dense``), for every observer (mask with
+            the dense rows of ``StepConfig.dense``), for every observer (mask with
             ``active`` or ``alive`` as the API needs).
         reward: float32, the weighted reward terms; 0 for agents not active.
         terms: {name: [B, Q]} the unweighted reward terms (``env.rewards``).
@@ -407,7 +408,7 @@ def step(
     if torch.compiler.is_compiling():
         stale = metrics.offroad_stale.any(-1)
     if config.dense:
-        obs = densify(obs, config.obs.tokens.piece_segments)
+        obs = densify_flat(obs, config.obs.tokens.piece_segments)
     reward = outcome.reward * active
     last = (sim.step >= env.last_step)[:, None]
     truncated = active & last & ~terminated
@@ -444,9 +445,9 @@ def remove_agents(sim: SimState, query: torch.Tensor, remove: torch.Tensor) -> S
 
 
 # ---------------------------------------------------------------------- reading
-def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation | dict:
+def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation | torch.Tensor:
     """Observations of the query agents in the current state, as ``step`` makes them (the
-    dense dict with ``config.dense``)."""
+    dense rows with ``config.dense``)."""
     setup = state.setup
     obs = observe_indexed(
         state.sim,
@@ -457,7 +458,7 @@ def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation
         setup.static,
         observer_mask=state.alive,
     )
-    return densify(obs, config.obs.tokens.piece_segments) if config.dense else obs
+    return densify_flat(obs, config.obs.tokens.piece_segments) if config.dense else obs
 
 
 def agent_infos(state: EpisodeState, metrics: StepMetrics) -> dict[str, torch.Tensor]:

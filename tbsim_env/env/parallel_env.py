@@ -55,7 +55,7 @@ from tbsim_env.env.setup import (
     select_scenarios,
 )
 from tbsim_env.errors import ActionError
-from tbsim_env.observation import ObsConfig, observation_space
+from tbsim_env.observation import ObsConfig, dense_views, observation_space
 from tbsim_env.sim.state import SimState
 from tbsim_env.torch_utils import torch_threads
 
@@ -372,14 +372,15 @@ class TrafficEnv(ParallelEnv, EzPickle):
 
     # ------------------------------------------------------------------ helpers
     def _per_agent(
-        self, names: list[str], o: dict[str, torch.Tensor], slot_of: dict[str, int]
+        self, names: list[str], rows: torch.Tensor, slot_of: dict[str, int]
     ) -> dict[str, dict[str, np.ndarray]]:
-        """Per-agent numpy views of dense [1, Q, ...] observations, for ``names``."""
-        if self.device.type == "cpu":
-            o = {k: v.numpy()[0] for k, v in o.items()}
-        else:
-            o = {k: v.cpu().numpy()[0] for k, v in o.items()}
-        return {n: {k: v[slot_of[n]] for k, v in o.items()} for n in names}
+        """Per-agent numpy views of the dense rows [1, Q, D] (``episode.StepConfig.dense``),
+        for ``names``: one conversion of the batch, then numpy slicing."""
+        flat = (rows if self.device.type == "cpu" else rows.cpu()).numpy()[0]
+        cfg = self.obs_config
+        sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
+        p = cfg.tokens.piece_segments
+        return {n: dense_views(flat[slot_of[n]], sizes, p) for n in names}
 
     def _info_columns(
         self, state: EpisodeState, m: StepMetrics, out: StepOutput | None
