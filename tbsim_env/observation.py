@@ -262,8 +262,9 @@ def init_history(state: SimState, length: int) -> History:
 
 def _history_row(state: SimState) -> torch.Tensor:
     """[B, N, 1, 5] the state's current step as a ``History.data`` entry."""
-    row = [state.pose, state.speed.unsqueeze(-1), state.valid.unsqueeze(-1).float()]
-    return torch.cat(row, -1).unsqueeze(2)
+    b, n = state.valid.shape
+    valid = cast(state.valid, state.pose.dtype).view(b, n, 1)
+    return torch.cat([state.pose, state.speed.view(b, n, 1), valid], -1).view(b, n, 1, 5)
 
 
 def push_history(history: History, state: SimState) -> History:

@@ -25,7 +25,7 @@ import torch
 from tbsim_env import constants as C
 from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
-from tbsim_env.torch_utils import const, gather_rows
+from tbsim_env.torch_utils import const, gather_rows, scalar
 
 
 def scene_edge_grid(
@@ -209,7 +209,7 @@ def cell_index(grid: CellLists, xy: torch.Tensor, rows: torch.Tensor | None) -> 
         corner, cell, last = corner[rows], cell[rows], last[rows]
         stride, base = stride[rows], base[rows]
     # Cell indices stay far below 2**24: exact in float32 (and the same as in int64).
-    ij = torch.floor((xy - corner) / cell).clamp(min=const(0.0, xy), max=last)
+    ij = torch.floor((xy - corner) / cell).clamp(min=scalar(0.0, xy.dtype, xy.device), max=last)
     return (ij * stride).sum(-1).to(torch.int64) + base
 
 
