@@ -236,6 +236,10 @@ CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
 BANK_METRICS_CHUNK = 256
 """Scenarios per chunk when an episode bank computes its first metrics (their agent
 distances are [S, Q, N])."""
+DENSE_DYNAMICS_MAX_SLOTS = 4096
+"""``sim.core.step`` integrates every slot of a batch up to this many slots (B N): a few
+operations on [B, N] cost less than gathering the moving agents; beyond, with the movers known
+(the external agents when the NPCs replay the log), only those integrate."""
 VALID_FIRST_MIN_QUERIES = 8
 """Query agents per row from which their agent pairs are measured over each row's valid slots
 (``torch_utils.valid_first``) instead of every slot."""

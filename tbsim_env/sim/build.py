@@ -170,7 +170,9 @@ def _padded_edges(edges: list[tuple[np.ndarray, ...]], device: torch.device) -> 
         valid=tt(valid),
         prev_index=tt(prev),
         next_index=tt(nxt),
-        grid=build_edge_grid([(x[0], x[1]) for x in edges], device),
+        grid=build_edge_grid(
+            [(x[0], x[1]) for x in edges], device, links=[(x[2], x[3]) for x in edges]
+        ),
     )
 
 

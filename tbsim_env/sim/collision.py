@@ -210,16 +210,39 @@ def _near_pairs_overlap(
     size: torch.Tensor,
 ) -> torch.Tensor:
     """[B, K] bool: some pair flagged in ``near`` [B, K, N] overlaps (``pairwise_overlap`` of
-    the gathered pairs; arguments as ``collided_with_others``)."""
-    out = torch.zeros(near.shape[:2], dtype=torch.bool, device=near.device)
-    b, k, n = near.nonzero(as_tuple=True)
-    if not len(b):
-        return out
-    hit = pairwise_overlap(
-        pose_q[b, k].unsqueeze(-2), size_q[b, k].unsqueeze(-2), pose[b, n].unsqueeze(-2),
-        size[b, n].unsqueeze(-2),
-    )[:, 0, 0]  # fmt: skip
-    return out.index_put_((b[hit], k[hit]), torch.ones_like(b[hit], dtype=torch.bool))
+    the gathered pairs, the same arithmetic; arguments as ``collided_with_others``)."""
+    b, k, n = near.shape
+    pairs = near.nonzero()  # [P, 3]: (row, query, slot)
+    out = torch.zeros(b * k, dtype=torch.bool, device=near.device)
+    if not len(pairs):
+        return out.view(b, k)
+    row, query, slot = pairs.unbind(1)
+    qi = torch.add(query, row, alpha=k)  # the query's row in [B K]
+    box_a = torch.cat([pose_q, size_q], -1).view(b * k, 5).index_select(0, qi)
+    si = torch.add(slot, row, alpha=n)  # the partner's row in [B N]
+    box_b = torch.cat([pose, size], -1).view(b * n, 5).index_select(0, si)
+    hit = _rows_overlap(box_a, box_b)
+    return out.index_put_((qi,), hit, accumulate=True).view(b, k)
+
+
+def _rows_overlap(box_a: torch.Tensor, box_b: torch.Tensor) -> torch.Tensor:
+    """[P] bool: box a of each row overlaps box b of the row (``pairwise_overlap``'s test and
+    arithmetic): boxes [P, 5] (x, y, yaw, length, width)."""
+    xa, ya, yaw_a, length_a, width_a = box_a.unbind(1)
+    xb, yb, yaw_b, length_b, width_b = box_b.unbind(1)
+    half = const(0.5, box_a)
+    dx, dy = xb - xa, yb - ya
+    la, wa, lb, wb = half * length_a, half * width_a, half * length_b, half * width_b
+    cd, sd = cos_sin(yaw_b - yaw_a)
+    cd, sd = cd.abs(), sd.abs()
+    ndx = -dx
+    ca, sa = cos_sin(yaw_a)
+    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
+    sep |= (ndx * sa + dy * ca).abs() > wa + lb * sd + wb * cd
+    cb, sb = cos_sin(yaw_b)
+    sep |= (dx * cb + dy * sb).abs() > lb + la * cd + wa * sd
+    sep |= (ndx * sb + dy * cb).abs() > wb + la * sd + wa * cd
+    return ~sep
 
 
 def collided(
