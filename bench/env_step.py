@@ -31,11 +31,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import measure  # noqa: E402
 from stages import format_split, stage_times  # noqa: E402
 
+from tbsim_env.core.torch_utils import aten_op_count  # noqa: E402
 from tbsim_env.data import load_scenarios  # noqa: E402
 from tbsim_env.env import TrafficEnv  # noqa: E402
 from tbsim_env.sim import core  # noqa: E402
 from tbsim_env.sim.build import build_sim_state  # noqa: E402
-from tbsim_env.torch_utils import aten_op_count  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
 

@@ -41,8 +41,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from machine import measure  # noqa: E402
 from stages import format_split, stage_times  # noqa: E402
 
+from tbsim_env.core.torch_utils import aten_op_count  # noqa: E402
 from tbsim_env.env.vector_env import BatchedTrafficEnv  # noqa: E402
-from tbsim_env.torch_utils import aten_op_count  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
 

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from policies.idm import IDMPolicy
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.env import TrafficEnv
 from tbsim_env.rendering import write_video
 

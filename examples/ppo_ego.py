@@ -31,8 +31,8 @@ from safetensors.torch import load_file, save_file
 from torch.distributions.normal import Normal
 
 from policies import policy_names
-from tbsim_env.config import EnvConfig
-from tbsim_env.config_cli import config_parser, option, parse_config
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.config_cli import config_parser, option, parse_config
 from tbsim_env.env.vector_env import ROUTE_KEY, BatchedTrafficEnv
 
 ROUTE_SPACING = 5.0

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from tbsim_env.config import EnvConfig, TerminationConfig
+from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.env import TrafficEnv

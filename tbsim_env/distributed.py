@@ -28,8 +28,8 @@ from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.evaluation import RolloutSettings
 
 if TYPE_CHECKING:

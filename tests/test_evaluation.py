@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from policies import make_policy
-from tbsim_env.cli import main
+from tbsim_env.cli.main import main
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.cache import (
     CacheError,
@@ -238,7 +238,7 @@ def test_token_cache_round_trip(tmp_path):
     cache = TokenCache(tmp_path)
     assert len(cache) == 4 and len(m["shards"]) == 2
     assert "gen-merge-0003" not in cache.scenario_ids
-    from tbsim_env.config import TokenConfig
+    from tbsim_env.core.config import TokenConfig
     from tbsim_env.data.preprocess import preprocess_scenario
 
     ref = preprocess_scenario(generate_scenario("intersection", 2), TokenConfig(training=True))

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.constants import NUM_STEPS, ObjectType
+from tbsim_env.core.constants import NUM_STEPS, ObjectType
 from tbsim_env.data.generator import LAYOUTS, generate_scenario
 from tbsim_env.data.generator.behaviour import CALIBRATED, UNCALIBRATED, Behaviour
 from tbsim_env.data.generator.recording import RECORDED, Recording

@@ -4,16 +4,16 @@ The bands, bottom to top (a module may import its own band and those below it):
 
 | band | modules |
 |---|---|
-| core | ``constants``, ``errors``, ``torch_utils``, ``malloc``, ``config``, ``config_cli`` |
+| core | ``core`` (constants, errors, configs, typed command lines, torch helpers) |
 | data | ``data`` (readers, the ``Scenario``, preprocessing, the generator) |
 | sim | ``sim`` (state, dynamics, collision, off-road, the batched core) |
-| observation | ``observation``, ``observation_spec``, ``map_knn``, ``rows`` |
+| observation | ``observation`` (tokens, spec, map nearest neighbours, rows) |
 | metrics | ``metrics`` (WOSAC features, scoring, submissions, the WOSAC rollout driver) |
 | policies | ``policies`` |
 | evaluation | ``evaluation`` (rollouts and scores of a policy) |
 | rendering | ``rendering`` (videos, the viewer) |
 | env | ``env`` (the environments) |
-| top | ``benchmark``, ``distributed``, ``integrations``, ``cli``, ``cli_configs``, the package |
+| top | ``benchmark``, ``distributed``, ``integrations``, ``cli``, the package |
 
 Every ``import`` statement of the package (top-level and inside functions) is read from the
 source, so a lazy import that goes up is caught too; ``if TYPE_CHECKING:`` imports count.
@@ -29,19 +29,17 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 BANDS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("core", ("tbsim_env.constants", "tbsim_env.errors", "tbsim_env.torch_utils",
-              "tbsim_env.malloc", "tbsim_env.config", "tbsim_env.config_cli")),
+    ("core", ("tbsim_env.core",)),
     ("data", ("tbsim_env.data",)),
     ("sim", ("tbsim_env.sim",)),
-    ("observation", ("tbsim_env.observation", "tbsim_env.observation_spec",
-                     "tbsim_env.map_knn", "tbsim_env.rows")),
+    ("observation", ("tbsim_env.observation",)),
     ("metrics", ("tbsim_env.metrics",)),
     ("policies", ("policies",)),
     ("evaluation", ("tbsim_env.evaluation",)),
     ("rendering", ("tbsim_env.rendering",)),
     ("env", ("tbsim_env.env",)),
     ("top", ("tbsim_env.benchmark", "tbsim_env.distributed", "tbsim_env.integrations",
-             "tbsim_env.cli", "tbsim_env.cli_configs", "tbsim_env.__main__", "tbsim_env")),
+             "tbsim_env.cli", "tbsim_env")),
 )  # fmt: skip
 """(band, module prefixes), bottom to top."""
 
@@ -178,10 +176,10 @@ def test_the_circle_finder_finds_circles():
 @pytest.mark.parametrize(
     "module, band",
     [
-        ("tbsim_env.constants", "core"),
+        ("tbsim_env.core.constants", "core"),
         ("tbsim_env.data.loader", "data"),
         ("tbsim_env.sim.core", "sim"),
-        ("tbsim_env.observation", "observation"),
+        ("tbsim_env.observation.tokens", "observation"),
         ("tbsim_env.metrics.wosac.scoring", "metrics"),
         ("policies.trafficbots.model", "policies"),
         ("tbsim_env.evaluation", "evaluation"),
@@ -194,6 +192,21 @@ def test_the_circle_finder_finds_circles():
 def test_bands_are_assigned(module, band):
     assert BANDS[layer(module)][0] == band
     assert layer("numpy") is None
+
+
+def test_the_package_tree_is_the_layer_diagram():
+    """Every entry of ``tbsim_env/`` is a band's room (a package, or a module that is a band of
+    its own): nothing loose that only the catch-all ``tbsim_env`` prefix would place."""
+    rooms = {prefix for _, prefixes in BANDS for prefix in prefixes} - {"tbsim_env"}
+    loose = []
+    for entry in sorted((ROOT / "tbsim_env").iterdir()):
+        if entry.name.startswith(("_", ".")) or entry.suffix not in {".py", ""}:
+            continue
+        if entry.is_dir() and not (entry / "__init__.py").exists():
+            continue
+        if f"tbsim_env.{entry.stem}" not in rooms:
+            loose.append(entry.name)
+    assert not loose, f"modules outside every band's room: {loose}"
 
 
 def test_the_walk_sees_lazy_and_relative_imports(tmp_path):

@@ -27,8 +27,8 @@ from policies.trafficbots.rules import (
     still_agents,
 )
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig, TerminationConfig, TokenConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig, TerminationConfig, TokenConfig
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario

@@ -7,7 +7,7 @@ import torch
 
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
-from tbsim_env.observation import (
+from tbsim_env.observation.tokens import (
     ObsConfig,
     build_map_context,
     densify,
@@ -82,7 +82,7 @@ def test_the_observation_spec_builds_the_space_the_keys_and_the_docs_table():
     from pathlib import Path
 
     from tbsim_env.env import TrafficEnv
-    from tbsim_env.observation_spec import OBS_KEYS, observation_table
+    from tbsim_env.observation.spec import OBS_KEYS, observation_table
 
     env = TrafficEnv(default_scenarios(1), controlled="all", npc_policy="log_replay")
     obs, _ = env.reset(seed=0)

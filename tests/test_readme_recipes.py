@@ -96,7 +96,7 @@ def _entry_point(code: str) -> tuple[str, str, str]:
 def test_the_entry_point_makes_the_command_line_offer_the_policy(
     workdir, monkeypatch, one_scenario_path
 ):
-    from tbsim_env import cli
+    from tbsim_env.cli import main as cli
 
     code = recipes()
     group, name, target = _entry_point(code["policy-entry-point"])
@@ -128,8 +128,8 @@ def test_a_registered_reward_term_is_weighted_into_the_reward(workdir):
 
 
 def test_a_reader_feeds_its_scenes_to_the_environment(workdir):
+    from tbsim_env.core.errors import ScenarioFormatError
     from tbsim_env.data.generator import generate_scenario
-    from tbsim_env.errors import ScenarioFormatError
 
     ns = run(recipes()["reader"])
     read, original = ns["read_npz"], generate_scenario("merge", seed=0)
@@ -156,7 +156,7 @@ def _observation_key_parts(code: str) -> tuple[str, str]:
 
 def test_the_observation_key_recipe_fits_the_spec_and_densify():
     from tbsim_env import TrafficEnv, observation
-    from tbsim_env.observation_spec import OBS_KEYS, ObsKey, observation_table
+    from tbsim_env.observation.spec import OBS_KEYS, ObsKey, observation_table
 
     spec_code, value_code = _observation_key_parts(recipes()["observation-key"])
     key = eval(spec_code, {"ObsKey": ObsKey, "_INF": float("inf")})

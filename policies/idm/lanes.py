@@ -21,7 +21,7 @@ from policies.idm.params import (
     LINK_MAX_TURN,
     LINK_TOLERANCE,
 )
-from tbsim_env.constants import MPH_TO_MPS, MapFeatureType
+from tbsim_env.core.constants import MPH_TO_MPS, MapFeatureType
 from tbsim_env.data.scenario import RoadMap
 
 

@@ -29,8 +29,8 @@ from policies.idm.params import (
     IDMConfig,
 )
 from policies.idm.tracking import points_at
+from tbsim_env.core.torch_utils import valid_order
 from tbsim_env.sim.idm import IDMTerms, crowding
-from tbsim_env.torch_utils import valid_order
 
 
 @dataclass(frozen=True)

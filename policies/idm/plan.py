@@ -13,7 +13,7 @@ from policies.idm.lanes import LaneGraph
 from policies.idm.params import STILL_HISTORY_SPEED, IDMConfig, TypeParams
 from policies.idm.routes import RoutePlan, build_routes, speed_caps
 from policies.idm.stops import RouteEvents, crosswalk_polygons, route_events
-from tbsim_env.constants import ObjectType
+from tbsim_env.core.constants import ObjectType
 from tbsim_env.data.scenario import Scenario
 
 PARAM_FIELDS = (

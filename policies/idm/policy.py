@@ -46,7 +46,7 @@ from policies.idm.yielding import (
     sign_progress,
     signal_distance,
 )
-from tbsim_env.constants import DT, ObjectType
+from tbsim_env.core.constants import DT, ObjectType
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.idm import MIN_DESIRED_SPEED, IDMTerms, acceleration, crowding
 from tbsim_env.sim.state import SimState

@@ -25,7 +25,7 @@ import numpy as np
 
 from policies.idm.lanes import LaneGraph, match_lanes
 from policies.idm.params import ROUTE_POINTS, ROUTE_SPACING, Route
-from tbsim_env.constants import ObjectType
+from tbsim_env.core.constants import ObjectType
 from tbsim_env.data.scenario import Scenario, wrap_angle_np
 
 LOG_POINT_SPACING = 0.5

@@ -31,7 +31,7 @@ from policies.idm.params import (
     STOP_FOLLOW_DISTANCE,
     STOP_MATCH_DISTANCE,
 )
-from tbsim_env.constants import MapFeatureType
+from tbsim_env.core.constants import MapFeatureType
 from tbsim_env.data.scenario import Scenario
 
 FOLLOW_CHECKS = (5.0, 10.0)

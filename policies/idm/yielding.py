@@ -11,7 +11,7 @@ import torch
 
 from policies.idm.params import MOVING_SPEED, SIGN_STOP_ZONE, STOPPED_SPEED
 from policies.idm.tracking import points_at
-from tbsim_env.constants import TLState
+from tbsim_env.core.constants import TLState
 
 
 def _per_agent(table: torch.Tensor, row: torch.Tensor, col: torch.Tensor) -> torch.Tensor:

@@ -16,8 +16,8 @@ from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
-from tbsim_env.constants import ObjectType
-from tbsim_env.map_knn import PieceClusters
+from tbsim_env.core.constants import ObjectType
+from tbsim_env.observation.map_knn import PieceClusters
 
 N_AGENT_TYPES = 3
 """Type branches of the model: vehicle, pedestrian, cyclist (docs/model.md §1.4)."""
@@ -31,7 +31,7 @@ def type_branch(ag_type: torch.Tensor) -> torch.Tensor:
     """``ObjectType`` -> model branch 0 vehicle, 1 pedestrian, 2 cyclist.
 
     The spec has no slot for UNSET / OTHER; they use the vehicle branch (as their dynamics
-    limits do in ``tbsim_env.constants``).
+    limits do in ``tbsim_env.core.constants``).
 
     Args:
         ag_type: [...] int ``ObjectType``.

@@ -10,8 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tbsim_env import constants as C
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import gather_rows
 
 
 class Neighbours(NamedTuple):

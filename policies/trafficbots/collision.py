@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env.sim.collision import box_corners
+from tbsim_env.core.boxes import box_corners
 from tbsim_env.sim.geometry import segment_projection
 
 CORNER_ROUNDING_FACTOR = 0.7

@@ -13,7 +13,7 @@ from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import relative_pose, rpe
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
-from tbsim_env.constants import NUM_MAP_CLASSES, MapClass
+from tbsim_env.core.constants import NUM_MAP_CLASSES, MapClass
 from tbsim_env.sim.geometry import wrap_angle
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 
 from policies.trafficbots.encodings import relative_pose
-from tbsim_env.map_knn import PieceClusters, nearest_pieces
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.core.torch_utils import gather_rows
+from tbsim_env.observation.map_knn import PieceClusters, nearest_pieces
 
 
 @torch.no_grad()
@@ -33,7 +33,7 @@ def knn_select(
     exact distances). The selection does not depend on the device, on ``topk``'s algorithm or on
     padding rows after the targets either (``TokenBatch.trim``).
 
-    The search is the observations' (``tbsim_env.map_knn.nearest_pieces``): with the
+    The search is the observations' (``tbsim_env.observation.map_knn.nearest_pieces``): with the
     targets' ``clusters`` (a large map), eagerly on the CPU, it measures the pieces of the
     nearest clusters only, with the same result.
 

@@ -14,7 +14,7 @@ from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.latent import kl_std_normal
 from policies.trafficbots.model import PrepareMode, TrafficBots, rand
 from policies.trafficbots.rollout import Trajectory, rollout
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from policies.trafficbots.encodings import map_node_geometry, relative_pose, rpe
 from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
-from tbsim_env.constants import NUM_MAP_CLASSES
+from tbsim_env.core.constants import NUM_MAP_CLASSES
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,7 @@ import torch
 
 from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.model import RolloutContext, TrafficBots
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.sim.dynamics import unicycle_step
 from tbsim_env.sim.geometry import rotate
 

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tbsim_env import constants as C
-from tbsim_env.constants import MapClass, ObjectType, TLState
+from tbsim_env.core import constants as C
+from tbsim_env.core.constants import MapClass, ObjectType, TLState
 from tbsim_env.data.tokens import SceneTokens
 
 LANE_WIDTH = 3.5

@@ -19,9 +19,9 @@ from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
-from tbsim_env.constants import NUM_TL_STATES
-from tbsim_env.rows import take_rows
-from tbsim_env.torch_utils import listed
+from tbsim_env.core.constants import NUM_TL_STATES
+from tbsim_env.core.torch_utils import listed
+from tbsim_env.observation.rows import take_rows
 
 
 def _rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:

@@ -41,7 +41,7 @@ def parse_traffic(text: str) -> tuple[str, ...]:
 
 
 def settings_of(args: Any) -> BenchmarkSettings:
-    """The run's settings from the command's config (``cli_configs.Benchmark``)."""
+    """The run's settings from the command's config (``tbsim_env.cli.commands.Benchmark``)."""
     return BenchmarkSettings(
         planner=args.planner,
         traffic=parse_traffic(args.traffic),
@@ -85,7 +85,7 @@ def pages(
 
 
 def run_command(args: Any, sharded: bool = False, executor=None) -> int:
-    """Run ``tbsim benchmark`` with ``args`` (``cli_configs.Benchmark``)."""
+    """Run ``tbsim benchmark`` with ``args`` (``tbsim_env.cli.commands.Benchmark``)."""
     load_planner(args.planner)  # a bad spec fails before any scene runs
     settings = settings_of(args)
     results = _results(args, settings, sharded, executor)

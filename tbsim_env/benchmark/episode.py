@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from tbsim_env.benchmark.planner import PlannerInput, reset_planner
-from tbsim_env.config import EnvConfig, TerminationConfig
+from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.vector_env import route_features
@@ -276,8 +276,8 @@ def log_record(scenario: Scenario, track: int, traffic: str = "log") -> EpisodeR
     Raises:
         MissingFutureError: the log does not reach the episode's end.
     """
+    from tbsim_env.core.boxes import box_corner_xy
     from tbsim_env.sim.build import build_sim_state
-    from tbsim_env.sim.collision import box_corner_xy
     from tbsim_env.sim.offroad import box_offroad_distance
 
     cfg = EnvConfig()

@@ -16,7 +16,7 @@ from scipy.signal import savgol_filter
 
 from tbsim_env.benchmark.config import BenchmarkConfig
 from tbsim_env.benchmark.episode import EpisodeRecord
-from tbsim_env.constants import MapFeatureType, ObjectType
+from tbsim_env.core.constants import MapFeatureType, ObjectType
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.collision import pairwise_overlap
 

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tbsim_env import constants as C
-from tbsim_env.constants import DT, MapFeatureType, ObjectType, SignalState
-from tbsim_env.errors import MissingFutureError, ScenarioFormatError
+from tbsim_env.core import constants as C
+from tbsim_env.core.constants import DT, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.errors import MissingFutureError, ScenarioFormatError
 
 
 def wrap_angle_np(angle: np.ndarray) -> np.ndarray:
@@ -482,7 +482,7 @@ class Scenario:
         """Check shapes, dtypes, cross references and plausibility; raise
         ``ScenarioFormatError`` naming the track or feature, step and field at fault.
 
-        The plausibility bounds (units and reasons in ``tbsim_env.constants``, section
+        The plausibility bounds (units and reasons in ``tbsim_env.core.constants``, section
         "plausibility"): valid track states finite, within ``MAX_ABS_COORDINATE``, speeds up to
         ``MAX_SPEED``, boxes positive and up to ``MAX_BOX_SIZE``, stored headings within
         ``MAX_ABS_HEADING``; the scene within ``MAX_SCENE_EXTENT``; ids in their proto ranges

@@ -34,12 +34,12 @@ from collections.abc import Iterator
 import numpy as np
 from google.protobuf.message import DecodeError
 
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.conversion import signals_from_entries
 from tbsim_env.data.gpudrive import map_element_to_feature
 from tbsim_env.data.protos import tf_example_pb2
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
 from tbsim_env.data.womd import _Where, iter_parsed_records, wrap_heading_f32
-from tbsim_env.errors import ScenarioFormatError
 
 PathLike = str | os.PathLike
 

@@ -29,13 +29,15 @@ from typing import Any
 import torch
 
 from policies.base import Policy, PolicyState
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import PolicyError
+from tbsim_env.core.torch_utils import cached_arange, cast, const, gather_rows, scalar
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, goal_mask, step_metrics
 from tbsim_env.env.rewards import Baseline, reward_and_termination, reward_weights
-from tbsim_env.errors import PolicyError
-from tbsim_env.observation import (
+from tbsim_env.observation.rows import cat_rows, take_rows, with_rows
+from tbsim_env.observation.tokens import (
     History,
     IndexedObservation,
     MapContext,
@@ -47,12 +49,10 @@ from tbsim_env.observation import (
     observe_indexed,
     push_history,
 )
-from tbsim_env.rows import cat_rows, take_rows, with_rows
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, cast, const, gather_rows, scalar
 
 
 @dataclass(frozen=True)

@@ -38,8 +38,10 @@ from gymnasium.utils import EzPickle
 from pettingzoo import ParallelEnv
 
 from policies.base import Policy
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import ActionError
+from tbsim_env.core.torch_utils import torch_threads
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env import episode as ep
 from tbsim_env.env.agent_metrics import StepMetrics
@@ -54,10 +56,8 @@ from tbsim_env.env.setup import (
     resolve_scenarios,
     select_scenarios,
 )
-from tbsim_env.errors import ActionError
-from tbsim_env.observation import ObsConfig, dense_views, observation_space
+from tbsim_env.observation.tokens import ObsConfig, dense_views, observation_space
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import torch_threads
 
 AgentDict = dict[str, Any]
 

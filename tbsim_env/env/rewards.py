@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.config import RewardConfig, TerminationConfig
+from tbsim_env.core.config import RewardConfig, TerminationConfig
+from tbsim_env.core.torch_utils import const
 from tbsim_env.env.agent_metrics import StepMetrics
-from tbsim_env.torch_utils import const
 
 
 @dataclass(frozen=True)

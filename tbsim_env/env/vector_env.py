@@ -43,7 +43,9 @@ import numpy as np
 import torch
 
 from policies.base import Policy, PolicyState
-from tbsim_env.config import EnvConfig
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import ActionError
+from tbsim_env.core.torch_utils import cached_arange, gather_rows, torch_threads
 from tbsim_env.env import episode as ep
 from tbsim_env.env.agent_metrics import Route, StepMetrics
 from tbsim_env.env.compiled import StepFunction
@@ -55,19 +57,17 @@ from tbsim_env.env.setup import (
     resolve_device,
     select_scenarios,
 )
-from tbsim_env.errors import ActionError
-from tbsim_env.observation import (
+from tbsim_env.observation.rows import with_rows
+from tbsim_env.observation.tokens import (
     IndexedObservation,
     ObsConfig,
     dense_views,
     densify_flat,
     observation_shapes,
 )
-from tbsim_env.rows import with_rows
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import to_local
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, gather_rows, torch_threads
 
 ROUTE_KEY = "route"
 """Optional extra observation key: upcoming points of the logged route in the ego frame."""
@@ -243,7 +243,7 @@ class BatchedTrafficEnv:
 
     def single_observation_space(self) -> gym.spaces.Dict:
         """Gymnasium ``Dict`` space of one agent's observation (as ``TrafficEnv``'s)."""
-        from tbsim_env.observation import observation_space
+        from tbsim_env.observation.tokens import observation_space
 
         space = dict(observation_space(self.obs_config).spaces)
         if self.route_points:

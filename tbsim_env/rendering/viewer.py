@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tbsim_env.constants import (
+from tbsim_env.core.constants import (
     DT,
     NUM_FUTURE,
     NUM_TL_STATES,
@@ -36,8 +36,8 @@ from tbsim_env.constants import (
     ObjectType,
     TLState,
 )
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.features import slice_steps
 from tbsim_env.metrics.wosac.features_interactive import distance_to_nearest_object
 from tbsim_env.metrics.wosac.features_kinematic import linear_speed
@@ -381,7 +381,7 @@ def map_json(scenario: Scenario) -> dict:
     Road lines are one entry per painted stroke (double lines as two polylines offset by
     ``DOUBLE_LINE_GAP_M`` each side), with their colour and whether dashed.
     """
-    from tbsim_env.constants import LaneType, RoadEdgeType
+    from tbsim_env.core.constants import LaneType, RoadEdgeType
     from tbsim_env.rendering.map_layer import offset_polyline, road_line_style
 
     rm = scenario.road_map

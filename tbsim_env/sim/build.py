@@ -9,7 +9,7 @@ import numpy as np
 import shapely
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data.preprocess.scene import scene_origin
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.dynamics import signed_speed

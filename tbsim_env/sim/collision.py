@@ -6,56 +6,8 @@ from typing import NamedTuple
 
 import torch
 
-from tbsim_env.sim.geometry import cos_sin
-from tbsim_env.torch_utils import cached_arange, const
-
-_HALF_SIGNS_X = (0.5, -0.5, -0.5, 0.5)
-_HALF_SIGNS_Y = (0.5, 0.5, -0.5, -0.5)
-
-
-def box_corner_xy(
-    pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``box_corners`` as separate coordinates: (x [..., 4], y [..., 4])."""
-    x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [..., 1]
-    return corners_from_offsets(x0, y0, cos_sin(yaw), corner_offsets(length, width))
-
-
-def corner_offsets(length: torch.Tensor, width: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Box corners in the box frame, counter-clockwise from front-left: (along [..., 4],
-    across [..., 4]) m, from ``length`` and ``width`` [...]."""
-    # (+-0.5 * length) is exactly +-(0.5 * length).
-    return (
-        length.unsqueeze(-1) * const(_HALF_SIGNS_X, length),
-        width.unsqueeze(-1) * const(_HALF_SIGNS_Y, width),
-    )
-
-
-def corners_from_offsets(
-    x0: torch.Tensor,
-    y0: torch.Tensor,
-    cos_sin_yaw: tuple[torch.Tensor, torch.Tensor],
-    offsets: tuple[torch.Tensor, torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Corners (x [..., 4], y [..., 4]) of boxes at centres ``x0``, ``y0`` [..., 1] with heading
-    (cos, sin) [..., 1], from their ``corner_offsets``."""
-    c, s = cos_sin_yaw
-    lx, ly = offsets
-    return x0 + c * lx - s * ly, y0 + s * lx + c * ly
-
-
-def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
-    """Corners of oriented boxes, counter-clockwise from front-left.
-
-    Args:
-        pose: [..., 3] (x, y, yaw) of the box centre.
-        length: [...] m along the heading.
-        width: [...] m across.
-
-    Returns:
-        [..., 4, 2].
-    """
-    return torch.stack(box_corner_xy(pose, length, width), dim=-1)
+from tbsim_env.core.boxes import cos_sin
+from tbsim_env.core.torch_utils import cached_arange, const
 
 
 class _BoxPairs(NamedTuple):

@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import const, gather_rows, row_offsets, scalar
 from tbsim_env.sim.dynamics import unicycle_step
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import const, gather_rows, row_offsets, scalar
 
 
 def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:

@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import const
 from tbsim_env.sim.geometry import cos_sin, wrap_angle
-from tbsim_env.torch_utils import const
 
 
 def action_limits(object_type: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -22,10 +22,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import const, gather_rows, scalar
 from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
-from tbsim_env.torch_utils import const, gather_rows, scalar
 
 
 def scene_edge_grid(
@@ -103,7 +103,7 @@ def build_edge_grid(
             order of the rows of its ``RoadEdges``.
         device: torch device.
         cell, count, margin: grid cell size (m), candidates per cell, extent beyond the edges
-            (m); constants in ``tbsim_env.constants``.
+            (m); constants in ``tbsim_env.core.constants``.
         links: optional, per scenario (previous [E_i], next [E_i]) segment indices as in
             ``RoadEdges``: the grid then carries the joint table (``EdgeGrid.joints``).
     """

@@ -8,17 +8,8 @@ import math
 
 import torch
 
-from tbsim_env.torch_utils import const
-
-
-def cos_sin(angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(cos, sin) of ``angle``.
-
-    The input is made contiguous first: on CPU with several threads, torch's cos/sin of a
-    strided view (e.g. ``pose[..., 2]``) can be ~1000x slower than of a contiguous tensor.
-    """
-    a = angle.contiguous()
-    return torch.cos(a), torch.sin(a)
+from tbsim_env.core.boxes import cos_sin  # noqa: F401  (re-exported)
+from tbsim_env.core.torch_utils import const
 
 
 def wrap_angle(angle: torch.Tensor) -> torch.Tensor:

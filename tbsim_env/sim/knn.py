@@ -1,6 +1,6 @@
 """The one rule that ranks neighbours by distance: 1 cm buckets, ties to the lower index.
 
-Observations (``tbsim_env.observation``) and TrafficBots' attention neighbours
+Observations (``tbsim_env.observation.tokens``) and TrafficBots' attention neighbours
 (``policies.trafficbots.knn``) both pick their k nearest targets with ``nearest_k``.
 
 Distances rank in buckets of ``KNN_DISTANCE_RESOLUTION`` (1 cm) whose edges sit
@@ -23,8 +23,8 @@ import math
 
 import torch
 
-from tbsim_env.constants import KNN_BUCKET_OFFSET, KNN_DISTANCE_RESOLUTION
-from tbsim_env.torch_utils import cached_arange, cast, const, scalar
+from tbsim_env.core.constants import KNN_BUCKET_OFFSET, KNN_DISTANCE_RESOLUTION
+from tbsim_env.core.torch_utils import cached_arange, cast, const, scalar
 
 INT64_LAST_BUCKET = 2**30
 """Last bucket of the int64 key (1e7 m): +inf and anything farther share it."""

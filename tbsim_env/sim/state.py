@@ -97,9 +97,9 @@ class SignalLog:
 class Shared:
     """A table of K scenarios that batch rows read through a row map (``CellLists.row``).
 
-    Row operations (``tbsim_env.rows``) pass it through instead of splitting it: rows of one
-    bank share its tables, so starting a new episode in a row copies none of them (a road-edge
-    grid is megabytes per scenario).
+    Row operations (``tbsim_env.observation.rows``) pass it through instead of splitting it:
+    rows of one bank share its tables, so starting a new episode in a row copies none of them
+    (a road-edge grid is megabytes per scenario).
 
     Attributes:
         value: [K, ...] tensor.

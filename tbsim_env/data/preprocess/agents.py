@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.constants import DT
+from tbsim_env.core.constants import DT
 from tbsim_env.data.scenario import Tracks, wrap_angle_np
 
 

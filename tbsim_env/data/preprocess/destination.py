@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.constants import MapClass, ObjectType
+from tbsim_env.core.constants import MapClass, ObjectType
 from tbsim_env.data.preprocess import spec
 from tbsim_env.data.preprocess.map_pieces import VEHICLE_LANE_CLASSES, MapPieces
 from tbsim_env.data.scenario import RoadMap

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
+from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.preprocess import spec
 from tbsim_env.data.preprocess.map_pieces import MapPieces
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import (
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import (
     GEOMETRY_TIE_TOLERANCE,
     LaneType,
     MapClass,

@@ -10,7 +10,7 @@ import hashlib
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
+from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.preprocess.agents import AgentAttributes, agent_attributes
 from tbsim_env.data.preprocess.destination import destination_labels, last_valid_goals
 from tbsim_env.data.preprocess.map_filter import filter_map_pieces, rotate_xy

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import DT, ObjectType
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import DT, ObjectType
 from tbsim_env.data.preprocess import spec
 from tbsim_env.data.preprocess.agents import signed_speed
 from tbsim_env.data.preprocess.map_filter import min_distance, prune_by_distance

@@ -2,7 +2,7 @@
 
 These are the numbers of the reference implementation, not tunable limits: the token *limits*
 (how many pieces, traffic lights and agents are kept) are configuration and live in
-``tbsim_env.config.TokenConfig``. Units: metres, seconds, radians.
+``tbsim_env.core.config.TokenConfig``. Units: metres, seconds, radians.
 """
 
 from __future__ import annotations

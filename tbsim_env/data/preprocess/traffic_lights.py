@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import SIGNAL_TO_TL_STATE
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import SIGNAL_TO_TL_STATE
 from tbsim_env.data.preprocess.map_filter import min_distance
 from tbsim_env.data.preprocess.map_pieces import LANE_CLASSES, MapPieces
 from tbsim_env.data.scenario import TrafficSignals

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tbsim_env.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import NUM_ROLLOUTS
 
 

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.constants import ObjectType
+from tbsim_env.core.constants import ObjectType
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import (
     BUCKETS,
     DEFAULT_VERSION,

@@ -19,7 +19,7 @@ import torch
 
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.rollouts import Rollouts, log_replay_rollouts
-from tbsim_env.rows import take_rows
+from tbsim_env.observation.rows import take_rows
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.horizon import wosac_end_step, wosac_scenario

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from google.protobuf.message import DecodeError
 
-from tbsim_env.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.protos import sim_agents_submission_pb2 as pb
 from tbsim_env.metrics.wosac.config import NUM_ROLLOUTS
 from tbsim_env.metrics.wosac.rollouts import Rollouts

@@ -5,7 +5,7 @@ relative pose (dx, dy, dyaw) in the observer's frame. Nothing is expressed in sc
 coordinates, so observations do not change when a whole scenario is rotated and translated.
 
 The keys of an observer's observation, their shapes, bounds and meaning are declared once in
-``tbsim_env.observation_spec.OBS_KEYS``. Neighbours are the nearest by 2-D distance, within a
+``tbsim_env.observation.spec.OBS_KEYS``. Neighbours are the nearest by 2-D distance, within a
 radius; invalid slots are zero with mask 0.
 """
 
@@ -17,15 +17,26 @@ from typing import Any
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
-from tbsim_env.config import TokenConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.torch_utils import (
+    cached_arange,
+    cast,
+    const,
+    gather_rows,
+    listed,
+    row_offsets,
+    scalar,
+    valid_first,
+    valid_order,
+)
 from tbsim_env.data.preprocess.map_filter import filter_map_pieces
 from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.map_knn import PieceGrid, build_piece_grid, nearest_pieces, uses_index
-from tbsim_env.observation_spec import (
+from tbsim_env.observation.map_knn import PieceGrid, build_piece_grid, nearest_pieces, uses_index
+from tbsim_env.observation.spec import (
     ATTRIBUTE_FEATURES,
     HISTORY_FEATURES,
     NODE_FEATURES,
@@ -37,17 +48,6 @@ from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, rotate_by
 from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import (
-    cached_arange,
-    cast,
-    const,
-    gather_rows,
-    listed,
-    row_offsets,
-    scalar,
-    valid_first,
-    valid_order,
-)
 
 
 @dataclass(frozen=True)
@@ -73,7 +73,7 @@ class MapContext:
         knn_xy: [B, 1, M + L, 2] float32, derived: the positions the nearest-token searches
             measure to (piece starts, +inf for padding pieces, then light poses).
         grid: derived: the valid pieces' ``PieceGrid`` for the nearest-piece search
-            (``tbsim_env.map_knn``); its tables are shared by the rows of a bank.
+            (``tbsim_env.observation.map_knn``); its tables are shared by the rows of a bank.
     """
 
     pose: torch.Tensor

@@ -1,5 +1,5 @@
 """The ``tbsim`` commands as typed configs: each class is one subcommand, its fields the
-options, its docstring the help (``tbsim_env.config_cli`` builds the parser from them).
+options, its docstring the help (``tbsim_env.core.config_cli`` builds the parser from them).
 
 Shared option groups are base classes: ``DataOptions`` (which scenarios), ``RolloutOptions``
 (which policy, how many rollouts) and ``ShardOptions`` (resumable shards, Ray).
@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from tbsim_env import constants as C
-from tbsim_env.config_cli import option
+from tbsim_env.core import constants as C
+from tbsim_env.core.config_cli import option
 
 
 def _all_policies() -> tuple[str, ...]:

@@ -176,7 +176,7 @@ MAP_PIECE_SEGMENTS = 20
 MAP_RESAMPLE_STRIDE = 2
 """Keep every 2nd WOMD polyline point (~0.5 m apart) to get ~1 m spacing."""
 
-# Default token limits (configuration, see ``tbsim_env.config``).
+# Default token limits (configuration, see ``tbsim_env.core.config``).
 DEFAULT_MAX_MAP_PIECES = 1024
 DEFAULT_MAX_TRAFFIC_LIGHTS = 128
 DEFAULT_MAX_AGENTS = 64
@@ -203,8 +203,8 @@ ratio): bucket edges fall between round distances (a lane width of 3.5 m, a node
 which generated maps have exactly and rounding would put on either side of an edge."""
 
 MAP_KNN_CLUSTER_SIZE = 16
-"""Map pieces per cluster at most (``tbsim_env.map_knn``: TrafficBots' agents search nearby
-clusters)."""
+"""Map pieces per cluster at most (``tbsim_env.observation.map_knn``: TrafficBots' agents
+search nearby clusters)."""
 MAP_KNN_CLUSTERS = 16
 """Clusters searched per observer for its nearest map pieces (256 candidates at most)."""
 MAP_KNN_MARGIN = 0.05
@@ -245,10 +245,10 @@ VALID_FIRST_MIN_QUERIES = 8
 (``torch_utils.valid_first``) instead of every slot."""
 MALLOC_MMAP_THRESHOLD = 32 << 20
 """Bytes: glibc serves blocks up to this from the heap instead of fresh mmaps
-(``tbsim_env.malloc``; glibc's largest allowed value on 64-bit systems)."""
+(``tbsim_env.core.malloc``; glibc's largest allowed value on 64-bit systems)."""
 MALLOC_TRIM_THRESHOLD = 256 << 20
 """Bytes of free memory at the top of the heap that glibc keeps instead of returning it to
-the operating system (``tbsim_env.malloc``)."""
+the operating system (``tbsim_env.core.malloc``)."""
 
 # Off-road check of the environment (tbsim_env.sim.edge_grid).
 EDGE_GRID_CELL = 2.0

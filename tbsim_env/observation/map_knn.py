@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import gather_columns, gather_rows
 from tbsim_env.sim.edge_grid import (
     cell_index,
     cell_rows,
@@ -41,7 +42,6 @@ from tbsim_env.sim.edge_grid import (
 )
 from tbsim_env.sim.knn import k_nearest, planar_distances, planar_distances_xy
 from tbsim_env.sim.state import CellLists, Shared
-from tbsim_env.torch_utils import gather_columns, gather_rows
 
 
 @dataclass(frozen=True)
@@ -95,7 +95,7 @@ def build_piece_grid(
         xy: [B, M, 2] float32 piece anchor points (as the search measures them).
         valid: [B, M] bool.
         cell, count, margin: cell size (m), pieces listed per cell, extent beyond the pieces
-            (m); constants in ``tbsim_env.constants``.
+            (m); constants in ``tbsim_env.core.constants``.
     """
     xy_np, valid_np = xy.detach().cpu().float().numpy(), valid.detach().cpu().numpy()
     b, m = valid_np.shape

@@ -1,11 +1,11 @@
-"""Frozen configuration dataclasses. Defaults come from ``tbsim_env.constants``."""
+"""Frozen configuration dataclasses. Defaults come from ``tbsim_env.core.constants``."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 
 @dataclass(frozen=True)

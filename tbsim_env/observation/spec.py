@@ -17,8 +17,8 @@ from dataclasses import dataclass
 import gymnasium as gym
 import numpy as np
 
-from tbsim_env import constants as C
-from tbsim_env.config import TokenConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import TokenConfig
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ import contextlib
 
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 
 @contextlib.contextmanager
