@@ -126,3 +126,25 @@ def test_points_gathered_from_several_rows_read_their_own_scenes_edges():
     listed, stale = grid_exact_signed_distance(pts[b, k][:, None], edges, rows=b)
     assert torch.equal(listed[:, 0], full[b, k]) and not stale.any()
     assert (full[:, :e] < 0).any() and (full[:, :e] > 0).any()
+
+
+@pytest.mark.parametrize("cell, count", [(6.0, 16), (9.0, 96), (50.0, 4)])
+def test_each_cell_lists_its_nearest_segments_and_bounds_the_rest(cell, count):
+    """The tiled build against every (cell, segment) distance: each cell lists ``count``
+    segments at the ``count`` smallest distances (ties in any order) and its bound is the next
+    distance (less the slack)."""
+    from tbsim_env.sim.edge_grid import _BOUND_SLACK, scene_edge_grid
+
+    _, [(st, en)] = _edges(_wiggly_roads(3))
+    grid = scene_edge_grid(st, en, cell, count, 15.0)
+    q = torch.from_numpy(grid["center"]).double()
+    a, b = torch.from_numpy(st), torch.from_numpy(en)
+    ab = b - a
+    rel = q[:, None] - a[None]
+    t = ((rel * ab).sum(-1) / (ab * ab).sum(-1)).clamp(0, 1)
+    d = (rel - t[..., None] * ab).norm(dim=-1)  # [G, E], float64
+    ordered = d.sort(1).values
+    listed = torch.gather(d, 1, torch.from_numpy(grid["cells"])).sort(1).values
+    torch.testing.assert_close(listed, ordered[:, :count], rtol=0, atol=1e-4)
+    bound = torch.from_numpy(grid["bound"]).double() + _BOUND_SLACK
+    torch.testing.assert_close(bound, ordered[:, count], rtol=0, atol=1e-4)

@@ -58,29 +58,71 @@ def scene_edge_grid(
     ix, iy = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
     center = lo + (np.stack([ix, iy], -1).reshape(-1, 2) + 0.5) * cell
     # float32 is enough: the bound keeps a slack far above its rounding at map coordinates.
-    a = torch.from_numpy(start).float()
-    ab = torch.from_numpy(end).float() - a
-    ax, ay, abx, aby = a[:, 0], a[:, 1], ab[:, 0], ab[:, 1]
-    len2 = (ab * ab).sum(-1).clamp_min(1e-12)
+    seg = _Segments.of(start, end)
     k = min(count + 1, e)
-    cells, bound = [], []
-    for q in torch.from_numpy(center).float().split(max(1, (1 << 20) // e)):
-        dx, dy = q[:, :1] - ax, q[:, 1:] - ay  # [g, E]
-        t = ((dx * abx + dy * aby) / len2).clamp_(0.0, 1.0)
-        d = torch.hypot(dx - t * abx, dy - t * aby)
-        top, idx = torch.topk(d, k, dim=-1, largest=False, sorted=True)
-        cells.append(idx[:, :count])
-        bound.append(top[:, count] if k > count else torch.full_like(top[:, 0], float("inf")))
-    near = torch.cat(cells).numpy()
+    tiles = _tiles(shape, _TILE_CELLS)
+    q = torch.from_numpy(center).float()
+    near = torch.empty(len(center), k, dtype=torch.int64)
+    kth = torch.empty(len(center))
+    # A tile's cells can only list segments within (k-th distance from its centre + 2 radii)
+    # of the tile centre (triangle inequality): each tile measures those alone.
+    radius = float(np.hypot(*(0.5 * _TILE_CELLS * cell,) * 2))
+    for cells_of_tile in tiles:
+        pts = q[cells_of_tile]
+        hub = pts.mean(0, keepdim=True)
+        d_hub = seg.distance(hub)[0]
+        cutoff = torch.kthvalue(d_hub, k).values + 2.0 * radius + 1e-3
+        cand = torch.nonzero(d_hub <= cutoff).squeeze(1)
+        top, idx = torch.topk(seg.take(cand).distance(pts), k, dim=-1, largest=False, sorted=True)
+        near[cells_of_tile] = cand[idx]
+        kth[cells_of_tile] = top[:, -1]
+    near = near[:, :count].numpy()
+    bound = kth.numpy() if k > count else np.full(len(center), np.inf, np.float32)
     if near.shape[1] < count:  # fewer segments than candidates: repeat the farthest
         near = np.concatenate([near, np.repeat(near[:, -1:], count - near.shape[1], 1)], 1)
     return {
         "lower": lo,
         "shape": shape,
         "cells": near,
-        "bound": torch.cat(bound).numpy() - _BOUND_SLACK,
+        "bound": bound - _BOUND_SLACK,
         "center": center,
     }
+
+
+_TILE_CELLS = 8
+"""Cells per side of the tiles that ``scene_edge_grid`` measures together."""
+
+
+def _tiles(shape: np.ndarray, side: int) -> list[torch.Tensor]:
+    """Flat cell indices (row-major over ``shape`` [2]) of each ``side`` x ``side`` tile."""
+    flat = torch.arange(int(shape[0] * shape[1])).view(int(shape[0]), int(shape[1]))
+    return [
+        flat[i : i + side, j : j + side].reshape(-1)
+        for i in range(0, int(shape[0]), side)
+        for j in range(0, int(shape[1]), side)
+    ]
+
+
+class _Segments:
+    """Segments (start a, vector ab, |ab|^2) as float32 columns, for point distances."""
+
+    def __init__(self, ax, ay, abx, aby, len2):
+        self.ax, self.ay, self.abx, self.aby, self.len2 = ax, ay, abx, aby, len2
+
+    @classmethod
+    def of(cls, start: np.ndarray, end: np.ndarray) -> _Segments:
+        a = torch.from_numpy(start).float()
+        ab = torch.from_numpy(end).float() - a
+        return cls(a[:, 0], a[:, 1], ab[:, 0], ab[:, 1], (ab * ab).sum(-1).clamp_min(1e-12))
+
+    def take(self, rows: torch.Tensor) -> _Segments:
+        return _Segments(*(v[rows] for v in (self.ax, self.ay, self.abx, self.aby, self.len2)))
+
+    def distance(self, q: torch.Tensor) -> torch.Tensor:
+        """[g, E] distances (m) of points ``q`` [g, 2] to every segment."""
+        dx, dy = q[:, :1] - self.ax, q[:, 1:] - self.ay  # [g, E]
+        t = ((dx * self.abx + dy * self.aby) / self.len2).clamp_(0.0, 1.0)
+        return torch.hypot(dx - t * self.abx, dy - t * self.aby)
 
 
 _BOUND_SLACK = 1e-3
