@@ -148,7 +148,7 @@ def test_a_reader_feeds_its_scenes_to_the_environment(workdir):
 
 
 def _observation_key_parts(code: str) -> tuple[str, str]:
-    """The recipe's OBS_KEYS entry and densify dict entry, each without its comment line."""
+    """The recipe's OBS_KEYS entry and dense_views dict entry, each without its comment line."""
     parts = re.split(r"^# .*$\n", code, flags=re.M)
     spec, value = (p.strip().rstrip(",") for p in parts if p.strip())
     return spec, value
@@ -162,14 +162,15 @@ def test_the_observation_key_recipe_fits_the_spec_and_densify():
     key = eval(spec_code, {"ObsKey": ObsKey, "_INF": float("inf")})
     assert isinstance(key, ObsKey) and key.name not in [k.name for k in OBS_KEYS]
     # The names the recipe uses are densify's.
-    source = inspect.getsource(observation.densify)
-    for name in re.findall(r"\b(a_pose|m_pose|t_pose|ego_attrs|nb_attrs)\b", value_code):
+    source = inspect.getsource(observation.dense_views)
+    for name in re.findall(r"\b(pose|mask|ka|km|kt|ego|nb|mp)\b", value_code):
         assert re.search(rf"\b{name}\b", source), name
     env = TrafficEnv(None, controlled="all", npc_policy="log_replay")
     obs, _ = env.reset(seed=0)
     for agent_obs in obs.values():
-        a_pose = torch.as_tensor(agent_obs["agents_pose"])
-        values = eval("{" + value_code + "}", {"torch": torch, "a_pose": a_pose})[key.name]
+        pose, ka = agent_obs["agents_pose"], env.obs_config.num_agents  # dense_views' names
+        values = eval("{" + value_code + "}", {"pose": pose, "ka": ka})[key.name]
+        values = torch.as_tensor(values)
         shape = tuple(env.obs_config.num_agents if d == "Ka" else d for d in key.dims)
         assert tuple(values.shape) == shape
         assert ((values >= key.low) & (values <= key.high)).all()

@@ -155,14 +155,21 @@ def _is_number(value: Any) -> bool:
 
 def _first_non_number(rows: Any) -> tuple[bool, Any]:
     """(found, leaf): the first leaf of a number or a (nested) list of numbers that is not a
-    JSON number (``_is_number``)."""
-    if isinstance(rows, (list, tuple)):
-        for item in rows:
+    JSON number (``_is_number``). Plain ``float`` and ``int`` leaves are passed at the cost of
+    one type test (files hold millions of them)."""
+    if not isinstance(rows, (list, tuple)):
+        return (False, None) if _is_number(rows) else (True, rows)
+    for item in rows:
+        kind = type(item)
+        if kind is float or kind is int:
+            continue
+        if isinstance(item, (list, tuple)):
             found, leaf = _first_non_number(item)
             if found:
                 return True, leaf
-        return False, None
-    return (False, None) if _is_number(rows) else (True, rows)
+        elif not _is_number(item):
+            return True, item
+    return False, None
 
 
 def _array(rows: Any, dtype: type, where: str, ctx: _Ctx) -> np.ndarray:
@@ -214,7 +221,12 @@ def _xyz_rows(points: Any, keys: tuple[str, ...], where: str, ctx: _Ctx) -> np.n
     if not isinstance(points, list):
         raise ctx.error(f"{where}: expected a list, got {type(points).__name__}")
     try:
-        rows = [tuple(p[k] if k != "z" else p.get("z", 0.0) for k in keys) for p in points]
+        if keys == ("x", "y", "z"):  # the common cases without a generator per point
+            rows = [(p["x"], p["y"], p.get("z", 0.0)) for p in points]
+        elif keys == ("x", "y"):
+            rows = [(p["x"], p["y"]) for p in points]
+        else:
+            rows = [tuple(p[k] if k != "z" else p.get("z", 0.0) for k in keys) for p in points]
     except (KeyError, TypeError, AttributeError, IndexError, ValueError) as err:
         bad = next(
             (
