@@ -17,16 +17,18 @@ its logged speed at the current step. ``report`` prints the tables and draws the
 
 A variant is a name of ``VARIANTS`` or ``LABEL:FIELD=VALUE+FIELD=VALUE`` (``InferenceConfig``
 fields over the shipped ones: numbers, true/false, none; ``recording=recorded`` for the
-fitted tracker jitter, ``recording=measured`` for the measured one).
+fitted jitter, ``recording=tracker`` for the measured one).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import math
 import os
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,7 +44,7 @@ from policies.trafficbots.wosac import (
     trafficbots_rollouts,
 )
 from tbsim_env import constants as C
-from tbsim_env.data.generator.recording import RECORDED
+from tbsim_env.data.generator.recording import RECORDED, TRACKER
 from tbsim_env.data.loader import load_scenarios
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.evaluation import scenario_seed
@@ -77,19 +79,6 @@ SCORES = (
     "simulated_offroad_rate",
     "min_average_displacement_error",
 )
-
-
-MEASURED_JITTER = dataclasses.replace(
-    RECORDED,
-    jitter_along=0.012,
-    jitter_lateral=0.004,
-    jitter_heading=0.0014,
-    ped_jitter=0.007,
-    ped_jitter_heading=0.27,
-    ped_walking_jitter_heading=0.008,
-)
-"""The tracker jitter measured on the real train tracks (median track; the start of the
-generator's recording fit, docs/model_card/generator_calibration.md)."""
 
 
 @dataclass(frozen=True)
@@ -142,10 +131,8 @@ VARIANTS: dict[str, Callable[[], Variant]] = {
     "recorded": lambda: Variant(
         "recorded", "fitted tracker jitter on the kept rollouts", _shipped(recording=RECORDED)
     ),
-    "recorded_measured": lambda: Variant(
-        "recorded_measured",
-        "measured tracker jitter on the kept rollouts",
-        _shipped(recording=MEASURED_JITTER),
+    "tracker": lambda: Variant(
+        "tracker", "tracker jitter (TRACKER) on the kept rollouts", _shipped(recording=TRACKER)
     ),
 }
 
@@ -159,8 +146,8 @@ def _value(text: str):
         return low == "true"
     if low == "recorded":
         return RECORDED
-    if low == "measured":
-        return MEASURED_JITTER
+    if low == "tracker":
+        return TRACKER
     return float(text)
 
 
@@ -305,6 +292,23 @@ def _done(path: Path) -> set[str]:
     return {json.loads(line)["scenario_id"] for line in path.read_text().splitlines() if line}
 
 
+def exact_rollouts(
+    model, inference: InferenceConfig, sc: Scenario, seed: int, args: argparse.Namespace
+) -> Rollouts:
+    """The shipped model's WOSAC rollouts under ``inference`` (no recording), read from
+    ``args.cache`` when a run with the same settings stored them there."""
+    tag = f"{sc.scenario_id}|{inference!r}|{args.samples}|{args.keep}|{seed}"
+    path = Path(args.cache, hashlib.sha1(tag.encode()).hexdigest() + ".pt") if args.cache else None
+    if path is not None and path.exists():
+        return Rollouts(**torch.load(path))
+    model.inference = inference
+    r = trafficbots_rollouts(model, sc, num_rollouts=args.keep, num_samples=args.samples, seed=seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({f.name: getattr(r, f.name) for f in dataclasses.fields(r)}, path)
+    return r
+
+
 def run(args: argparse.Namespace) -> None:
     """Roll out and record every (scene, variant) not recorded yet."""
     torch.set_num_threads(1)
@@ -328,15 +332,73 @@ def run(args: argparse.Namespace) -> None:
             else:
                 key = dataclasses.replace(v.inference, recording=None)
                 if key not in exact:
-                    model.inference = key
-                    exact[key] = trafficbots_rollouts(
-                        model, sc, num_rollouts=args.keep, num_samples=args.samples, seed=seed
-                    )
+                    exact[key] = exact_rollouts(model, key, sc, seed, args)
                 r = exact[key]
                 if v.inference.recording is not None:
                     r = record_rollouts(wosac_scenario(sc), r, v.inference.recording, seed)
             with open(out / f"{v.name}.jsonl", "a") as fh:
                 fh.write(json.dumps(scene_record(sc, r, v)) + "\n")
+
+
+TRACKER_GROUPS = {
+    "vehicle moving >= 3 m/s": (1, 3.0, math.inf),
+    "pedestrian walking >= 1 m/s": (2, 1.0, math.inf),
+    "pedestrian standing < 0.2 m/s": (2, 0.0, 0.2),
+    "vehicle standing < 0.05 m/s": (1, 0.0, 0.05),
+}
+"""Track groups of the jitter measurement: (``ObjectType``, logged speed range m/s)."""
+MIN_TRACK_STEPS = 20
+
+
+def robust_white_sigma(second_diff: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per track, the standard deviation of white noise whose second differences are
+    ``second_diff`` [A, T]: 1.4826 x median absolute deviation / sqrt(6) over the masked steps
+    (NaN for tracks with fewer than ``MIN_TRACK_STEPS``). Returns [A]."""
+    x = np.where(mask, second_diff, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: tracks left out
+        mad = np.nanmedian(np.abs(x - np.nanmedian(x, axis=1, keepdims=True)), axis=1)
+    return np.where(mask.sum(1) >= MIN_TRACK_STEPS, 1.4826 * mad / math.sqrt(6.0), np.nan)
+
+
+def scene_jitter(sc: Scenario) -> dict[str, np.ndarray]:
+    """Per group of ``TRACKER_GROUPS``: [K, 3] white jitter of its tracks (vehicles: along and
+    across the heading, m; pedestrians: mean of x and y, m; and heading, rad)."""
+    tr = sc.tracks
+    h = np.unwrap(np.where(tr.valid, tr.heading, 0.0), axis=1)
+    speed = np.hypot(tr.velocity[..., 0], tr.velocity[..., 1])[:, 1:-1]
+    ok = tr.valid[:, 2:] & tr.valid[:, 1:-1] & tr.valid[:, :-2]
+    d2 = lambda v: v[:, 2:] - 2.0 * v[:, 1:-1] + v[:, :-2]  # noqa: E731
+    d2x, d2y, d2h = d2(tr.xyz[..., 0]), d2(tr.xyz[..., 1]), d2(h)
+    c, s = np.cos(h[:, 1:-1]), np.sin(h[:, 1:-1])
+    along, across = c * d2x + s * d2y, -s * d2x + c * d2y
+    out = {}
+    for name, (kind, lo, hi) in TRACKER_GROUPS.items():
+        mask = ok & (tr.object_type == kind)[:, None] & (speed >= lo) & (speed < hi)
+        if kind == 1:
+            cols = [robust_white_sigma(along, mask), robust_white_sigma(across, mask)]
+        else:
+            xy = 0.5 * (robust_white_sigma(d2x, mask) + robust_white_sigma(d2y, mask))
+            cols = [xy, xy]
+        vals = np.stack(cols + [robust_white_sigma(d2h, mask)], axis=1)
+        out[name] = vals[np.isfinite(vals).all(1)]
+    return out
+
+
+def tracker(args: argparse.Namespace) -> None:
+    """Print the median over tracks of each group's white jitter (``recording.TRACKER``)."""
+    entries = json.loads(SPLITS.read_text())[args.split]
+    found: dict[str, list[np.ndarray]] = {}
+    for entry in tqdm(entries, desc=f"{args.split} scenes"):
+        sc = load_scenarios(Path(args.data) / entry["file"])[0]
+        for name, vals in scene_jitter(sc).items():
+            found.setdefault(name, []).append(vals)
+    print("| tracks | count | along or x (m) | across or y (m) | heading (rad) |")
+    print("|---|---|---|---|---|")
+    for name, parts in found.items():
+        vals = np.concatenate(parts)
+        med = np.median(vals, axis=0) if len(vals) else np.full(3, np.nan)
+        print(f"| {name} | {len(vals)} | {med[0]:.4f} | {med[1]:.4f} | {med[2]:.5f} |")
 
 
 BOOTSTRAP = 4000
@@ -518,17 +580,23 @@ def main() -> None:
     r.add_argument("--seed", type=int, default=0)
     r.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     r.add_argument("--out", required=True)
+    r.add_argument("--cache", help="folder keeping the exact rollouts for later runs")
     q = sub.add_parser("report", help="tables and histograms of recorded runs")
     q.add_argument("folder")
     q.add_argument("--baseline", default="shipped")
     q.add_argument("--png", help="write the sim-vs-log histograms here")
     q.add_argument("--png-variants", default="shipped", help="simulations drawn in the picture")
+    t = sub.add_parser("tracker", help="measure the tracker's white jitter (recording.TRACKER)")
+    t.add_argument("--split", default="train", choices=("validation", "held_out", "train"))
+    t.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     sub.add_parser("variants", help="list the named variants")
     args = p.parse_args()
     if args.cmd == "run":
         run(args)
     elif args.cmd == "report":
         report(args)
+    elif args.cmd == "tracker":
+        tracker(args)
     else:
         for name, make in VARIANTS.items():
             print(f"{name:18s} {make().about}")

@@ -19,7 +19,7 @@ from policies.trafficbots.wosac import record_rollouts
 from tbsim_env import constants as C
 from tbsim_env.config import TokenConfig
 from tbsim_env.data.generator import generate_scenario
-from tbsim_env.data.generator.recording import RECORDED
+from tbsim_env.data.generator.recording import TRACKER
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.metrics.wosac.rollouts import log_replay_rollouts, sim_agent_indices
 from tbsim_env.sim.geometry import wrap_angle
@@ -100,9 +100,9 @@ def test_sampled_actions_scatter_around_the_mean_ones(batch):
 
 def test_recording_jitters_moving_tracks_only(scenario):
     exact = log_replay_rollouts(scenario, 4)
-    rec = record_rollouts(scenario, exact, RECORDED, seed=3)
-    again = record_rollouts(scenario, exact, RECORDED, seed=3)
-    other = record_rollouts(scenario, exact, RECORDED, seed=4)
+    rec = record_rollouts(scenario, exact, TRACKER, seed=3)
+    again = record_rollouts(scenario, exact, TRACKER, seed=3)
+    other = record_rollouts(scenario, exact, TRACKER, seed=4)
     assert torch.equal(rec.x, again.x) and torch.equal(rec.heading, again.heading)
     assert not torch.equal(rec.x, other.x)
     assert torch.equal(rec.z, exact.z) and torch.equal(rec.object_id, exact.object_id)
@@ -122,15 +122,15 @@ def test_recording_jitters_moving_tracks_only(scenario):
     assert float(dyaw[vehicle & standing].max()) < 1e-4
     # Moving vehicles scatter by about the fitted jitter (log-normal per track and rollout).
     typical = float(dx[moving].median())
-    assert 0.3 * RECORDED.jitter_along < typical < 3 * RECORDED.jitter_along
-    assert float(dyaw[moving].median()) < 5 * RECORDED.jitter_heading
+    assert 0.3 * TRACKER.jitter_along < typical < 3 * TRACKER.jitter_along
+    assert float(dyaw[moving].median()) < 5 * TRACKER.jitter_heading
 
 
 def test_recording_needs_every_sim_agent_in_track_order(scenario):
     exact = log_replay_rollouts(scenario, 2)
     swapped = dataclasses.replace(exact, object_id=exact.object_id.flip(0))
     with pytest.raises(ValueError, match="track order"):
-        record_rollouts(scenario, swapped, RECORDED, seed=0)
+        record_rollouts(scenario, swapped, TRACKER, seed=0)
 
 
 def test_smooth_yaw_rate_mixes_in_the_last_step_only_where_it_exists():
