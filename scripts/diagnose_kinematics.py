@@ -43,7 +43,7 @@ from policies.trafficbots.wosac import (
     record_rollouts,
     trafficbots_rollouts,
 )
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data.generator.recording import RECORDED, TRACKER
 from tbsim_env.data.loader import load_scenarios
 from tbsim_env.data.scenario import Scenario

@@ -16,8 +16,8 @@ from policies.trafficbots.model import TrafficBots
 from policies.trafficbots.rollout import rollout
 from policies.trafficbots.rules import smooth_yaw_rate
 from policies.trafficbots.wosac import record_rollouts
-from tbsim_env import constants as C
-from tbsim_env.config import TokenConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.generator.recording import TRACKER
 from tbsim_env.data.preprocess import preprocess_scenario

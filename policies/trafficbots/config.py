@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data.generator.recording import Recording
 from tbsim_env.data.preprocess import spec as prep_spec
 

@@ -38,9 +38,9 @@ from policies.trafficbots.rules import (
     smooth_yaw_rate,
 )
 from policies.trafficbots.tl_encoder import TLContext, TLEncoder, TLStateHead, tl_context
-from tbsim_env import constants as C
-from tbsim_env.map_knn import PieceClusters, build_piece_clusters, clusters_pay
-from tbsim_env.rows import take_rows
+from tbsim_env.core import constants as C
+from tbsim_env.observation.map_knn import PieceClusters, build_piece_clusters, clusters_pay
+from tbsim_env.observation.rows import take_rows
 from tbsim_env.sim.dynamics import squash_action
 from tbsim_env.sim.geometry import wrap_angle
 

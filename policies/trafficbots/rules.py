@@ -33,7 +33,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import to_local_xy
 

@@ -19,8 +19,8 @@ from policies.trafficbots.checkpoint import load_checkpoint
 from policies.trafficbots.config import InferenceConfig, check_road_edge_weight
 from policies.trafficbots.inference import sample_rollouts
 from policies.trafficbots.model import TrafficBots
-from tbsim_env import constants as C
-from tbsim_env.config import TokenConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.generator.recording import Recording, jitter
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario

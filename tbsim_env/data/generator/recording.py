@@ -34,7 +34,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from tbsim_env.constants import ObjectType
+from tbsim_env.core.constants import ObjectType
 from tbsim_env.data.generator.driver import CAR_SIZE_RANGE, VAN_SIZE_RANGE
 
 LOT_OFFSET_M: float = 6.0
