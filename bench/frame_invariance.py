@@ -117,6 +117,10 @@ def main() -> None:
     if args.child:
         _child(args)
         return
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from machine import measure
+
+    print(measure().line())  # accuracy, not speed: the line says where it was measured
     runs: dict[str, dict] = {}
     jobs = [(name, env, "none") for name, env in KERNEL_PATHS.items()]
     jobs.append(("native", {}, "all"))

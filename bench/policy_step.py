@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import sys
 import time
 from collections.abc import Iterator
 from contextlib import nullcontext
@@ -35,16 +36,10 @@ from policies.trafficbots import TokenBatch, TrafficBots, TrafficBotsConfig
 from policies.trafficbots.attention import KnarpeAttention, knarpe_reference
 from tbsim_env.data.preprocess import preprocess_scenario
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import matmul_gflops, measure  # noqa: E402
+
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
-
-
-def matmul_gflops(n: int = 1024, repeats: int = 10) -> float:
-    a, b = torch.randn(n, n), torch.randn(n, n)
-    a @ b
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        a @ b
-    return 2 * n**3 * repeats / (time.perf_counter() - t0) / 1e9
 
 
 def step_cost(model: TrafficBots, batch: TokenBatch, rollouts: int, steps: int):
@@ -95,14 +90,15 @@ def main() -> None:
     n_ag = int(batch.ag_valid.any(-1).sum())
     n_mp = int(batch.mp_valid[..., 0].sum())
     n_tl = int((batch.tl_piece >= 0).sum())
+    print(measure([scenario], args.threads).line())
     print(
-        f"torch {torch.__version__}, {args.threads} threads; {label}: {n_ag} agents, "
+        f"{label}: {n_ag} agents, "
         f"{n_mp} map pieces, {n_tl} TL tokens (padded to {batch.ag_type.shape[1]}, "
         f"{batch.mp_cls.shape[1]}, {batch.tl_piece.shape[1]}); config {args.config} "
         f"({model.num_parameters():,} parameters)"
     )
-    ref = matmul_gflops()
-    print(f"reference dense fp32 matmul (1024^3): {ref:8.1f} GFLOP/s")
+    ref = matmul_gflops(1024)
+    print(f"reference dense fp32 matmul (1024^3, {args.threads} threads): {ref:8.1f} GFLOP/s")
     trimmed = batch.trim()
     runs = (
         ("factored", trimmed, nullcontext),

@@ -26,7 +26,7 @@ STAGES: dict[str, tuple[object, str]] = {
     "rewards": (episode, "reward_and_termination"),
     "history": (episode, "push_history"),
     "observations": (episode, "observe_indexed"),
-    "densify": (episode, "densify"),
+    "densify": (episode, "densify_flat"),
     "autoreset": (vector_env.BatchedTrafficEnv, "_restart"),
 }
 """Stage name -> (module or class, attribute) of the function that does it."""

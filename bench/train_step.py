@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import sys
 import time
 from pathlib import Path
 
@@ -26,6 +27,9 @@ from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.model import TrafficBots
 from policies.trafficbots.wosac import DEFAULT_WEIGHTS
 from tbsim_env.data.cache import open_training_data
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import measure  # noqa: E402
 
 SPLIT = ("data", "prepare", "rollout", "losses", "backward", "optimiser")
 
@@ -119,6 +123,7 @@ def main() -> None:
     p.add_argument("--rollout-steps", type=int, default=None)
     p.add_argument("--profile", action="store_true")
     args = p.parse_args()
+    print(measure(threads=args.threads).line())
     t = run(args)
     wall = t["wall"]
     print(

@@ -6,16 +6,24 @@ and metrics, and reports agent steps/s = (active controlled agents summed over s
 batched env steps/s. Scenarios are the real WOMD samples when found, else the embedded
 generated scenes.
 
-    python bench/vector_env.py [--npc-policy log_replay constant_velocity] \
+    python bench/vector_env.py [--npc-policy log_replay constant_velocity idm] \
         [--batch-sizes 1 16 64] [--controlled sdc] [--steps 200] [--threads N] [--device cpu]
     python bench/vector_env.py --npc-policy trafficbots [--npc-checkpoint PATH]
+    python bench/vector_env.py --npc-policy log_replay idm --batch-sizes 64 --obs-layout dense
 
 With ``trafficbots`` it also measures the policy on the padded token limits (``trim=False``)
 and prints the speed-up of running on the rows the scenario bank uses. Each row also gives
 the observation bytes per agent step of its layout (``--obs-layout dense indexed``), and the
-ratio of its batched steps/s to the first row of the same B ("x first"). ``--stages`` adds,
+ratio of its batched steps/s to the first row of the same policy and B ("x first") and of its
+agent steps/s to the first policy's row of the same B and layout ("x 1st policy": e.g. ``idm``
+against ``log_replay``, measured in the same run). ``--stages`` adds,
 under each eager row, the share of the step spent per stage (NPC policy, dynamics, collision,
 off-road, the rest of the metrics, rewards, history, observations, densify, autoreset, glue).
+
+The first line names the machine (``bench/machine.py``: CPU, versions, threads, the cost of a
+tiny operation, matmul GFLOP/s, copy GB/s, log replay's bare core, measured in this run); each
+row gives its agent steps/s against that bare core ("x core") and the ATen operations of one
+eager batched step ("ops/step", a profiler count: the same on every machine).
 """
 
 from __future__ import annotations
@@ -30,8 +38,10 @@ from pathlib import Path
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import measure  # noqa: E402
 from stages import format_split, stage_times  # noqa: E402
 
+from tbsim_env.core.torch_utils import aten_op_count  # noqa: E402
 from tbsim_env.env.vector_env import BatchedTrafficEnv  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
@@ -70,10 +80,29 @@ class Case:
     compile: bool = False
 
 
-def bench(scenarios: list, case: Case, stages: bool = False) -> tuple[float, float, float, str]:
-    """(agent steps/s, batched env steps/s, observation bytes per agent step, stage split)
-    over ``case.steps`` batched steps after a warm-up; the split ("" unless ``stages``) is
-    measured in a second run of the same steps (the timers cost time of their own)."""
+@dataclass(frozen=True)
+class Result:
+    """One measurement's figures.
+
+    Attributes:
+        agent_rate: active controlled-agent steps per second.
+        env_rate: batched steps per second.
+        obs_bytes: observation bytes per agent step.
+        ops: ATen operations per batched step (0 for a compiled step: one graph).
+        split: the stage split ("" unless asked for).
+    """
+
+    agent_rate: float
+    env_rate: float
+    obs_bytes: float
+    ops: float
+    split: str
+
+
+def bench(scenarios: list, case: Case, stages: bool = False) -> Result:
+    """The figures of ``case.steps`` batched steps after a warm-up; the split ("" unless
+    ``stages``) and the operation count are measured in further runs (the timers and the
+    profiler cost time of their own)."""
     env = BatchedTrafficEnv(
         scenarios,
         case.batch,
@@ -100,7 +129,8 @@ def bench(scenarios: list, case: Case, stages: bool = False) -> tuple[float, flo
         with stage_times(totals):
             _, wall = _run(env, zeros, case.steps)
         split = format_split(totals, wall)
-    return agent_steps / dt, case.steps / dt, obs_bytes, split
+    ops = 0.0 if case.compile else aten_op_count(lambda: env.step(zeros), 10)
+    return Result(agent_steps / dt, case.steps / dt, obs_bytes, ops, split)
 
 
 def _run(env: BatchedTrafficEnv, actions: torch.Tensor, steps: int) -> tuple[int, float]:
@@ -124,7 +154,7 @@ def main() -> None:
     p.add_argument(
         "--npc-policy",
         nargs="+",
-        default=["log_replay", "constant_velocity"],
+        default=["log_replay", "constant_velocity", "idm"],
         help="registered NPC policy names",
     )
     p.add_argument("--npc-checkpoint", default=None, help="TrafficBots checkpoint (optional)")
@@ -152,14 +182,15 @@ def main() -> None:
     )
     args = p.parse_args()
     scenarios, label = load(args.scenarios, str(args.data))
+    machine = measure(scenarios, args.threads)
+    print(machine.line())
+    print(f"device {args.device}, controlled={args.controlled}, scenarios: {label}")
     print(
-        f"torch {torch.__version__}, device {args.device}, {args.threads} threads, "
-        f"controlled={args.controlled}, scenarios: {label}"
+        f"{'npc policy':<20} {'obs':<8} {'B':>4} {'agent steps/s':>14} {'x core':>8} "
+        f"{'env steps/s':>12} {'ops/step':>9} {'obs B/agent':>12} {'x first':>8} "
+        f"{'x 1st policy':>13}"
     )
-    print(
-        f"{'npc policy':<20} {'obs':<8} {'B':>4} {'agent steps/s':>14} {'env steps/s':>12} "
-        f"{'obs B/agent':>12} {'x first':>8}"
-    )
+    base: dict[tuple[int, str], float] = {}  # the first policy's agent steps/s per (B, layout)
     for policy in args.npc_policy:
         kwargs = {"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else {}
         # TrafficBots runs on the token rows the bank uses; its padded run is the reference.
@@ -183,16 +214,19 @@ def main() -> None:
                         layout,
                         compiled,
                     )
-                    asps, esps, nbytes, split = bench(scenarios, case, args.stages)
-                    rates.append(esps)
-                    ratio = f"{esps / rates[0]:>8.2f}" if len(rates) > 1 else ""
+                    r = bench(scenarios, case, args.stages)
+                    rates.append(r.env_rate)
+                    ratio = f"{r.env_rate / rates[0]:>8.2f}" if len(rates) > 1 else " " * 8
+                    ops = f"{r.ops:>9,.0f}" if r.ops else f"{'graph':>9}"
+                    first = base.setdefault((b, layout), r.agent_rate)
                     print(
-                        f"{label:<20} {layout:<8} {b:>4} {asps:>14,.0f} {esps:>12,.1f} "
-                        f"{nbytes:>12,.0f} {ratio}",
+                        f"{label:<20} {layout:<8} {b:>4} {r.agent_rate:>14,.0f} "
+                        f"{r.agent_rate / machine.core_rate:>8.4f} {r.env_rate:>12,.1f} "
+                        f"{ops} {r.obs_bytes:>12,.0f} {ratio} {r.agent_rate / first:>13.2f}",
                         flush=True,
                     )
-                    if split:
-                        print(f"    stages: {split}", flush=True)
+                    if r.split:
+                        print(f"    stages: {r.split}", flush=True)
         except FileNotFoundError as e:  # e.g. TrafficBots without weights: the next policy
             print(f"{policy:<20} skipped: {e}")
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -26,6 +27,9 @@ from tbsim_env.metrics.wosac.submission import (
     validate_scenario_rollouts,
 )
 from tbsim_env.metrics.wosac.synthetic import noisy_rollouts, synthetic_scenario
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import measure  # noqa: E402
 
 DEFAULT_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "womd"
 
@@ -58,6 +62,7 @@ def main() -> None:
     parser.add_argument("--version", default="wosac2025")
     args = parser.parse_args()
     label, scenario, rollouts, parse = load_case(args.data)
+    print(measure(threads=max(args.threads)).line())
     print(
         f"case: {label}; {rollouts.num_rollouts} rollouts x {rollouts.num_objects} agents x "
         f"{rollouts.num_steps} steps; metric {args.version}"

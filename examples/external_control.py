@@ -18,7 +18,7 @@ import argparse
 
 import numpy as np
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.env import TrafficEnv
 from tbsim_env.rendering import write_video
 

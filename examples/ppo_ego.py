@@ -17,6 +17,8 @@ observation.
 from __future__ import annotations
 
 import csv
+import json
+import os
 import random
 import time
 from dataclasses import dataclass, field
@@ -25,12 +27,16 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn as nn
+from safetensors.torch import load_file, save_file
 from torch.distributions.normal import Normal
 
 from policies import policy_names
-from tbsim_env.config import EnvConfig
-from tbsim_env.config_cli import config_parser, option, parse_config
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.config_cli import config_parser, option, parse_config
 from tbsim_env.env.vector_env import ROUTE_KEY, BatchedTrafficEnv
+
+ROUTE_SPACING = 5.0
+"""m between the route points the agent sees."""
 
 
 @dataclass(frozen=True)
@@ -62,7 +68,8 @@ class Args:
         csv: write per-iteration stats to this CSV.
         plot: save the learning curve PNG here.
         tensorboard: TensorBoard log dir (optional).
-        save_model: save the agent state_dict here.
+        save_model: save the agent here (``PATH.safetensors`` weights + ``PATH.json`` settings;
+            ``PPOPlanner`` drives with it, e.g. in ``tbsim benchmark``).
     """
 
     seed: int = 1
@@ -159,6 +166,63 @@ class Agent(nn.Module):
         return action, probs.log_prob(action).sum(1), probs.entropy().sum(1), self.critic(x)
 
 
+def save_agent(agent: Agent, args: Args, action_high: np.ndarray, path: str) -> None:
+    """The agent as ``path.safetensors`` (weights, no pickle) and ``path.json`` (what
+    ``PPOPlanner`` needs to rebuild its features and actions)."""
+    base = str(path).removesuffix(".safetensors")
+    save_file({k: v.contiguous() for k, v in agent.state_dict().items()}, base + ".safetensors")
+    meta = {
+        "num_features": agent.actor_mean[0].in_features,
+        "num_neighbours": args.num_neighbours,
+        "route_points": args.route_points,
+        "route_spacing": ROUTE_SPACING,
+        "action_high": [float(x) for x in action_high],
+    }
+    Path(base + ".json").write_text(json.dumps(meta, indent=1))
+
+
+class PPOPlanner:
+    """A saved PPO agent as a planner of ``tbsim_env.benchmark`` (the actor's mean action).
+
+    Its features are rebuilt from the planner's input as the training env gave them: the
+    observation with a batch and an agent axis, the logged route resampled at the training
+    spacing. ``tbsim benchmark --planner ppo_ego:make_planner`` (run from ``examples/``, or
+    with it on ``PYTHONPATH``) loads the agent named by ``$PPO_EGO_AGENT``.
+    """
+
+    name = "ppo_ego"
+
+    def __init__(self, path: str) -> None:
+        base = str(path).removesuffix(".safetensors")
+        self.meta = json.loads(Path(base + ".json").read_text())
+        self.agent = Agent(self.meta["num_features"])
+        self.agent.load_state_dict(load_file(base + ".safetensors"))
+        self.agent.eval()
+        self.high = torch.tensor(self.meta["action_high"])
+
+    def act(self, x) -> np.ndarray:
+        obs = {k: torch.as_tensor(np.asarray(v, np.float32))[None, None] for k, v in
+               x.observation.items()}  # fmt: skip
+        obs[ROUTE_KEY] = torch.as_tensor(self._route(x.route))[None, None]
+        with torch.no_grad():
+            mean = self.agent.actor_mean(features(obs, self.meta["num_neighbours"]))
+        return (mean.clamp(-1.0, 1.0) * self.high)[0].numpy()
+
+    def _route(self, route: np.ndarray) -> np.ndarray:
+        """[R, 2] points of ``route`` [P, 2] at the training arc lengths (linear between
+        the given points, held at the last one)."""
+        pts = np.vstack([np.zeros((1, 2)), np.asarray(route, np.float64)])
+        arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pts, axis=0), axis=1))])
+        want = np.arange(1, self.meta["route_points"] + 1) * self.meta["route_spacing"]
+        want = np.minimum(want, arc[-1])
+        return np.stack([np.interp(want, arc, pts[:, i]) for i in (0, 1)], -1).astype(np.float32)
+
+
+def make_planner() -> PPOPlanner:
+    """``PPOPlanner`` of the agent saved at ``$PPO_EGO_AGENT`` (default ``ppo_ego``)."""
+    return PPOPlanner(os.environ.get("PPO_EGO_AGENT", "ppo_ego"))
+
+
 def save_plot(rows: list[dict], path: str, title: str) -> None:
     """Learning curve: episode return, goal-reach and collision rate against agent steps."""
     import matplotlib
@@ -211,6 +275,7 @@ def main() -> None:
         config=EnvConfig(),
         seed=args.seed,
         route_points=args.route_points,
+        route_spacing=ROUTE_SPACING,
         torch_threads=args.torch_threads,
     )
     high = torch.from_numpy(envs.action_high)
@@ -378,7 +443,7 @@ def main() -> None:
     if writer is not None:
         writer.close()
     if args.save_model:
-        torch.save(agent.state_dict(), args.save_model)
+        save_agent(agent, args, envs.action_high, args.save_model)
     if args.plot and rows:
         title = (
             f"PPO ego (SDC) on {args.num_scenes} generated scenes, NPCs: {args.npc_policy}, "

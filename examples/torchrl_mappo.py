@@ -300,7 +300,7 @@ def summary_row(it: int, agent_steps: int, elapsed: float, tracker: Tracker, sta
 
 def make_env(args: Args):
     """``TorchRLTrafficEnv`` over the embedded generated scenes, every agent controlled."""
-    from tbsim_env.config import EnvConfig, TerminationConfig
+    from tbsim_env.core.config import EnvConfig, TerminationConfig
     from tbsim_env.data.generator import default_scenarios
     from tbsim_env.integrations.torchrl import TorchRLTrafficEnv
 

@@ -1,9 +1,11 @@
-"""Policies that drive agents: log replay, constant velocity and TrafficBots V1.5, and the
-one registry of policy names (``policies.registry``) that every part of tbsim reads."""
+"""Policies that drive agents: log replay, constant velocity, rule-based IDM traffic and
+TrafficBots V1.5, and the one registry of policy names (``policies.registry``) that every part
+of tbsim reads."""
 
 from __future__ import annotations
 
 from policies.constant_velocity import ConstantVelocityPolicy
+from policies.idm import IDMPolicy
 from policies.log_replay import LogReplayPolicy
 from policies.registry import (
     PolicyEntry,
@@ -13,8 +15,8 @@ from policies.registry import (
     policy_names,
     register_policy,
 )
+from tbsim_env.metrics.wosac.simulate import linear_extrapolation_rollouts
 from tbsim_env.sim.policy import Policy, PolicyState
-from tbsim_env.sim.rollout import linear_extrapolation_rollouts
 
 
 def _trafficbots(checkpoint: str | None = None, device: str = "cpu", **kwargs) -> Policy:
@@ -48,6 +50,16 @@ def _trafficbots_rollouts(
     )
 
 
+def _idm(route: str = "log", **settings) -> Policy:
+    """Rule-based IDM traffic (``policies.idm``); ``settings`` are ``IDMConfig`` fields."""
+    return IDMPolicy(route=route, **settings)
+
+
+def _idm_lanes(**settings) -> Policy:
+    """``idm`` with ``route="lanes"``."""
+    return IDMPolicy(route="lanes", **settings)
+
+
 def _linear_extrapolation_rollouts(checkpoint: None = None, device: str = "cpu"):
     """The official WOSAC tutorial baseline (no step-by-step policy)."""
     del checkpoint, device  # nothing to load, numpy on the CPU
@@ -57,6 +69,16 @@ def _linear_extrapolation_rollouts(checkpoint: None = None, device: str = "cpu")
 register_policy("log_replay", LogReplayPolicy, summary="the logged trajectories, exactly")
 register_policy(
     "constant_velocity", ConstantVelocityPolicy, summary="keep speed and heading (baseline)"
+)
+register_policy(
+    "idm",
+    _idm,
+    summary="rule-based reactive traffic: IDM along the logged path, signals, stop signs",
+)
+register_policy(
+    "idm_lanes",
+    _idm_lanes,
+    summary="idm on lane-graph routes (forks follow the logged future where there is one)",
 )
 register_policy(
     "linear_extrapolation",
@@ -72,6 +94,7 @@ register_policy(
 
 __all__ = [
     "ConstantVelocityPolicy",
+    "IDMPolicy",
     "LogReplayPolicy",
     "Policy",
     "PolicyEntry",

@@ -4,7 +4,7 @@ A name stands for up to two things:
 
 * ``agents``: a factory of a ``Policy`` that drives agents step by step. The environments
   use it for their NPCs (``npc_policy="name"``), and the WOSAC commands roll it out in closed
-  loop (``sim.rollout.simulate_rollouts``).
+  loop (``metrics.wosac.simulate.simulate_rollouts``).
 * ``rollouts``: a factory of a WOSAC rollout function ``(scenario, num_rollouts, seed) ->
   Rollouts`` for a policy that samples its rollouts its own way (TrafficBots keeps 32 of 128
   samples; the linear-extrapolation baseline is no step-by-step policy at all).
@@ -25,8 +25,8 @@ from typing import Any
 
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.rollouts import Rollouts
+from tbsim_env.metrics.wosac.simulate import simulate_rollouts
 from tbsim_env.sim.policy import Policy
-from tbsim_env.sim.rollout import simulate_rollouts
 
 RolloutFn = Callable[[Scenario, int, int], Rollouts]
 """``(scenario, num_rollouts, seed) -> Rollouts`` of every sim agent for the 80 WOSAC steps."""

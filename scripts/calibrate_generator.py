@@ -1,6 +1,6 @@
 """Calibrate the generator's behaviour against the kinematics of the real training scenes.
 
-1. Measures the real distributions (``tbsim_env.data.generator.calibration``: linear speed and
+1. Measures the real distributions (``tbsim_env.metrics.calibration``: linear speed and
    acceleration, angular speed and acceleration per agent type, and the vehicles' headway) on
    the "train" scenes of docs/model_card/real_splits.json, and on the "validation" scenes for
    the report only (nothing is tuned on them).
@@ -41,7 +41,8 @@ from tqdm import tqdm
 
 from tbsim_env.data.generator import LAYOUTS, generate_scenario
 from tbsim_env.data.generator.behaviour import UNCALIBRATED, Behaviour
-from tbsim_env.data.generator.calibration import (
+from tbsim_env.data.generator.recording import Recording
+from tbsim_env.metrics.calibration import (
     AGENT_TYPES,
     FEATURES,
     Distances,
@@ -53,7 +54,6 @@ from tbsim_env.data.generator.calibration import (
     scene_features,
     split_entries,
 )
-from tbsim_env.data.generator.recording import Recording
 
 REPO = Path(__file__).resolve().parents[1]
 SPLITS = REPO / "docs" / "model_card" / "real_splits.json"

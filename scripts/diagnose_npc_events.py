@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from policies.trafficbots.wosac import trafficbots_rollout_fn
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data.generator import frame_offset, generate_scenario
 from tbsim_env.metrics.wosac import scenario_features
 from tbsim_env.metrics.wosac.features_interactive import rectangle_signed_distance

@@ -38,7 +38,7 @@ from policies.trafficbots.checkpoint import load_checkpoint
 from policies.trafficbots.config import InferenceConfig
 from policies.trafficbots.rules import still_agents
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data.loader import load_scenarios
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.evaluation import feature_samples, plot_histograms, scenario_seed

@@ -32,8 +32,8 @@ from policies.trafficbots.config import InferenceConfig
 from policies.trafficbots.model import TrafficBots
 from policies.trafficbots.rules import parked_vehicles
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import MapFeatureType
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import MapFeatureType
 from tbsim_env.data.loader import load_scenarios
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,8 +41,11 @@ def main() -> None:
     default = os.environ.get("TBSIM_WOMD_DIR", str(REPO.parent / "shared" / "data" / "womd"))
     p.add_argument("--womd-dir", type=Path, default=Path(default))
     args = p.parse_args()
-    for f in split_files(args.split, args.womd_dir.resolve()):
-        print(f)
+    text = "\n".join(str(f) for f in split_files(args.split, args.womd_dir.resolve()))
+    try:
+        print(text)
+    except BrokenPipeError:  # e.g. piped into head
+        sys.stderr.close()
 
 
 if __name__ == "__main__":

@@ -21,8 +21,8 @@ import dataclasses
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig, TerminationConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env import TrafficEnv

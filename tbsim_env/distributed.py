@@ -24,12 +24,16 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from tqdm import tqdm
 
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.evaluation import RolloutSettings
+
+if TYPE_CHECKING:
+    from tbsim_env.benchmark.runner import BenchmarkSettings
 
 MANIFEST = "tbsim-run.json"
 """The work folder's record of the job (settings and shard plan)."""
@@ -261,6 +265,35 @@ class ScoreTask:
         scenarios = load_by_id(self.data, wanted, self.skip_bad)
         scores = score_submission_file(scenarios, path, self.version)
         return ShardOutput(_scores_payload(scores), len(scores), time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class BenchmarkTask:
+    """The planner benchmark on a shard's scenarios -> a JSON list of per-episode results
+    (``tbsim_env.benchmark``)."""
+
+    settings: BenchmarkSettings
+    skip_bad: bool = False
+
+    def __call__(self, shard: Shard) -> ShardOutput:
+        from tbsim_env.benchmark.runner import run_benchmark
+
+        t0 = time.perf_counter()
+        scenarios = load_shard(shard, self.skip_bad)
+        results = run_benchmark(scenarios, self.settings, progress=False)
+        payload = json.dumps([r.to_json() for r in results], indent=0).encode()
+        return ShardOutput(payload, len(scenarios), time.perf_counter() - t0)
+
+
+def merge_benchmark(work_dir: str | Path, shards: Sequence[Shard]) -> list:
+    """The per-episode ``ScenarioResult`` of every benchmark shard, in shard order."""
+    from tbsim_env.benchmark.score import ScenarioResult
+
+    out = []
+    for shard in shards:
+        rows = json.loads((Path(work_dir) / shard.name).read_text())
+        out += [ScenarioResult.from_json(r) for r in rows]
+    return out
 
 
 def run_task(task: ShardTask, shard: Shard) -> ShardOutput:

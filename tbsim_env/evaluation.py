@@ -1,7 +1,7 @@
 """Realism evaluation of policies: WOSAC rollouts, submissions, scores and histogram plots.
 
 The functions behind ``tbsim export-wosac``, ``tbsim wosac-score`` and ``tbsim evaluate``.
-Every policy is rolled out by the same closed-loop simulator (``tbsim_env.sim.rollout``),
+Every policy is rolled out by the same closed-loop simulator (``tbsim_env.metrics.wosac.simulate``),
 except the official linear-extrapolation baseline, which is a formula, and exact log replay.
 
 Every policy but log replay simulates the 80 WOSAC steps of any scene, history-only ones (the
@@ -65,8 +65,8 @@ def make_rollout_fn(
     (``policies.registry``: any policy a user registered works here too).
 
     ``road_edge_weight`` (TrafficBots only): weight of off-road agents, beside collided ones,
-    when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``, 0 there);
-    None for the policy's own (TrafficBots: its ``InferenceConfig``, shipped 1).
+    when choosing which of the sampled rollouts to keep (docs/model.md §7.3's ``w_road_edge``, 0
+    there); None for the policy's own (TrafficBots: its ``InferenceConfig``, shipped 1).
     """
     options = {} if road_edge_weight is None else {"road_edge_weight": road_edge_weight}
     return registry_rollout_fn(policy, checkpoint=checkpoint, device=device, **options)
@@ -83,8 +83,8 @@ class RolloutSettings:
         checkpoint: weights of the policy (for the policies that take one).
         device: torch device of the rollouts.
         road_edge_weight: TrafficBots only: weight of off-road agents, beside collided ones,
-            when choosing which of the sampled rollouts to keep (spec 7.3's ``w_road_edge``);
-            None for the model's own (shipped 1).
+            when choosing which of the sampled rollouts to keep (docs/model.md §7.3's
+            ``w_road_edge``); None for the model's own (shipped 1).
     """
 
     policy: str

@@ -49,7 +49,7 @@ def tf_example_path(womd_dir: Path) -> Path:
 
 @pytest.fixture(scope="module")
 def torch_one_thread():
-    """Run a module with one torch intra-op thread (tiny tensors; see README, Benchmarks)."""
+    """Run a module with one torch intra-op thread (tiny tensors; docs/performance.md)."""
     import torch
 
     before = torch.get_num_threads()

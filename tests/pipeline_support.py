@@ -15,14 +15,14 @@ import numpy as np
 import torch
 
 from policies import make_policy
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.protos import scenario_pb2
 from tbsim_env.data.tfrecord import iter_records, write_records
 from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac import score_scenario
+from tbsim_env.metrics.wosac.simulate import simulate_rollouts
 from tbsim_env.metrics.wosac.submission import rollouts_to_proto, validate_scenario_rollouts
-from tbsim_env.sim.rollout import simulate_rollouts
 
 OBJECT_STATE_FLOATS = (
     "center_x",

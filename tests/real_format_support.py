@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from tbsim_env.constants import ObjectType
+from tbsim_env.core.constants import ObjectType
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import ScenarioFormatError
 from tests.test_bad_input import time_guard
 
 FUZZ_CASE_LIMIT_S = 5.0

@@ -17,11 +17,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.gpudrive import read_gpudrive_json
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tfrecord import FRAMING_BYTES, iter_records, write_records
 from tbsim_env.data.womd import read_scenarios
-from tbsim_env.errors import ScenarioFormatError
 
 CASE_LIMIT_S = 5.0
 

@@ -18,17 +18,17 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env.cli import main
-from tbsim_env.constants import MAX_SCENE_EXTENT, MAX_SPEED
-from tbsim_env.data import load_scenarios
-from tbsim_env.data.scenario import Scenario
-from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
-from tbsim_env.errors import (
+from tbsim_env.cli.main import main
+from tbsim_env.core.constants import MAX_SCENE_EXTENT, MAX_SPEED
+from tbsim_env.core.errors import (
     PolicyError,
     ScenarioFormatError,
     TbsimError,
     UnusableScenarioError,
 )
+from tbsim_env.data import load_scenarios
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
 from tbsim_env.metrics.protos import sim_agents_submission_pb2 as pb
 from tbsim_env.metrics.wosac import score_scenario, score_submission_file
 from tbsim_env.metrics.wosac.rollouts import log_replay_rollouts

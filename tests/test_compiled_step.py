@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv

@@ -18,7 +18,7 @@ import tbsim_env  # noqa: F401  (first: avoids the policies <-> tbsim_env.env im
 from policies.trafficbots import TokenBatch, TrafficBots, TrafficBotsConfig
 from policies.trafficbots.losses import training_step
 from policies.trafficbots.policy import TrafficBotsPolicy
-from tbsim_env.config import TokenConfig
+from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.env.vector_env import BatchedTrafficEnv

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.metrics.wosac.trajectories import ObjectTrajectories
 from tests.conftest import REPO
 

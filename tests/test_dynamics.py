@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data import load_scenarios
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import (

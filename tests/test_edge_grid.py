@@ -81,11 +81,11 @@ def test_grid_segment_table_is_the_edges_start_and_vector():
     reads instead of gathering both ends), bit for bit."""
     edges, segments = _edges(_wiggly_roads(3))
     grid = build_edge_grid(segments + segments[:1])  # two rows of the same scene
-    table = grid.segments.value  # [K, 4, E]
+    table = grid.segments.value  # [K, 5, E]
     e = edges.start.shape[1]
     for k in range(2):
         assert torch.equal(table[k, :2, :e].T, edges.start[0])
-        assert torch.equal(table[k, 2:, :e].T, edges.end[0] - edges.start[0])
+        assert torch.equal(table[k, 2:4, :e].T, edges.end[0] - edges.start[0])
 
 
 def test_no_edges_and_fewer_segments_than_candidates():

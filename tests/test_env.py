@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig, TerminationConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig, TerminationConfig
+from tbsim_env.core.errors import ActionError
 from tbsim_env.data import load_scenarios
 from tbsim_env.env import TrafficEnv
-from tbsim_env.errors import ActionError
 from tests.conftest import check_parallel_api
 
 

@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from policies import make_policy
-from tbsim_env.config import EnvConfig
+from tbsim_env.core.config import EnvConfig
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import episode as ep
 from tbsim_env.env.agent_metrics import step_metrics
 from tbsim_env.env.setup import select_scenarios
-from tbsim_env.observation import ObsConfig, init_history
-from tbsim_env.rows import take_rows
+from tbsim_env.observation.rows import take_rows
+from tbsim_env.observation.tokens import ObsConfig, init_history
 
 
 @pytest.fixture(scope="module")

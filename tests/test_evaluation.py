@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from policies import make_policy
-from tbsim_env.cli import main
+from tbsim_env.cli.main import main
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.cache import (
     CacheError,
@@ -26,8 +26,8 @@ from tbsim_env.data.cache import (
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.evaluation import export_submission
 from tbsim_env.metrics.wosac import read_submission, score_scenario, validate_scenario_rollouts
+from tbsim_env.metrics.wosac.simulate import linear_extrapolation_rollouts, simulate_rollouts
 from tbsim_env.metrics.wosac.submission import SubmissionError, rollouts_to_proto
-from tbsim_env.sim.rollout import linear_extrapolation_rollouts, simulate_rollouts
 
 pytestmark = pytest.mark.float_sensitive
 
@@ -238,7 +238,7 @@ def test_token_cache_round_trip(tmp_path):
     cache = TokenCache(tmp_path)
     assert len(cache) == 4 and len(m["shards"]) == 2
     assert "gen-merge-0003" not in cache.scenario_ids
-    from tbsim_env.config import TokenConfig
+    from tbsim_env.core.config import TokenConfig
     from tbsim_env.data.preprocess import preprocess_scenario
 
     ref = preprocess_scenario(generate_scenario("intersection", 2), TokenConfig(training=True))

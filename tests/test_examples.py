@@ -36,6 +36,7 @@ def test_every_example_is_tested_and_has_help():
         "external_control.py",
         "log_replay_baseline.py",
         "render_video.py",
+        "idm_planner.py",
     }
     for name in SCRIPTS:
         out = run(str(EXAMPLES / name), "--help", timeout=60)
@@ -54,14 +55,28 @@ def test_ppo_ego_tiny_run(tmp_path):
         "--num-scenes=1",
         f"--csv={out_csv}",
         f"--plot={png}",
-        f"--save-model={tmp_path / 'agent.pt'}",
+        f"--save-model={tmp_path / 'agent'}",
     )
     assert "iter    1" in out
     rows = list(csv.DictReader(out_csv.open()))
     assert len(rows) == 1 and int(rows[0]["episodes"]) >= 4
     for key in ("episode_return", "goal_rate", "collision_rate"):
         float(rows[0][key])
-    assert png.stat().st_size > 10_000 and (tmp_path / "agent.pt").exists()
+    assert png.stat().st_size > 10_000 and (tmp_path / "agent.safetensors").exists()
+    # The saved agent drives the SDC in the planner benchmark (no pickle loaded).
+    from tbsim_env.benchmark import BenchmarkSettings, run_benchmark
+    from tbsim_env.data.generator import generate_scenario
+
+    sys.path.insert(0, str(EXAMPLES))
+    try:
+        from ppo_ego import PPOPlanner
+    finally:
+        sys.path.remove(str(EXAMPLES))
+    settings = BenchmarkSettings(planner="ppo", traffic=("log_replay",))
+    (result,) = run_benchmark(
+        [generate_scenario("merge", 1)], settings, lambda: PPOPlanner(tmp_path / "agent"), False
+    )
+    assert result.error is None and 0.0 <= result.score <= 100.0
 
 
 def test_external_control_writes_a_video(tmp_path):
@@ -74,6 +89,16 @@ def test_external_control_writes_a_video(tmp_path):
     )
     assert "[     brake]" in out and "[    expert]" in out
     assert video.stat().st_size > 1000 and "wrote 21 frames" in out
+
+
+def test_idm_planner_drives_the_sdc(tmp_path):
+    video = tmp_path / "plan.gif"
+    out = run(str(EXAMPLES / "idm_planner.py"), "--max-steps=20", f"--out={video}")
+    assert "IDM plans for track_" in out and "planned 20 steps" in out
+    lines = [line for line in out.splitlines() if " speed " in line]
+    speeds = [float(line.split(" speed ")[1].split()[0]) for line in lines]
+    assert speeds and max(speeds) > 1.0  # the planner drives the SDC
+    assert video.stat().st_size > 1000
 
 
 def test_log_replay_baseline_table():

@@ -14,17 +14,18 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.boxes import box_corners
+from tbsim_env.core.torch_utils import gather_rows, valid_first, valid_order
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.agent_metrics import build_route, step_metrics
-from tbsim_env.observation import observe
+from tbsim_env.observation.tokens import observe
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.collision import (
     agent_distances,
-    box_corners,
     collided,
     collided_with_others,
     near_limits,
@@ -34,7 +35,6 @@ from tbsim_env.sim.edge_grid import build_edge_grid, grid_signed_distance
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import _signed_and_unsigned, grid_exact_signed_distance
 from tbsim_env.sim.state import RoadEdges
-from tbsim_env.torch_utils import gather_rows, valid_first, valid_order
 
 
 @pytest.fixture(scope="module")
@@ -357,7 +357,7 @@ def test_step_metrics_batch_rows_and_hand_built_routes_agree(scenes):
 
 def test_observe_batch_of_two_matches_reference(scenes):
     """The indexed reads of a batch (lights at each row's step) against the reference."""
-    from tbsim_env.observation import (
+    from tbsim_env.observation.tokens import (
         ObsConfig,
         agent_static_features,
         build_map_context,
@@ -421,7 +421,7 @@ def test_nearest_breaks_ties_by_index_whatever_the_padding(within: float) -> Non
 
 @pytest.mark.parametrize("batch", [1, 3])
 def test_gather_rows_is_batched_advanced_indexing(batch):
-    from tbsim_env.torch_utils import gather_rows
+    from tbsim_env.core.torch_utils import gather_rows
 
     g = torch.Generator().manual_seed(batch)
     for x in (
@@ -448,7 +448,7 @@ def test_valid_order_lists_each_rows_valid_slots_in_order_then_the_others():
 
 
 def test_gather_columns_reads_each_column_of_the_table_rows():
-    from tbsim_env.torch_utils import gather_columns
+    from tbsim_env.core.torch_utils import gather_columns
 
     g = torch.Generator().manual_seed(0)
     x = torch.randn(4, 3, 9, generator=g)  # K = 4 table rows, C = 3 columns, E = 9

@@ -30,7 +30,7 @@ from safetensors.numpy import load_file, save_file
 
 from policies.trafficbots.rollout import outside_boundary
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
-from tbsim_env.config import EnvConfig, TerminationConfig
+from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.data.cache import read_shard, write_shard
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.loader import load_scenarios

@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
 
 from tbsim_env.data.protos import scenario_pb2
 from tests.pipeline_support import (
@@ -90,10 +89,11 @@ def _map_points(msg: scenario_pb2.Scenario) -> list:
 
 def _state_float(msg, rng) -> None:
     track = _pick(rng, msg.tracks)
-    step = msg.current_time_index if rng.random() < 0.5 else int(rng.integers(len(track.states)))
+    n = len(track.states)  # an earlier edit of the case may have cut or cleared them
+    step = msg.current_time_index if rng.random() < 0.5 else int(rng.integers(max(n, 1)))
     name = _pick(rng, OBJECT_STATE_FLOATS)
     value = _pick(rng, FLOATS)
-    for k in range(len(track.states)) if name in ("length", "width", "height") else [step]:
+    for k in range(n) if name in ("length", "width", "height") else [step] if step < n else []:
         setattr(track.states[k], name, value)
 
 
@@ -103,6 +103,8 @@ def _map_float(msg, rng) -> None:
 
 def _speed_limit(msg, rng) -> None:
     lanes = [f for f in msg.map_features if f.WhichOneof("feature_data") == "lane"]
+    if not lanes:  # an earlier edit cleared them
+        return _map_float(msg, rng)
     _pick(rng, lanes).lane.speed_limit_mph = _pick(rng, FLOATS)
 
 
@@ -172,10 +174,12 @@ def _short(msg, rng) -> None:
 def _invalid(msg, rng) -> None:
     now = msg.current_time_index
     kind = int(rng.integers(3))
-    tracks = [msg.tracks[msg.sdc_track_index]] if kind == 0 else msg.tracks
+    sdc = msg.sdc_track_index  # an earlier edit of the case may have moved it off the tracks
+    tracks = [msg.tracks[sdc]] if kind == 0 and 0 <= sdc < len(msg.tracks) else msg.tracks
     for t in tracks:
         for k in range(len(t.states)) if kind == 2 else [now]:
-            t.states[k].valid = False
+            if 0 <= k < len(t.states):
+                t.states[k].valid = False
 
 
 def _valid_placeholder(msg, rng) -> None:
@@ -256,11 +260,6 @@ JSON_EDITS = (_json_number, _json_number, _json_number, _json_short, _json_inval
 # ----------------------------------------------------------------------------- the test
 
 
-@pytest.fixture(scope="module")
-def small_scenes(one_scenario_path: Path, scenario_input_path: Path) -> list:
-    return [small_proto(read_proto(p)) for p in (one_scenario_path, scenario_input_path)]
-
-
 def _proto_case(base, rng, path: Path) -> None:
     msg = scenario_pb2.Scenario()
     msg.CopyFrom(base)
@@ -281,23 +280,49 @@ def _json_case(doc, paths, rng, path: Path) -> None:
 CASES = 300
 
 
-def test_fuzz_bad_values_through_the_pipeline(
-    tmp_path: Path, small_scenes: list, womd_dir: Path, torch_one_thread
-) -> None:
-    """Every case is refused naming its file or runs with finite outputs (both must occur)."""
-    rng = np.random.default_rng(20250828)
+def run_fuzz(
+    cases: int, seed: int, work_dir: Path, womd_dir: Path, on_case: Callable | None = None
+) -> dict[str, list[int]]:
+    """Make and run ``cases`` fuzz cases (2 proto cases for each JSON case) in ``work_dir``.
+
+    Args:
+        on_case: called as ``on_case(case, path)`` around each run (``run_pipeline``'s
+            outcome is what it returns; by default ``run_pipeline`` under the time guard).
+
+    Returns:
+        {outcome: [case numbers]} ("ok", "refused", or what ``on_case`` returns).
+    """
+    rng = np.random.default_rng(seed)
+    one = womd_dir / "waymo-open-dataset" / "motion_data_one_scenario.tfrecord"
+    two = womd_dir / "waymo-open-dataset" / "womd_scenario_input.tfrecord"
+    small = [small_proto(read_proto(p)) for p in (one, two)]
     doc = json.loads((womd_dir / "gpudrive" / "tfrecord-00000-of-01000_222.json").read_text())
     paths = _number_paths(doc)
     outcomes: dict[str, list[int]] = {"ok": [], "refused": []}
-    for case in range(CASES):
+    for case in range(cases):
         if case % 3 == 2:
-            path = tmp_path / f"case{case}.json"
+            path = work_dir / f"case{case}.json"
             _json_case(doc, paths, rng, path)
         else:
-            path = tmp_path / f"case{case}.tfrecord"
-            _proto_case(small_scenes[case % 2], rng, path)
-        with time_guard(CASE_LIMIT_S):
-            outcomes[run_pipeline(path)].append(case)
+            path = work_dir / f"case{case}.tfrecord"
+            _proto_case(small[case % 2], rng, path)
+        if on_case is None:
+            with time_guard(CASE_LIMIT_S):
+                outcome = run_pipeline(path)
+        else:
+            outcome = on_case(case, path)
+        outcomes.setdefault(outcome, []).append(case)
+        path.unlink()
+    return outcomes
+
+
+def test_fuzz_bad_values_through_the_pipeline(
+    tmp_path: Path, womd_dir: Path, torch_one_thread
+) -> None:
+    """Every case is refused naming its file or runs with finite outputs (both must occur);
+    ``bench/fuzz.py`` runs the same cases at scale."""
+    outcomes = run_fuzz(CASES, 20250828, tmp_path, womd_dir)
+    assert set(outcomes) == {"ok", "refused"}
     assert len(outcomes["ok"]) >= CASES // 5 and len(outcomes["refused"]) >= CASES // 5, {
         k: len(v) for k, v in outcomes.items()
     }

@@ -11,10 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.constants import NUM_STEPS, ObjectType
+from tbsim_env.core.constants import NUM_STEPS, ObjectType
 from tbsim_env.data.generator import LAYOUTS, generate_scenario
 from tbsim_env.data.generator.behaviour import CALIBRATED, UNCALIBRATED, Behaviour
-from tbsim_env.data.generator.calibration import (
+from tbsim_env.data.generator.recording import RECORDED, Recording
+from tbsim_env.data.generator.scenes import TRAFFIC
+from tbsim_env.data.scenario import Scenario, Tracks
+from tbsim_env.metrics.calibration import (
     FEATURES,
     FeatureSpec,
     Samples,
@@ -27,9 +30,6 @@ from tbsim_env.data.generator.calibration import (
     split_entries,
     wasserstein,
 )
-from tbsim_env.data.generator.recording import RECORDED, Recording
-from tbsim_env.data.generator.scenes import TRAFFIC
-from tbsim_env.data.scenario import Scenario, Tracks
 
 pytestmark = pytest.mark.float_sensitive
 

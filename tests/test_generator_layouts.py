@@ -11,7 +11,7 @@ import time
 import numpy as np
 import pytest
 
-from tbsim_env.constants import (
+from tbsim_env.core.constants import (
     CURRENT_INDEX,
     DT,
     NUM_STEPS,

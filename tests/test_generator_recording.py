@@ -8,7 +8,7 @@ import functools
 import numpy as np
 import pytest
 
-from tbsim_env.constants import MapFeatureType, ObjectType
+from tbsim_env.core.constants import MapFeatureType, ObjectType
 from tbsim_env.data.generator import LAYOUTS, frame_offset, generate_scenario
 from tbsim_env.data.generator.recording import (
     JITTER_FULL_SPEED,
@@ -166,7 +166,7 @@ def test_recording_rejects_occupancy_above_one() -> None:
 
 
 def test_token_cache_builds_recorded_scenes(tmp_path) -> None:
-    from tbsim_env.config import TokenConfig
+    from tbsim_env.core.config import TokenConfig
     from tbsim_env.data.cache import TokenCache, build_cache, parse_generated
     from tbsim_env.data.preprocess import preprocess_scenario
 

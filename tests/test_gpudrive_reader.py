@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.constants import DT, MapFeatureType, ObjectType
+from tbsim_env.core.constants import DT, MapFeatureType, ObjectType
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.gpudrive import (
     INVALID_SENTINEL,
     ROAD_TYPES,
@@ -17,7 +18,6 @@ from tbsim_env.data.gpudrive import (
     read_gpudrive_json,
     scenario_from_gpudrive,
 )
-from tbsim_env.errors import ScenarioFormatError
 
 # file -> (scenario_id, objects per type, roads, sdc index, #tracks_to_predict, objects_of_interest)
 EXPECTED = {

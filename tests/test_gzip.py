@@ -13,13 +13,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.cli import main
+from tbsim_env.cli.main import main
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.compressed import is_gzip, read_all
 from tbsim_env.data.loader import ScenarioFileFormat, detect_format, iter_scenarios, load_scenarios
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tfrecord import build_index, iter_records, read_record, write_records
 from tbsim_env.distributed import load_by_id, plan_shards
-from tbsim_env.errors import ScenarioFormatError
 
 
 def _gzip(src: Path, dst: Path) -> Path:

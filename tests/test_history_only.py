@@ -14,9 +14,10 @@ import torch
 
 from policies import make_policy
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
-from tbsim_env.cli import main
-from tbsim_env.config import EnvConfig, TerminationConfig
-from tbsim_env.constants import DT
+from tbsim_env.cli.main import main
+from tbsim_env.core.config import EnvConfig, TerminationConfig
+from tbsim_env.core.constants import DT
+from tbsim_env.core.errors import MissingFutureError, ScenarioFormatError
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.cache import build_cache
 from tbsim_env.data.protos import scenario_pb2
@@ -24,11 +25,10 @@ from tbsim_env.data.tfrecord import iter_records
 from tbsim_env.data.womd import parse_scenario
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.vector_env import BatchedTrafficEnv
-from tbsim_env.errors import MissingFutureError, ScenarioFormatError
 from tbsim_env.evaluation import export_submission
 from tbsim_env.metrics.wosac import read_submission, validate_scenario_rollouts
+from tbsim_env.metrics.wosac.simulate import simulate_rollouts
 from tbsim_env.metrics.wosac.submission import rollouts_from_proto, rollouts_to_proto
-from tbsim_env.sim.rollout import simulate_rollouts
 from tests.conftest import check_parallel_api
 
 HISTORY_ONLY = ("tfrecord-00149-of-00150_111.json", "tfrecord-00000-of-00150_78.json")

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.constants import CURRENT_INDEX, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.constants import CURRENT_INDEX, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.conversion import DEFAULT_BOX_HEIGHT_M, TYPICAL_BOX_SIZE_M
 from tbsim_env.data.gpudrive import read_gpudrive_json, scenario_from_gpudrive
 from tbsim_env.data.womd import read_scenarios
-from tbsim_env.errors import ScenarioFormatError
 from tests.real_format_support import check_raw_heading, heading_error, mutate_document, outcome
 
 ROW = re.compile(

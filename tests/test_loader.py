@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data import iter_scenarios, load_scenarios
 from tbsim_env.data.loader import ScenarioFileFormat, detect_format
-from tbsim_env.errors import ScenarioFormatError
 
 RAW_IDS = ["637f20cafde22ff8", "ee519cf571686d19"]
 GPUDRIVE_IDS = ["1c365f15b70ebdbf", "ef3a8f65142f41ac", "db4edc9bd0c9d18c"]  # sorted file names

@@ -1,4 +1,4 @@
-"""An environment on the CPU keeps the memory a step frees (``tbsim_env.malloc``)."""
+"""An environment on the CPU keeps the memory a step frees (``tbsim_env.core.malloc``)."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ pytestmark = pytest.mark.skipif(
 _SCRIPT = """
 import torch
 from tbsim_env.env import BatchedTrafficEnv
-from tbsim_env.malloc import keep_freed_memory
+from tbsim_env.core.malloc import keep_freed_memory
 
 BatchedTrafficEnv(None, 2, npc_policy="constant_velocity")
 def rss():

@@ -1,5 +1,5 @@
-"""The narrowed nearest-map-piece searches (``tbsim_env.map_knn``: the observations' grid,
-TrafficBots' clusters) equal the full search."""
+"""The narrowed nearest-map-piece searches (``tbsim_env.observation.map_knn``: the
+observations' grid, TrafficBots' clusters) equal the full search."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import math
 import pytest
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
-from tbsim_env.map_knn import (
+from tbsim_env.observation.map_knn import (
     build_piece_clusters,
     build_piece_grid,
     candidate_pieces,
@@ -20,7 +20,7 @@ from tbsim_env.map_knn import (
     scene_clusters,
     search_holds,
 )
-from tbsim_env.observation import ObsConfig, build_map_context
+from tbsim_env.observation.tokens import ObsConfig, build_map_context
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.knn import k_nearest
 
@@ -240,7 +240,7 @@ def test_trafficbots_map_neighbours_from_clusters_equal_every_piece(token_batche
     the batch's (fixed shapes)."""
     from policies.trafficbots import TrafficBots, TrafficBotsConfig
     from policies.trafficbots.knn import knn_relative
-    from tbsim_env.rows import cat_rows
+    from tbsim_env.observation.rows import cat_rows
 
     both, singles = token_batches
     model = TrafficBots(TrafficBotsConfig.small()).eval()

@@ -27,8 +27,8 @@ from policies.trafficbots.rules import (
     still_agents,
 )
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig, TerminationConfig, TokenConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig, TerminationConfig, TokenConfig
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
@@ -70,7 +70,7 @@ def test_parked_vehicle_is_still_vehicle_without_aligned_lane_nearby():
     valid, pose, speed, typ = _history([(5.0, 1.0), (5.0, 6.0), (8.0, 6.0)], 0.0, [VEH, VEH, PED])
     parked = parked_vehicles(valid, pose, speed, typ, _map(LANE, 0.0), 0.5, 3.0)
     assert parked.tolist() == [[False, True, False]]
-    # A lane running the other way does not make the vehicle on it queued (spec 1.6 d).
+    # A lane running the other way does not make the vehicle on it queued (docs/model.md §1.6 d).
     parked = parked_vehicles(valid, pose, speed, typ, _map(LANE, np.pi), 0.5, 3.0)
     assert parked.tolist() == [[True, True, False]]
     # A road edge is not a vehicle lane; a moving vehicle is never parked.

@@ -7,7 +7,7 @@ import torch
 
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
-from tbsim_env.observation import (
+from tbsim_env.observation.tokens import (
     ObsConfig,
     build_map_context,
     densify,
@@ -78,11 +78,11 @@ def test_dense_layout_is_a_gather_of_the_indexed_one():
     )
 
 
-def test_the_observation_spec_builds_the_space_the_keys_and_the_readme_table():
+def test_the_observation_spec_builds_the_space_the_keys_and_the_docs_table():
     from pathlib import Path
 
     from tbsim_env.env import TrafficEnv
-    from tbsim_env.observation_spec import OBS_KEYS, observation_table
+    from tbsim_env.observation.spec import OBS_KEYS, observation_table
 
     env = TrafficEnv(default_scenarios(1), controlled="all", npc_policy="log_replay")
     obs, _ = env.reset(seed=0)
@@ -92,8 +92,8 @@ def test_the_observation_spec_builds_the_space_the_keys_and_the_readme_table():
     for agent_obs in obs.values():
         assert list(agent_obs) == names
         assert space.contains(agent_obs)
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
-    assert observation_table() in readme, "README's observation table differs from OBS_KEYS"
+    page = (Path(__file__).resolve().parents[1] / "docs" / "environments.md").read_text()
+    assert observation_table() in page, "the observation table of the docs differs from OBS_KEYS"
 
 
 @pytest.mark.parametrize("which", ["real", "generated"])

@@ -1,4 +1,4 @@
-"""Agent attributes and gap filling (spec 1.4)."""
+"""Agent attributes and gap filling (docs/model.md §1.4)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tbsim_env.constants import DT
+from tbsim_env.core.constants import DT
 from tbsim_env.data.preprocess import fill_gaps, mean_size, signed_speed
 from tbsim_env.data.preprocess.agents import unwrap_valid
 from tbsim_env.data.scenario import wrap_angle_np

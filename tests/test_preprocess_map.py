@@ -1,12 +1,15 @@
-"""Map pieces, map filtering and traffic-light tokens (spec 1.2, 1.3, 1.6) on synthetic maps."""
+"""Map pieces, map filtering and traffic-light tokens on synthetic maps.
+
+docs/model.md §1.2, §1.3, §1.6.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import NUM_STEPS, MapClass, MapFeatureType, SignalState, TLState
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import NUM_STEPS, MapClass, MapFeatureType, SignalState, TLState
 from tbsim_env.data.preprocess import (
     attach_traffic_lights,
     build_map_pieces,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import NUM_STEPS, MapClass, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import NUM_STEPS, MapClass, MapFeatureType, ObjectType, SignalState
 from tbsim_env.data.preprocess import (
     Goals,
     build_map_pieces,

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tbsim_env.constants import NUM_STEPS, MapFeatureType, ObjectType
+from tbsim_env.core.constants import NUM_STEPS, MapFeatureType, ObjectType
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals, wrap_angle_np
 
 CURRENT = 10

@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import (
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import (
     SIGNAL_TO_TL_STATE,
     LaneType,
     MapClass,

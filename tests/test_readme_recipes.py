@@ -1,7 +1,7 @@
-"""The recipes of the README's "Extending tbsim" section run as written.
+"""The recipes of the docs' "Extending tbsim" page (docs/extending.md) run as written.
 
 Each recipe is a fenced block preceded by a ``<!-- recipe: NAME -->`` line; the tests take the
-blocks from README.md itself, so the README cannot drift from the code. Whatever a recipe
+blocks from the page itself, so the page cannot drift from the code. Whatever a recipe
 registers (a policy name, a reward term) is removed again after its test.
 """
 
@@ -19,8 +19,9 @@ import torch
 from policies import registry
 from tbsim_env.env import rewards
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-SECTION = "## Extending tbsim"
+DOCS = Path(__file__).resolve().parents[1] / "docs"
+PAGE = DOCS / "extending.md"
+OBSERVATION_TABLE_PAGE = DOCS / "environments.md"
 RECIPES = {
     "policy-module",
     "policy",
@@ -34,12 +35,9 @@ pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
 def recipes() -> dict[str, str]:
-    """{name: code} of every marked block of the section."""
-    text = README.read_text()
-    start = text.index(SECTION)
-    end = text.find("\n## ", start + len(SECTION))
-    section = text[start : end if end > 0 else len(text)]
-    found = re.findall(r"<!-- recipe: (\S+) -->\n```\w+\n(.*?)\n```", section, flags=re.S)
+    """{name: code} of every marked block of the page."""
+    text = PAGE.read_text()
+    found = re.findall(r"<!-- recipe: (\S+) -->\n```\w+\n(.*?)\n```", text, flags=re.S)
     names = [name for name, _ in found]
     assert len(names) == len(set(names)), f"a recipe name is used twice: {names}"
     return dict(found)
@@ -48,7 +46,7 @@ def recipes() -> dict[str, str]:
 def run(code: str) -> dict:
     """Execute a recipe as a script and return its globals."""
     namespace: dict = {"__name__": "__recipe__"}
-    exec(compile(code, "<README recipe>", "exec"), namespace)
+    exec(compile(code, "<docs recipe>", "exec"), namespace)
     return namespace
 
 
@@ -63,7 +61,7 @@ def workdir(tmp_path, monkeypatch):
     rewards._TERMS.pop("speeding", None)
 
 
-def test_the_section_holds_every_recipe():
+def test_the_page_holds_every_recipe():
     assert set(recipes()) == RECIPES
 
 
@@ -98,7 +96,7 @@ def _entry_point(code: str) -> tuple[str, str, str]:
 def test_the_entry_point_makes_the_command_line_offer_the_policy(
     workdir, monkeypatch, one_scenario_path
 ):
-    from tbsim_env import cli
+    from tbsim_env.cli import main as cli
 
     code = recipes()
     group, name, target = _entry_point(code["policy-entry-point"])
@@ -130,8 +128,8 @@ def test_a_registered_reward_term_is_weighted_into_the_reward(workdir):
 
 
 def test_a_reader_feeds_its_scenes_to_the_environment(workdir):
+    from tbsim_env.core.errors import ScenarioFormatError
     from tbsim_env.data.generator import generate_scenario
-    from tbsim_env.errors import ScenarioFormatError
 
     ns = run(recipes()["reader"])
     read, original = ns["read_npz"], generate_scenario("merge", seed=0)
@@ -158,7 +156,7 @@ def _observation_key_parts(code: str) -> tuple[str, str]:
 
 def test_the_observation_key_recipe_fits_the_spec_and_densify():
     from tbsim_env import TrafficEnv, observation
-    from tbsim_env.observation_spec import OBS_KEYS, ObsKey, observation_table
+    from tbsim_env.observation.spec import OBS_KEYS, ObsKey, observation_table
 
     spec_code, value_code = _observation_key_parts(recipes()["observation-key"])
     key = eval(spec_code, {"ObsKey": ObsKey, "_INF": float("inf")})
@@ -177,5 +175,5 @@ def test_the_observation_key_recipe_fits_the_spec_and_densify():
         assert ((values >= key.low) & (values <= key.high)).all()
         masked = torch.as_tensor(agent_obs["agents_mask"]) == 0
         assert (values[masked] == 0).all() and (values[~masked] > 0).all()
-    # The README's table is the one the recipe tells to paste over.
-    assert observation_table() in README.read_text()
+    # The docs' table is the one the recipe tells to paste over.
+    assert observation_table() in OBSERVATION_TABLE_PAGE.read_text()

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from tbsim_env import TrafficEnv
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.loader import ScenarioFileFormat, detect_format, load_scenarios
-from tbsim_env.errors import ScenarioFormatError
 
 ONE_OF_EACH = {
     "waymo-open-dataset/motion_data_one_scenario.tfrecord": ScenarioFileFormat.TFRECORD,
@@ -83,7 +83,7 @@ def test_a_refused_pickle_in_a_folder(tmp_path: Path) -> None:
 def test_tbsim_info_reads_the_new_formats(womd_dir: Path) -> None:
     files = [str(womd_dir / n) for n in ONE_OF_EACH if "gpudrive/" not in n]
     out = subprocess.run(
-        [sys.executable, "-m", "tbsim_env.cli", "info", *files],
+        [sys.executable, "-m", "tbsim_env.cli.main", "info", *files],
         capture_output=True,
         text=True,
         check=True,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env.config import EnvConfig, RewardConfig, TerminationConfig
+from tbsim_env.core.config import EnvConfig, RewardConfig, TerminationConfig
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
 from tbsim_env.env.agent_metrics import StepMetrics

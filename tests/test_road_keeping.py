@@ -15,7 +15,7 @@ from policies.trafficbots.road_keeping import (
     leaves_road,
     nearest_edge_segments,
 )
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 

@@ -13,7 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.constants import CURRENT_INDEX, DT, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.constants import CURRENT_INDEX, DT, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.cache import TokenCache, build_cache
 from tbsim_env.data.scenarionet import (
     ALLOWED_GLOBALS,
@@ -23,7 +24,6 @@ from tbsim_env.data.scenarionet import (
     read_scenarionet_pickle,
     scenario_from_scenarionet,
 )
-from tbsim_env.errors import ScenarioFormatError
 from tests.real_format_support import (
     check_raw_heading,
     heading_error,

@@ -11,7 +11,7 @@ import torch
 
 from policies.trafficbots import TrafficBotsConfig, load_checkpoint
 from policies.trafficbots.wosac import DEFAULT_WEIGHTS, load_default_model, trafficbots_rollouts
-from tbsim_env.config import EnvConfig, TerminationConfig
+from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.env import TrafficEnv
 

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.boxes import box_corner_xy
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.scenario import RoadMap
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
-from tbsim_env.sim.collision import box_corner_xy, collided, pairwise_overlap
+from tbsim_env.sim.collision import collided, pairwise_overlap
 from tbsim_env.sim.offroad import (
     NO_EDGE_DISTANCE,
     box_offroad_distance,

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.constants import CURRENT_INDEX, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.constants import CURRENT_INDEX, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.protos import tf_example_pb2
 from tbsim_env.data.tf_example import (
     decode_example,
@@ -17,7 +18,6 @@ from tbsim_env.data.tf_example import (
     read_tf_examples,
 )
 from tbsim_env.data.tfrecord import iter_records, write_records
-from tbsim_env.errors import ScenarioFormatError
 from tests.real_format_support import check_raw_heading, heading_error, mutate_bytes, outcome
 
 PROTO_DIR = Path(__file__).resolve().parents[1] / "tbsim_env" / "data" / "protos"

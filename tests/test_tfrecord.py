@@ -9,6 +9,7 @@ from pathlib import Path
 import crc32c
 import pytest
 
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.tfrecord import (
     FRAMING_BYTES,
     build_index,
@@ -19,7 +20,6 @@ from tbsim_env.data.tfrecord import (
     read_record,
     write_records,
 )
-from tbsim_env.errors import ScenarioFormatError
 
 PAYLOADS = [b"first record", b"", bytes(range(256)) * 3, b"x" * 70_000]
 

@@ -12,7 +12,7 @@ pytest.importorskip("torchrl", reason="TorchRL is not installed (pip install -e 
 
 from torchrl.envs.utils import check_env_specs  # noqa: E402
 
-from tbsim_env.config import EnvConfig  # noqa: E402
+from tbsim_env.core.config import EnvConfig  # noqa: E402
 from tbsim_env.data.generator import default_scenarios  # noqa: E402
 from tbsim_env.env import BatchedTrafficEnv  # noqa: E402
 from tbsim_env.integrations.torchrl import TorchRLTrafficEnv  # noqa: E402

@@ -25,7 +25,7 @@ from policies.trafficbots.encodings import (
 )
 from policies.trafficbots.knn import knn_relative, knn_select
 from policies.trafficbots.pointnet import PointNet, pointnet_reference
-from tbsim_env.constants import KNN_DISTANCE_RESOLUTION
+from tbsim_env.core.constants import KNN_DISTANCE_RESOLUTION
 
 
 def test_sinusoid_and_angle_encoding_layout() -> None:
@@ -192,7 +192,7 @@ def test_factored_knarpe_matches_the_spec_formula_with_gradients(
     """The factored attention (both ways of reaching the neighbours, whole or in chunks of
     the batch as on a CPU) is the spec's gather-then-project formula: outputs and the
     gradients of inputs and parameters."""
-    from tbsim_env import constants
+    from tbsim_env.core import constants
 
     if chunked:  # one scene per chunk (the default budget does not chunk these sizes)
         monkeypatch.setattr(constants, "CPU_ATTENTION_CHUNK_ELEMENTS", 1)
@@ -329,7 +329,7 @@ def test_rounded_box_collision_matches_shapely() -> None:
     shapely = pytest.importorskip("shapely")
     from shapely.geometry import Polygon
 
-    from tbsim_env.sim.collision import box_corners
+    from tbsim_env.core.boxes import box_corners
 
     gen = torch.Generator().manual_seed(3)
     n = 300
@@ -380,7 +380,7 @@ def _tl_case(seed: int):
     """A small TL encoder and a batch of 4 scenes, two of them without a valid TL token."""
     from policies.trafficbots.map_encoder import MapTokens
     from policies.trafficbots.tl_encoder import TLEncoder, tl_context
-    from tbsim_env.constants import NUM_TL_STATES
+    from tbsim_env.core.constants import NUM_TL_STATES
 
     cfg = TrafficBotsConfig.small()
     gen = torch.Generator().manual_seed(seed)
@@ -406,12 +406,12 @@ def _tl_case(seed: int):
 
 
 def _tl_reference(enc, state, step_valid, ctx, map_feat) -> torch.Tensor:
-    """The TL encoder as spec 3.2 writes it: the MLP on every step's one-hot inputs, PointNet
-    over the window, decoder layers, on every scene."""
+    """The TL encoder as docs/model.md §3.2 writes it: the MLP on every step's one-hot inputs,
+    PointNet over the window, decoder layers, on every scene."""
     import torch.nn.functional as F
 
     from policies.trafficbots.attention import Neighbours
-    from tbsim_env.constants import NUM_TL_STATES
+    from tbsim_env.core.constants import NUM_TL_STATES
 
     one_hot = F.one_hot(state, NUM_TL_STATES).float()
     time_1h = torch.eye(enc.n_time).expand(*state.shape, -1)

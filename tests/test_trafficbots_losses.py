@@ -1,4 +1,4 @@
-"""TrafficBots losses against hand-computed values (spec 6.2)."""
+"""TrafficBots losses against hand-computed values (docs/model.md §6.2)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""TrafficBots training: differentiable step, gradient routing (spec 6.4), overfitting one scene."""
+"""TrafficBots training: differentiable step, gradient routing (docs/model.md §6.4), overfitting one
+scene."""
 
 from __future__ import annotations
 
@@ -108,7 +109,7 @@ def test_gradient_routing_and_bptt(batch) -> None:
 
 
 def test_overfit_one_real_scene(one_scenario_path) -> None:
-    from tbsim_env.config import TokenConfig
+    from tbsim_env.core.config import TokenConfig
     from tbsim_env.data import load_scenarios
     from tbsim_env.data.preprocess import preprocess_scenario
 

@@ -11,11 +11,11 @@ import torch
 from policies import make_policy
 from policies.trafficbots import TrafficBots, TrafficBotsConfig, save_checkpoint
 from policies.trafficbots.train import TrainConfig, build_parser, train
-from tbsim_env.config import EnvConfig, TerminationConfig
-from tbsim_env.config_cli import parse_config
+from tbsim_env.core.config import EnvConfig, TerminationConfig
+from tbsim_env.core.config_cli import parse_config
+from tbsim_env.core.errors import CheckpointError
 from tbsim_env.data.cache import build_cache
 from tbsim_env.env import TrafficEnv
-from tbsim_env.errors import CheckpointError
 from tests.conftest import check_parallel_api
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env.config import EnvConfig, TerminationConfig
+from tbsim_env.core.config import EnvConfig, TerminationConfig
+from tbsim_env.core.errors import ActionError
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.agent_metrics import Route
@@ -16,8 +17,7 @@ from tbsim_env.env.vector_env import (
     BatchedTrafficEnv,
     route_features,
 )
-from tbsim_env.errors import ActionError
-from tbsim_env.rows import cat_rows, take_rows, with_rows
+from tbsim_env.observation.rows import cat_rows, take_rows, with_rows
 
 
 @pytest.fixture(scope="module")

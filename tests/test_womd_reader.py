@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from google.protobuf import descriptor_pb2
 
-from tbsim_env.constants import MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.constants import MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.protos import scenario_pb2
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tfrecord import iter_records, write_records
@@ -23,7 +24,6 @@ from tbsim_env.data.womd import (
     scenario_from_proto,
     wrap_heading_f32,
 )
-from tbsim_env.errors import ScenarioFormatError
 
 PROTO_DIR = Path(__file__).resolve().parents[1] / "tbsim_env" / "data" / "protos"
 

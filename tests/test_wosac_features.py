@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env.constants import LaneType, MapFeatureType, RoadEdgeType, SignalState
+from tbsim_env.core.constants import LaneType, MapFeatureType, RoadEdgeType, SignalState
 from tbsim_env.data.scenario import RoadMap
 from tbsim_env.metrics.wosac.config import HISTOGRAMS
 from tbsim_env.metrics.wosac.estimators import histogram_bin_index

@@ -1,4 +1,4 @@
-"""Per-type action head (spec 3.7): one MLP per agent type; only the mean is used.
+"""Per-type action head (docs/model.md §3.7): one MLP per agent type; only the mean is used.
 
 The original head also owns a learnable per-type log sigma (init -2) that never affects a
 rollout and gets no gradient (mean actions in training and inference); it is not built here.

@@ -1,5 +1,5 @@
-"""Agent encoders (spec 3.3): a window of agent states -> one token per agent, then decoder
-layers over agent neighbours and over the nearest map and TL tokens."""
+"""Agent encoders (docs/model.md §3.3): a window of agent states -> one token per agent, then
+decoder layers over agent neighbours and over the nearest map and TL tokens."""
 
 from __future__ import annotations
 
@@ -16,11 +16,11 @@ from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
-from tbsim_env.constants import ObjectType
-from tbsim_env.map_knn import PieceClusters
+from tbsim_env.core.constants import ObjectType
+from tbsim_env.observation.map_knn import PieceClusters
 
 N_AGENT_TYPES = 3
-"""Type branches of the model: vehicle, pedestrian, cyclist (spec 1.4)."""
+"""Type branches of the model: vehicle, pedestrian, cyclist (docs/model.md §1.4)."""
 AGENT_ATTR_DIM = 3 + N_AGENT_TYPES
 """(length, width, height) + type one-hot."""
 AGENT_MOTION_DIM = 3
@@ -31,7 +31,7 @@ def type_branch(ag_type: torch.Tensor) -> torch.Tensor:
     """``ObjectType`` -> model branch 0 vehicle, 1 pedestrian, 2 cyclist.
 
     The spec has no slot for UNSET / OTHER; they use the vehicle branch (as their dynamics
-    limits do in ``tbsim_env.constants``).
+    limits do in ``tbsim_env.core.constants``).
 
     Args:
         ag_type: [...] int ``ObjectType``.

@@ -1,5 +1,5 @@
 """KNARPE attention (K-nearest-neighbour attention with relative pose encoding) and the two
-pre-LayerNorm transformer layers built on it (spec sections 2.5 and 3)."""
+pre-LayerNorm transformer layers built on it (docs/model.md §2.5 and §3)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from tbsim_env import constants as C
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import gather_rows
 
 
 class Neighbours(NamedTuple):
@@ -36,7 +36,7 @@ class KnarpeAttention(nn.Module):
     outputs zeros.
 
     The products are factored so that nothing d-wide is made per (query, neighbour, layer)
-    except the gathered source projections (spec 2.5 gives the formula, not the order):
+    except the gathered source projections (docs/model.md §2.5 gives the formula, not the order):
 
     * ``W_k`` and ``W_v`` project the S source rows once, and the projections are gathered
       (instead of projecting S' >= S gathered copies);
@@ -63,7 +63,7 @@ class KnarpeAttention(nn.Module):
         self.in_proj_weight = nn.Parameter(torch.empty(3 * dim, dim))
         self.in_proj_bias = nn.Parameter(torch.zeros(3 * dim))
         self.out_proj = nn.Linear(dim, dim)
-        self.rpe_proj = nn.Linear(rpe_dim, 2 * dim)  # PyTorch default init (spec 2.5)
+        self.rpe_proj = nn.Linear(rpe_dim, 2 * dim)  # PyTorch default init (docs/model.md §2.5)
         self.dropout = nn.Dropout(dropout)
         nn.init.xavier_uniform_(self.in_proj_weight)
         nn.init.xavier_uniform_(self.out_proj.weight)
@@ -197,8 +197,8 @@ def knarpe_reference(
     rpe: torch.Tensor,
     mask: torch.Tensor,
 ) -> torch.Tensor:
-    """``attn`` computed as spec 2.5 writes it: gather, then project every (query, neighbour)
-    pair. The oracle of ``KnarpeAttention`` in the tests and its baseline in
+    """``attn`` computed as docs/model.md §2.5 writes it: gather, then project every (query,
+    neighbour) pair. The oracle of ``KnarpeAttention`` in the tests and its baseline in
     ``bench/policy_step.py``; same arguments and result."""
     h, c = attn.n_heads, attn.head_dim
     w_q, w_k, w_v = attn.in_proj_weight.chunk(3, dim=0)

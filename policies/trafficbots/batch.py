@@ -19,7 +19,8 @@ _TL_FIELDS = ("tl_piece", "tl_state", "tl_valid")
 
 @dataclass(frozen=True)
 class TokenBatch:
-    """Model inputs of B scenes (spec 1.9 ``sc/*`` and ``gt/*``), scene frame of each scene.
+    """Model inputs of B scenes (docs/model.md §1.9 ``sc/*`` and ``gt/*``), scene frame of each
+    scene.
 
     Shapes: B scenes, M map pieces, P nodes, L TL tokens, N agents, T steps.
 

@@ -15,7 +15,7 @@ from safetensors.torch import load_file, save_file
 
 from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.model import TrafficBots
-from tbsim_env.errors import CheckpointError
+from tbsim_env.core.errors import CheckpointError
 
 FORMAT = "tbsim.trafficbots"
 VERSION = 1

@@ -1,4 +1,4 @@
-"""Batched WOSAC-style collision check between rounded boxes (spec 7.2).
+"""Batched WOSAC-style collision check between rounded boxes (docs/model.md §7.2).
 
 Each box (length, width) is scaled by 1.1; its corners are rounded with radius
 ``s = 0.7 * min(l, w) / 2``, i.e. it is the inner box (l - 2s, w - 2s) dilated by a disc of
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env.sim.collision import box_corners
+from tbsim_env.core.boxes import box_corners
 from tbsim_env.sim.geometry import segment_projection
 
 CORNER_ROUNDING_FACTOR = 0.7

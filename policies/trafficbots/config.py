@@ -1,4 +1,4 @@
-"""Typed configuration of the TrafficBots V1.5 network (spec sections 2-3).
+"""Typed configuration of the TrafficBots V1.5 network (docs/model.md §2-3).
 
 Two presets: ``TrafficBotsConfig.paper()`` reproduces the sizes of the published model
 (hidden 128, 8/4/4 layers, ~7.9 M used parameters); ``TrafficBotsConfig.small()`` is a CPU-sized
@@ -127,7 +127,7 @@ class TrafficBotsConfig:
 
     @classmethod
     def paper(cls) -> TrafficBotsConfig:
-        """The published V1.5 sizes (spec sections 2.4, 3)."""
+        """The published V1.5 sizes (docs/model.md §2.4, §3)."""
         return cls()
 
     @classmethod
@@ -289,10 +289,10 @@ class InferenceConfig:
     Attributes:
         hold_parked: hold vehicles parked by the spec's test (still over the history and no
             aligned vehicle-lane node near) at rest with their heading.
-        still_displacement: metres over the history below which an agent is still (spec 1.6 c,
-            validation / test: 0.5).
+        still_displacement: metres over the history below which an agent is still (docs/model.md
+            §1.6 c, validation / test: 0.5).
         parked_lane_radius: metres within which an aligned vehicle-lane node makes a still
-            vehicle queued rather than parked (spec 1.6 d: 3).
+            vehicle queued rather than parked (docs/model.md §1.6 d: 3).
         vehicle_max_curvature: 1/m, vehicle yaw rate at most this times the speed (plus the
             slack); None (shipped) for the unicycle's plain limits. 0.25 (a 4 m turning radius,
             tighter than a car's; logged vehicles above 3 m/s stay under 0.12 in 99% of steps)
@@ -301,7 +301,8 @@ class InferenceConfig:
             vehicles turn under 0.06 rad/s in 99% of steps).
         dest_temperature: destination logits are divided by it before sampling (1: the spec).
         clip_history_motion: the history's acceleration and yaw rate (finite differences of
-            the logged states, spec 1.4) enter the network clipped to the type's action limits.
+            the logged states, docs/model.md §1.4) enter the network clipped to the type's action
+            limits.
         gap_keeping: cap vehicles' accelerations by the IDM term of the agent ahead
             (``GapKeeping``; shipped); None for the network's accelerations.
         road_keeping: steer (or brake) vehicles that would leave the road (``RoadKeeping``;
@@ -320,7 +321,7 @@ class InferenceConfig:
             The simulation itself (and the environment) never sees it.
         road_edge_weight: choosing which sampled rollouts to keep (WOSAC sampling,
             ``wosac.trafficbots_rollouts``), each evaluated agent that leaves the road counts
-            this much beside each collided relevant agent (spec 7.3's ``w_road_edge``: 0).
+            this much beside each collided relevant agent (docs/model.md §7.3's ``w_road_edge``: 0).
             Shipped 1: with gap keeping, on the real validation scenes (128 sampled, 32 kept)
             meta +0.012 [+0.006, +0.019], off-road 0.262 -> 0.196, collision unchanged; on
             the generated validation scenes off-road 0.065 -> 0.029.

@@ -1,4 +1,7 @@
-"""Destination ("navi", spec 3.4): predictor over all map tokens, encoder, reached check."""
+"""Destination ("navi"): predictor over all map tokens, encoder, reached check.
+
+docs/model.md §3.4.
+"""
 
 from __future__ import annotations
 
@@ -10,12 +13,13 @@ from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.encodings import relative_pose, rpe
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
-from tbsim_env.constants import NUM_MAP_CLASSES, MapClass
+from tbsim_env.core.constants import NUM_MAP_CLASSES, MapClass
 from tbsim_env.sim.geometry import wrap_angle
 
 
 def _allowed_classes() -> torch.Tensor:
-    """[3 branches, 11 classes] bool: which map classes may be a destination (spec 3.4)."""
+    """[3 branches, 11 classes] bool: which map classes may be a destination
+    (docs/model.md §3.4)."""
     allowed = torch.zeros(N_AGENT_TYPES, NUM_MAP_CLASSES, dtype=torch.bool)
     allowed[0, [MapClass.FREEWAY, MapClass.SURFACE_STREET, MapClass.STOP_SIGN]] = True
     allowed[0, MapClass.ROAD_EDGE_BOUNDARY] = True  # vehicles: classes 0-4 minus bike lanes
@@ -130,7 +134,7 @@ class DestinationEncoder(nn.Module):
 def destination_reached(
     ag_pose: torch.Tensor, dest: torch.Tensor, mp: MapTokens, cfg: TrafficBotsConfig
 ) -> torch.Tensor:
-    """Reached check (spec 5.2 step 7).
+    """Reached check (docs/model.md §5.2 step 7).
 
     Lane destinations: within ``dest_reach_lane_dist`` of some node whose direction is within
     ``dest_reach_lane_yaw`` of the agent heading. Road-edge (class 4): within

@@ -1,6 +1,6 @@
 """Parameter-free encodings: sinusoidal pose encodings, relative poses, map-node geometry.
 
-Spec section 2.3. ``PE_D(u)`` uses frequencies ``base^(-2k/D)``, k = 0..D/2-1, laid out as
+docs/model.md §2.3. ``PE_D(u)`` uses frequencies ``base^(-2k/D)``, k = 0..D/2-1, laid out as
 [cos(w_0 u) .. cos(w_{D/2-1} u), sin(w_0 u) .. sin(w_{D/2-1} u)]; the angle encoding uses
 integer harmonics 1..D/2 in the same cos/sin layout, so it is 2*pi periodic and the yaw never
 needs wrapping.
@@ -75,7 +75,7 @@ def pose_encoding(pose: torch.Tensor, xy_dim: int, yaw_dim: int, base: float) ->
 def relative_pose(query: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Pose of ``target`` in the frame of ``query``: (R(q_yaw)^T (p_t - p_q), yaw_t - yaw_q).
 
-    The yaw difference is not wrapped (spec 2.2): every consumer encodes it periodically.
+    The yaw difference is not wrapped (docs/model.md §2.2): every consumer encodes it periodically.
 
     Args:
         query: [..., 3] (x, y, yaw), broadcastable against ``target``.
@@ -89,7 +89,7 @@ def relative_pose(query: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
 
 def map_node_geometry(node_local: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """The 7-d node geometry of a map piece (``mpa_pl``, spec 2.3).
+    """The 7-d node geometry of a map piece (``mpa_pl``, docs/model.md §2.3).
 
     With s the node position and u = (cos th', sin th') the unit direction, both in the piece
     frame, c the point of the segment s + t u (t in [0, 1]) closest to the origin and r = |c|:

@@ -1,5 +1,5 @@
-"""WOSAC-style sampling (spec 7.1-7.3): N joint rollouts with prior z and sampled destinations,
-mean actions, then keep the K rollouts with the fewest collided relevant agents."""
+"""WOSAC-style sampling (docs/model.md §7.1-7.3): N joint rollouts with prior z and sampled
+destinations, mean actions, then keep the K rollouts with the fewest collided relevant agents."""
 
 from __future__ import annotations
 

@@ -1,12 +1,12 @@
-"""K-nearest-neighbour selection and gathering (spec 2.4)."""
+"""K-nearest-neighbour selection and gathering (docs/model.md §2.4)."""
 
 from __future__ import annotations
 
 import torch
 
 from policies.trafficbots.encodings import relative_pose
-from tbsim_env.map_knn import PieceClusters, nearest_pieces
-from tbsim_env.torch_utils import gather_rows
+from tbsim_env.core.torch_utils import gather_rows
+from tbsim_env.observation.map_knn import PieceClusters, nearest_pieces
 
 
 @torch.no_grad()
@@ -29,11 +29,11 @@ def knn_select(
     the same node are equally far from everything, and in a symmetric generated map two lanes
     are equally far from an agent between them. Compared in full float32 precision, such a
     tie is decided by the rounding of the scene frame, so a rotated and shifted copy of the
-    scene picked other neighbours (deviation from spec 2.4, which ranks exact distances). The
-    selection does not depend on the device, on ``topk``'s algorithm or on padding rows after
-    the targets either (``TokenBatch.trim``).
+    scene picked other neighbours (deviation from the reference, docs/model.md §2.4, which ranks
+    exact distances). The selection does not depend on the device, on ``topk``'s algorithm or on
+    padding rows after the targets either (``TokenBatch.trim``).
 
-    The search is the observations' (``tbsim_env.map_knn.nearest_pieces``): with the
+    The search is the observations' (``tbsim_env.observation.map_knn.nearest_pieces``): with the
     targets' ``clusters`` (a large map), eagerly on the CPU, it measures the pieces of the
     nearest clusters only, with the same result.
 

@@ -1,4 +1,5 @@
-"""Personality latent (spec 3.5, 3.6): posterior encoder, the N(0, I) prior, AddNaviLatent.
+"""Personality latent (docs/model.md §3.5, §3.6): posterior encoder, the N(0, I) prior,
+AddNaviLatent.
 
 The prior is the fixed standard normal. The original code also builds separate "prior" TL and
 agent encoders (~2.7 M parameters) that are never called; they are deliberately NOT built here.
@@ -92,7 +93,7 @@ def kl_std_normal(mean: torch.Tensor, log_std: torch.Tensor) -> torch.Tensor:
 class AddNaviLatent(nn.Module):
     """Residual conditioning ``x + valid * MLP_out([x, MLP_in(c)])`` (mode ``cat``, res_add).
 
-    Both MLPs have ReLU and dropout after every layer, the last one included (spec 3.5).
+    Both MLPs have ReLU and dropout after every layer, the last one included (docs/model.md §3.5).
 
     Args:
         in_dim: width of the conditioning input (d for the destination, 16 for the latent).

@@ -1,4 +1,4 @@
-"""Training losses (spec 6.2) and one differentiable training step (spec 6.1).
+"""Training losses (docs/model.md §6.2) and one differentiable training step (docs/model.md §6.1).
 
 L = L_KL + L_IL + L_dest + L_TL, all top-level weights 1.0.
 """
@@ -14,12 +14,12 @@ from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.latent import kl_std_normal
 from policies.trafficbots.model import PrepareMode, TrafficBots, rand
 from policies.trafficbots.rollout import Trajectory, rollout
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 
 @dataclass(frozen=True)
 class LossConfig:
-    """Loss weights and options (spec 6.2).
+    """Loss weights and options (docs/model.md §6.2).
 
     Attributes:
         w_pos: weight of the summed per-coordinate smooth-L1 position error (0.1).
@@ -145,8 +145,8 @@ def training_step(
     input_dropout_p: float = 0.1,
     loss_cfg: LossConfig = LossConfig(),
 ) -> tuple[torch.Tensor, dict[str, float]]:
-    """One training forward pass (spec 6.1): posterior or prior latent (chosen once per batch),
-    ground-truth destinations and TL states, mean actions, BPTT through the dynamics.
+    """One training forward pass (docs/model.md §6.1): posterior or prior latent (chosen once per
+    batch), ground-truth destinations and TL states, mean actions, BPTT through the dynamics.
 
     Args:
         model: the network (call ``model.train()`` first for dropout).
@@ -155,7 +155,7 @@ def training_step(
         teacher_forcing_p: per-agent probability of full teacher forcing (0.3 - 0.1 * epoch).
         generator: random source (latent choice, z, forcing draws).
         n_steps: roll out only steps 0 .. n_steps-1 (default all; shorter for cheap tests).
-        input_dropout_p: map-node / history input dropout (spec 1.9), train mode only.
+        input_dropout_p: map-node / history input dropout (docs/model.md §1.9), train mode only.
         loss_cfg: loss weights.
 
     Returns:

@@ -1,4 +1,4 @@
-"""Map encoder (spec 3.1): per-node MLP + 7-d geometry, PointNet, intra-map self layers.
+"""Map encoder (docs/model.md §3.1): per-node MLP + 7-d geometry, PointNet, intra-map self layers.
 
 Run once per scenario; the output ``MapTokens`` is reused at every step and by every rollout.
 """
@@ -17,7 +17,7 @@ from policies.trafficbots.encodings import map_node_geometry, relative_pose, rpe
 from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
-from tbsim_env.constants import NUM_MAP_CLASSES
+from tbsim_env.core.constants import NUM_MAP_CLASSES
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from torch import nn
 
 
 class MLP(nn.Module):
-    """``MLP[a, b, c, ...]``: Linear layers with ReLU between them (spec section 3 convention).
+    """``MLP[a, b, c, ...]``: Linear layers with ReLU between them (docs/model.md §3 convention).
 
     Args:
         dims: layer widths, input first.

@@ -1,4 +1,4 @@
-"""The TrafficBots V1.5 network and its explicit-state single-step API (spec sections 3, 5).
+"""The TrafficBots V1.5 network and its explicit-state single-step API (docs/model.md §3, §5).
 
 ``prepare`` runs everything that is computed once per scenario (``encode_scene``: map
 encoding, TL precompute, destination distribution, the encoders' attention keys and values of
@@ -79,8 +79,8 @@ class PrepareMode:
         dest: sample destinations from the predictor or use the ground-truth labels.
         tl_valid_from: TL token validity from history steps (inference) or all steps.
         with_posterior: compute the posterior even when z comes from the prior (for KL).
-        input_dropout_p: training-mode input dropout of spec 1.9 (``dropout_p_history``): map
-            nodes 1..P-1 are hidden from the map encoder and history steps 0..9 from the
+        input_dropout_p: training-mode input dropout of docs/model.md §1.9 (``dropout_p_history``):
+            map nodes 1..P-1 are hidden from the map encoder and history steps 0..9 from the
             destination predictor, each with this probability. Ignored in eval mode.
     """
 
@@ -232,7 +232,7 @@ def _push(window: torch.Tensor, new: torch.Tensor) -> torch.Tensor:
 
 
 class TrafficBots(nn.Module):
-    """TrafficBots V1.5 (spec section 3), prior encoders and action log-sigma not built.
+    """TrafficBots V1.5 (docs/model.md §3), prior encoders and action log-sigma not built.
 
     Args:
         cfg: network configuration.
@@ -273,7 +273,7 @@ class TrafficBots(nn.Module):
         mode: PrepareMode = INFERENCE,
         scene: SceneEncoding | None = None,
     ) -> RolloutContext:
-        """Per-scenario precomputation and per-rollout sampling (spec 5.1, 6.1, 7.1).
+        """Per-scenario precomputation and per-rollout sampling (docs/model.md §5.1, §6.1, §7.1).
 
         Args:
             batch: B scenes.
@@ -329,8 +329,8 @@ class TrafficBots(nn.Module):
         generator: torch.Generator | None = None,
         mode: PrepareMode = INFERENCE,
     ) -> SceneEncoding:
-        """Map encoder, TL precompute and destination predictor on B scenes (spec 5.1), with
-        ``mode``'s input dropout in training (drawn from ``generator``)."""
+        """Map encoder, TL precompute and destination predictor on B scenes (docs/model.md §5.1),
+        with ``mode``'s input dropout in training (drawn from ``generator``)."""
         n_hist = self.cfg.n_history
         enc_node_valid, dest_hist_valid = batch.mp_valid, batch.ag_valid[..., :n_hist]
         if self.training and mode.input_dropout_p > 0.0:
@@ -356,7 +356,7 @@ class TrafficBots(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """(map node validity for the encoder, history validity for the destination
         predictor) with each map node 1..P-1 and history step 0..9 hidden with probability
-        ``p`` (spec 1.9)."""
+        ``p`` (docs/model.md §1.9)."""
         dev, n_hist = batch.device, self.cfg.n_history
         n_sc, n_ag = batch.ag_type.shape
         n_mp, n_node = batch.mp_valid.shape[1:]
@@ -515,7 +515,7 @@ class TrafficBots(nn.Module):
 
         Acceleration and yaw rate of the history are finite differences of consecutive valid
         states (what the unicycle produces, and how the ground-truth motion is defined in
-        spec 1.4). Inputs are detached (spec 6.4).
+        docs/model.md §1.4). Inputs are detached (docs/model.md §6.4).
 
         Args:
             state: the rollout state.
@@ -563,7 +563,7 @@ class TrafficBots(nn.Module):
         ag_valid: torch.Tensor,
         tl_state: torch.Tensor,
     ) -> tuple[StepOutput, RolloutState]:
-        """Append the current simulator state to the history and act (spec 5.2 steps 1-4).
+        """Append the current simulator state to the history and act (docs/model.md §5.2 steps 1-4).
 
         Externally controlled agents simply report their real states here, so the policy
         sees them exactly as it sees its own agents.
@@ -571,7 +571,7 @@ class TrafficBots(nn.Module):
         Args:
             ctx: from ``prepare``.
             state: from ``initial_state`` or the previous ``step``.
-            ag_pose: [B', N, 3] current (x, y, yaw); detached here (spec 6.4).
+            ag_pose: [B', N, 3] current (x, y, yaw); detached here (docs/model.md §6.4).
             ag_speed: [B', N] current signed speed m/s.
             ag_valid: [B', N] bool, agent present now.
             tl_state: [B', L] int64 current ``TLState``.

@@ -23,7 +23,7 @@ def max_valid(x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
 
 class PointNet(nn.Module):
     """Three (configurable) layers of Linear(d, d/2) + ReLU + Dropout, then concat of the max
-    over nodes; a final max-pool over the valid nodes (spec section 3).
+    over nodes; a final max-pool over the valid nodes (docs/model.md §3).
 
     Computed in a factored order (same function and parameters as the spec's steps, which
     ``pointnet_reference`` transcribes for the tests):
@@ -67,8 +67,8 @@ class PointNet(nn.Module):
 
 
 def pointnet_reference(net: PointNet, x: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """``PointNet.forward`` in the spec's order (section 3: -inf at invalid nodes, concat the
-    max, zero invalid nodes, final max-pool); for tests."""
+    """``PointNet.forward`` in the reference's order (docs/model.md §3: -inf at invalid nodes,
+    concat the max, zero invalid nodes, final max-pool); for tests."""
 
     def masked_max(y: torch.Tensor) -> torch.Tensor:
         pooled = y.masked_fill(~valid[..., None], float("-inf")).amax(dim=-2)

@@ -2,7 +2,7 @@
 
 The policy drives the (at most 64) agents that preprocessing selects for each scenario
 (``SceneTokens.agent_track_index``); every other agent slot gets a zero action, i.e. keeps its
-speed and heading (the constant-velocity treatment of non-simulated agents, spec 7.4).
+speed and heading (the constant-velocity treatment of non-simulated agents, docs/model.md §7.4).
 Externally controlled agents are observed through the ``SimState`` like any other agent, so
 their real states feed back into the policy every step.
 
@@ -24,13 +24,13 @@ from tqdm import tqdm
 from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.checkpoint import load_checkpoint
 from policies.trafficbots.model import RolloutContext, RolloutState, SceneEncoding, TrafficBots
-from tbsim_env.config import TokenConfig
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.torch_utils import gather_rows
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
-from tbsim_env.rows import cat_rows, take_rows
+from tbsim_env.observation.rows import cat_rows, take_rows
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import gather_rows
 
 
 @dataclass(frozen=True)

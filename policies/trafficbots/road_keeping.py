@@ -24,11 +24,11 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from tbsim_env import constants as C
-from tbsim_env.sim.collision import corners_from_offsets
+from tbsim_env.core import constants as C
+from tbsim_env.core.boxes import corners_from_offsets
+from tbsim_env.core.torch_utils import const, gather_rows
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import cos_sin
-from tbsim_env.torch_utils import const, gather_rows
 
 if TYPE_CHECKING:
     from policies.trafficbots.config import RoadKeeping

@@ -1,8 +1,8 @@
-"""Closed-loop rollout (spec section 5), shared by training (BPTT) and inference (no_grad).
+"""Closed-loop rollout (docs/model.md §5), shared by training (BPTT) and inference (no_grad).
 
 The only Python loop is over time. Steps 1..10 are forced to the ground-truth history (spawn and
 warm start); afterwards agents move by the model's mean actions through the unicycle. Network
-inputs are detached at every step; the dynamics chain is not (spec 6.4).
+inputs are detached at every step; the dynamics chain is not (docs/model.md §6.4).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import torch
 
 from policies.trafficbots.batch import TokenBatch
 from policies.trafficbots.model import RolloutContext, TrafficBots
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.sim.dynamics import unicycle_step
 from tbsim_env.sim.geometry import rotate
 
@@ -72,7 +72,7 @@ def rollout(
         gt_steps: ground truth exists for steps < gt_steps: TL states are overridden there and
             it counts for the outside-map rule (training: T; inference: 11).
         teacher_force: [B', N] bool agents replayed from the ground truth at all their valid
-            steps (scheduled teacher forcing, spec 6.3), or None.
+            steps (scheduled teacher forcing, docs/model.md §6.3), or None.
         n_steps: simulate steps 0 .. n_steps-1 (default: all steps of the batch).
         disable_outside_map: disable agents leaving ``mp_boundary`` without ground truth.
 

@@ -6,7 +6,7 @@ the traffic ahead of it (docs/MODEL_CARD.md, "Why it leaves real roads"). These 
 in eval mode only (``TrafficBots.training`` False), act on the network's actions without
 retraining (the first two are shipped):
 
-* **Hold parked vehicles.** A vehicle that is *parked* by the spec's own test (spec 1.6,
+* **Hold parked vehicles.** A vehicle that is *parked* by the spec's own test (docs/model.md §1.6,
   filters c and d: still over the history, i.e. the speed summed over the valid history steps
   times 0.1 s below 0.5 m, and no vehicle-lane node, classes 0-2, within 3 m whose direction
   points along its heading) gets the action that stops it and keeps its heading. The spec
@@ -20,8 +20,8 @@ retraining (the first two are shipped):
   corridor, so it brakes for slower or standing traffic; the yaw rate stays the network's.
 * **No turning on the spot** (off in the shipped config: no measurable gain). A vehicle's yaw
   rate is limited to ``vehicle_max_curvature`` times its speed over the step (plus
-  ``vehicle_yaw_rate_slack``): the unicycle (spec 4) lets a standing vehicle turn, which a car
-  cannot.
+  ``vehicle_yaw_rate_slack``): the unicycle (docs/model.md §4) lets a standing vehicle turn, which a
+  car cannot.
 * **History motion inside the action limits** (``clip_history_motion``, off).
 
 ``InferenceConfig.spec()`` switches every rule off (the spec's behaviour, for comparison).
@@ -36,6 +36,7 @@ import torch
 from tbsim_env.core import constants as C
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import to_local_xy
+from tbsim_env.sim.idm import IDMTerms, interaction
 
 if TYPE_CHECKING:
     from policies.trafficbots.config import GapKeeping
@@ -45,7 +46,9 @@ _VEHICLE_LANE_CLASSES = (
     int(C.MapClass.SURFACE_STREET),
     int(C.MapClass.STOP_SIGN),
 )
-"""Map classes that count as a vehicle lane in the parked test (spec 1.6 d: classes 0-2)."""
+"""Map classes that count as a vehicle lane in the parked test.
+
+docs/model.md §1.6 d: classes 0-2."""
 
 
 def still_agents(ag_valid: torch.Tensor, ag_speed: torch.Tensor, threshold: float) -> torch.Tensor:
@@ -54,7 +57,7 @@ def still_agents(ag_valid: torch.Tensor, ag_speed: torch.Tensor, threshold: floa
     Args:
         ag_valid: [B, N, H] bool history validity.
         ag_speed: [B, N, H] signed speed m/s.
-        threshold: metres (spec 1.6 c at validation / test: 0.5 m).
+        threshold: metres (docs/model.md §1.6 c at validation / test: 0.5 m).
 
     Returns:
         [B, N] bool, True only for agents valid at the last history step.
@@ -79,7 +82,7 @@ def aligned_lane_nearby(
         mp_pose: [B, M, P, 3] map nodes (x m, y m, segment heading rad).
         mp_valid: [B, M, P] bool.
         mp_cls: [B, M] int64 ``MapClass``.
-        radius: metres (spec 1.6 d: 3 m).
+        radius: metres (docs/model.md §1.6 d: 3 m).
 
     Returns:
         [B, N] bool.
@@ -107,7 +110,7 @@ def parked_vehicles(
     still_threshold: float,
     lane_radius: float,
 ) -> torch.Tensor:
-    """Vehicles parked by the spec's test (spec 1.6 c + d) over the history window.
+    """Vehicles parked by the spec's test (docs/model.md §1.6 c + d) over the history window.
 
     Args:
         ag_valid: [B, N, H] bool history validity (H = the 11 history steps).
@@ -155,7 +158,7 @@ def limit_vehicle_curvature(
 ) -> torch.Tensor:
     """Vehicle yaw rates limited to ``max_curvature`` * |mean speed over the step| + ``slack``.
 
-    The mean speed is the unicycle's midpoint speed, v + DT / 2 * acceleration (spec 4).
+    The mean speed is the unicycle's midpoint speed, v + DT / 2 * acceleration (docs/model.md §4).
 
     Args:
         action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s).
@@ -192,8 +195,8 @@ def gap_keeping_cap(
         a_max (1 - (s* / s)^2),  s* = s0 + max(0, v T + v dv / (2 sqrt(a_max b)))
 
     with a_max = ``gap.max_accel``, b = ``gap.comfort_decel``, T = ``gap.time_headway``,
-    s0 = ``gap.standstill_gap`` (Treiber, Hennecke & Helbing 2000). +inf where nothing is
-    ahead.
+    s0 = ``gap.standstill_gap`` (Treiber, Hennecke & Helbing 2000; ``tbsim_env.sim.idm``, the
+    one IDM implementation, shared with the ``idm`` policy). +inf where nothing is ahead.
 
     Args:
         pose: [B, N, 3] (x m, y m, yaw rad) now.
@@ -221,14 +224,9 @@ def gap_keeping_cap(
     pair = valid[:, :, None] & valid[:, None, :]
     blocked = pair & in_lane & (ahead > 0) & (bumper < gap.horizon)
     s_gap, lead = torch.where(blocked, bumper, float("inf")).min(-1)  # [B, N] each
-    s_gap = s_gap.clamp_min(gap.min_gap)
     lead_speed = (speed[:, None, :] * cos_rel).gather(-1, lead[..., None])[..., 0]
-    v = speed.clamp_min(0.0)
-    dv = v - lead_speed
-    brake = 2.0 * (gap.max_accel * gap.comfort_decel) ** 0.5
-    wanted = gap.standstill_gap + (v * gap.time_headway + v * dv / brake).clamp_min(0.0)
-    cap = gap.max_accel * (1.0 - (wanted / s_gap) ** 2)
-    return torch.where(torch.isfinite(s_gap), cap, float("inf"))
+    terms = IDMTerms(gap.max_accel, gap.comfort_decel, gap.time_headway, gap.standstill_gap)
+    return interaction(speed, s_gap, lead_speed, terms, gap.min_gap)
 
 
 def keep_gap(
@@ -287,8 +285,8 @@ def clip_history_motion(motion: torch.Tensor, ag_type: torch.Tensor) -> torch.Te
     """History (speed, acceleration, yaw rate) with the last two inside the type's action limits.
 
     The history's acceleration and yaw rate are finite differences of the logged states
-    (spec 1.4); on real logs they exceed what the unicycle can do (|acc| > 5 m/s^2 in about 1%
-    of vehicle steps), which no closed-loop step of the policy ever produces.
+    (docs/model.md §1.4); on real logs they exceed what the unicycle can do (|acc| > 5 m/s^2 in
+    about 1% of vehicle steps), which no closed-loop step of the policy ever produces.
 
     Args:
         motion: [B, N, W, 3] (speed m/s, acceleration m/s^2, yaw rate rad/s).

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from tbsim_env import constants as C
-from tbsim_env.constants import MapClass, ObjectType, TLState
+from tbsim_env.core import constants as C
+from tbsim_env.core.constants import MapClass, ObjectType, TLState
 from tbsim_env.data.tokens import SceneTokens
 
 LANE_WIDTH = 3.5
@@ -123,7 +123,7 @@ def _synthetic_agents(
 
 def _destinations(types: np.ndarray, final_xy: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     """[N] destination piece: the nearest allowed node to the final position (the rule
-    families of spec 1.7), -1 without one."""
+    families of docs/model.md §1.7), -1 without one."""
     allowed = {
         ObjectType.VEHICLE: [MapClass.SURFACE_STREET, MapClass.STOP_SIGN],
         ObjectType.PEDESTRIAN: [MapClass.ROAD_EDGE_BOUNDARY],

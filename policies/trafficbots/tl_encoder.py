@@ -1,4 +1,4 @@
-"""Traffic-light encoder and TL-state head (spec 3.2).
+"""Traffic-light encoder and TL-state head (docs/model.md §3.2).
 
 TL tokens sit on the map piece of their controlled lane (``tl_mode: lane``): pose = node 0 of
 that piece. Everything that depends only on the static poses (KNN, RPE, map neighbour rows)
@@ -19,9 +19,9 @@ from policies.trafficbots.knn import knn_relative
 from policies.trafficbots.map_encoder import MapTokens
 from policies.trafficbots.mlp import MLP
 from policies.trafficbots.pointnet import PointNet
-from tbsim_env.constants import NUM_TL_STATES
-from tbsim_env.rows import take_rows
-from tbsim_env.torch_utils import listed
+from tbsim_env.core.constants import NUM_TL_STATES
+from tbsim_env.core.torch_utils import listed
+from tbsim_env.observation.rows import take_rows
 
 
 def _rows(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -37,7 +37,7 @@ class TLContext:
     Attributes:
         pose: [B, L, 3] token pose (node 0 of the controlled lane piece).
         valid: [B, L] bool token validity.
-        lane_feat: [B, L, d] map feature of the lane piece, detached (spec 3.2 step 3).
+        lane_feat: [B, L, d] map feature of the lane piece, detached (docs/model.md §3.2 step 3).
         self_idx, self_mask, self_rpe: TL -> TL neighbours [B, L, Ks], [B, L, Ks],
             [B, L, Ks, rpe_dim].
         map_idx, map_mask, map_rpe: TL -> map neighbours, rows of the map tokens [B, L, Km],

@@ -1,4 +1,4 @@
-"""Training loop of TrafficBots V1.5 (spec section 6): plain PyTorch, DDP through torchrun.
+"""Training loop of TrafficBots V1.5 (docs/model.md §6): plain PyTorch, DDP through torchrun.
 
 Usage (also ``tbsim train``)::
 
@@ -42,9 +42,9 @@ from policies.trafficbots.config import TrafficBotsConfig
 from policies.trafficbots.losses import training_step
 from policies.trafficbots.model import TrafficBots
 from policies.trafficbots.validate import validation_loss
-from tbsim_env.config_cli import config_parser, parse_config
+from tbsim_env.core.config_cli import config_parser, parse_config
+from tbsim_env.core.errors import CheckpointError
 from tbsim_env.data.cache import open_training_data
-from tbsim_env.errors import CheckpointError
 
 
 @dataclass(frozen=True)
@@ -502,7 +502,7 @@ def _out_of_time(cfg: TrainConfig, t0: float, proc: _Process) -> bool:
 
 def build_parser() -> argparse.ArgumentParser:
     """``tbsim train``'s parser: one option per ``TrainConfig`` field, its help from the
-    docstring (``tbsim_env.config_cli``)."""
+    docstring (``tbsim_env.core.config_cli``)."""
     p = config_parser(TrainConfig, prog="tbsim train")
     p.description = (
         "Train TrafficBots V1.5 on a token cache (``tbsim preprocess``); resumes when --out "

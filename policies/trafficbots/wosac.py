@@ -1,10 +1,10 @@
-"""TrafficBots V1.5 rollouts for WOSAC (spec section 7): sample N, keep the K least colliding.
+"""TrafficBots V1.5 rollouts for WOSAC (docs/model.md §7): sample N, keep the K least colliding.
 
 Agents the policy simulates are the (at most 64) agents preprocessing selects; every other sim
 agent (valid at the current step) follows the spec's constant-velocity extrapolation from its
 last two history steps (held still if the step before is invalid). z is held at its current
 value. Deviation from the spec: an agent the model disables mid-rollout (it left the map
-boundary) keeps its last pose instead of jumping to the scene origin (spec 8, quirk 3).
+boundary) keeps its last pose instead of jumping to the scene origin (docs/model.md §8, quirk 3).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ def trafficbots_rollouts(
 ) -> Rollouts:
     """``num_rollouts`` joint futures of every sim agent (``num_samples`` sampled, best kept).
 
-    A rollout's score is the number of relevant agents that collide in it (spec 7.3), plus
+    A rollout's score is the number of relevant agents that collide in it (docs/model.md §7.3), plus
     ``road_edge_weight`` times the number of evaluated agents on the road at the current step
     that leave it at some simulated step (``simulated_road_departure``: it reads nothing of
     the logged future; agents off the road already, such as pedestrians on sidewalks, do not
@@ -146,7 +146,7 @@ def _to_rollouts(
     tr = scenario.tracks
     sim = np.flatnonzero(tr.valid[:, t0])
     n_fut = scenario.num_steps - 1 - t0
-    # Constant-velocity extrapolation for every sim agent (spec 7.4), then overwrite the
+    # Constant-velocity extrapolation for every sim agent (docs/model.md §7.4), then overwrite the
     # agents the model simulated.
     p10 = tr.xyz[sim, t0].astype(np.float64)
     ok9 = tr.valid[sim, t0 - 1] if t0 > 0 else np.zeros(len(sim), bool)

@@ -37,11 +37,11 @@ from safetensors.numpy import save_file
 from torch.utils.data import ConcatDataset, Dataset
 from tqdm import tqdm
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import NUM_STEPS
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import NUM_STEPS
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
-from tbsim_env.errors import TbsimError
 
 FORMAT = "tbsim-tokens-v1"
 _ARRAY_FIELDS = tuple(f.name for f in dataclasses.fields(SceneTokens) if f.name != "scenario_id")

@@ -14,7 +14,7 @@ import os
 import zlib
 from typing import BinaryIO
 
-from tbsim_env.errors import ScenarioFormatError
+from tbsim_env.core.errors import ScenarioFormatError
 
 GZIP_MAGIC = b"\x1f\x8b"
 GZIP_SUFFIX = ".gz"

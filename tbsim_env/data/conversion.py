@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tbsim_env.constants import NUM_FUTURE, ObjectType, SignalState
+from tbsim_env.core.constants import NUM_FUTURE, ObjectType, SignalState
 from tbsim_env.data.scenario import RoadMap, Tracks, TrafficSignals
 
 MAX_CHOSEN_TRACKS_TO_PREDICT = 8

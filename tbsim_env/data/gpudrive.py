@@ -46,7 +46,7 @@ from typing import Any
 
 import numpy as np
 
-from tbsim_env.constants import (
+from tbsim_env.core.constants import (
     CURRENT_INDEX,
     DT,
     MAX_FEATURE_ID,
@@ -55,6 +55,7 @@ from tbsim_env.constants import (
     MapFeatureType,
     ObjectType,
 )
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.compressed import read_all
 from tbsim_env.data.conversion import (
     DEFAULT_BOX_HEIGHT_M,
@@ -66,7 +67,6 @@ from tbsim_env.data.conversion import (
 )
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
 from tbsim_env.data.womd import wrap_heading_f32
-from tbsim_env.errors import ScenarioFormatError
 
 PathLike = str | os.PathLike
 

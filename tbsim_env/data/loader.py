@@ -19,6 +19,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import TypeAlias
 
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.compressed import read_head, strip_gz
 from tbsim_env.data.gpudrive import read_gpudrive_json
 from tbsim_env.data.scenario import Scenario
@@ -26,7 +27,6 @@ from tbsim_env.data.scenarionet import PICKLE_MAGIC, read_scenarionet_pickle
 from tbsim_env.data.tf_example import is_tf_example, read_tf_examples
 from tbsim_env.data.tfrecord import iter_records, looks_like_tfrecord
 from tbsim_env.data.womd import read_scenarios
-from tbsim_env.errors import ScenarioFormatError
 
 ScenarioSource: TypeAlias = "str | os.PathLike | Scenario | Iterable[ScenarioSource]"
 """A path, glob, folder, ``Scenario``, or an iterable of those."""

@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tbsim_env import constants as C
-from tbsim_env.constants import DT, MapFeatureType, ObjectType, SignalState
-from tbsim_env.errors import MissingFutureError, ScenarioFormatError
+from tbsim_env.core import constants as C
+from tbsim_env.core.constants import DT, MapFeatureType, ObjectType, SignalState
+from tbsim_env.core.errors import MissingFutureError, ScenarioFormatError
 
 
 def wrap_angle_np(angle: np.ndarray) -> np.ndarray:
@@ -460,6 +460,15 @@ class Scenario:
             tracks=dataclasses.replace(t, **changes), road_map=road_map, signals=sig
         )
 
+    def sim_agent_mask(self) -> np.ndarray:
+        """[A] bool: the sim agents, the tracks valid at the current step (what WOSAC
+        simulates and a submission must hold, and what the environments start with)."""
+        return self.tracks.valid[:, self.current_index].copy()
+
+    def sim_agent_indices(self) -> np.ndarray:
+        """[K] int64 track indices of the sim agents (``sim_agent_mask``), in track order."""
+        return np.flatnonzero(self.sim_agent_mask()).astype(np.int64)
+
     def role_mask(self) -> np.ndarray:
         """[A, 3] bool: (is SDC, in objects_of_interest, in tracks_to_predict)."""
         a = self.tracks.num_tracks
@@ -473,7 +482,7 @@ class Scenario:
         """Check shapes, dtypes, cross references and plausibility; raise
         ``ScenarioFormatError`` naming the track or feature, step and field at fault.
 
-        The plausibility bounds (units and reasons in ``tbsim_env.constants``, section
+        The plausibility bounds (units and reasons in ``tbsim_env.core.constants``, section
         "plausibility"): valid track states finite, within ``MAX_ABS_COORDINATE``, speeds up to
         ``MAX_SPEED``, boxes positive and up to ``MAX_BOX_SIZE``, stored headings within
         ``MAX_ABS_HEADING``; the scene within ``MAX_SCENE_EXTENT``; ids in their proto ranges
@@ -526,7 +535,7 @@ class Scenario:
                 f"'current_time_index' {self.current_index} is not among the {n_t} steps "
                 "(a scenario needs at least its current step)"
             )
-        if not t.valid[:, self.current_index].any():
+        if not self.sim_agent_mask().any():
             fail(
                 f"no track is valid at the current step {self.current_index} "
                 "('current_time_index'): nothing to simulate"

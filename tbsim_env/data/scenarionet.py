@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from tbsim_env.constants import (
+from tbsim_env.core.constants import (
     CURRENT_INDEX,
     DT,
     LaneType,
@@ -52,6 +52,7 @@ from tbsim_env.constants import (
     RoadLineType,
     SignalState,
 )
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.compressed import read_all
 from tbsim_env.data.conversion import (
     choose_sdc,
@@ -61,7 +62,6 @@ from tbsim_env.data.conversion import (
 )
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
 from tbsim_env.data.womd import wrap_heading_f32
-from tbsim_env.errors import ScenarioFormatError
 
 try:  # numpy >= 2 keeps the array constructors in numpy._core, older ones in numpy.core
     from numpy._core import multiarray as _multiarray

@@ -3,8 +3,8 @@ without TensorFlow.
 
 Records are framed by ``tbsim_env.data.tfrecord`` and decoded with the generated classes of
 ``tbsim_env/data/protos/tf_example.proto``; the features are then read as fixed-shape arrays
-(docs/womd_schema.md section 6; A agent slots, 128 in WOMD; P past, 1 current and F future
-steps, 10 / 1 / 80; S signal slots, 16):
+(docs/formats.md, "tf.train.Example motion files"; A agent slots, 128 in WOMD; P past, 1 current and
+F future steps, 10 / 1 / 80; S signal slots, 16):
 
 * ``state/{past,current,future}/{x,y,z,bbox_yaw,velocity_x,velocity_y,length,width,height}``
   [A, P | 1 | F] float, ``.../valid`` int64: one track per slot valid at some step (empty
@@ -34,12 +34,12 @@ from collections.abc import Iterator
 import numpy as np
 from google.protobuf.message import DecodeError
 
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.conversion import signals_from_entries
 from tbsim_env.data.gpudrive import map_element_to_feature
 from tbsim_env.data.protos import tf_example_pb2
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
 from tbsim_env.data.womd import _Where, iter_parsed_records, wrap_heading_f32
-from tbsim_env.errors import ScenarioFormatError
 
 PathLike = str | os.PathLike
 

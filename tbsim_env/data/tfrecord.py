@@ -29,8 +29,8 @@ from typing import BinaryIO
 import crc32c as _crc32c
 import numpy as np
 
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.compressed import GzipStream, is_gzip, open_scenario_file, read_head
-from tbsim_env.errors import ScenarioFormatError
 
 HEADER_BYTES = 12
 """Length (8 B) plus length CRC (4 B)."""

@@ -1,4 +1,4 @@
-"""``SceneTokens``: a scenario preprocessed into fixed-size token arrays (spec section 1).
+"""``SceneTokens``: a scenario preprocessed into fixed-size token arrays (docs/model.md §1).
 
 This is the contract between preprocessing (``tbsim_env.data.preprocess``) and its users:
 the TrafficBots policy, the observation builder and the training cache. Arrays are numpy,
@@ -53,7 +53,7 @@ class SceneTokens:
         agent_type: [N] int64, ``ObjectType`` value (0 for padding).
         agent_size: [N, 3] float32, mean (length, width, height) over valid steps.
         agent_role: [N, 3] bool, (is SDC, object of interest, track to predict).
-        agent_dest: [N] int64, destination map-piece row (spec 1.7), -1 when none.
+        agent_dest: [N] int64, destination map-piece row (docs/model.md §1.7), -1 when none.
     """
 
     scenario_id: str

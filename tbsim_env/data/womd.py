@@ -22,11 +22,11 @@ from operator import attrgetter
 import numpy as np
 from google.protobuf.message import DecodeError
 
-from tbsim_env.constants import MapFeatureType
+from tbsim_env.core.constants import MapFeatureType
+from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.protos import scenario_pb2
 from tbsim_env.data.scenario import RoadMap, Scenario, Tracks, TrafficSignals
 from tbsim_env.data.tfrecord import TFRecordIndex, build_index, iter_records, read_record
-from tbsim_env.errors import ScenarioFormatError
 
 PathLike = str | os.PathLike
 

@@ -14,17 +14,16 @@ from dataclasses import dataclass, field
 
 import torch
 
+from tbsim_env.core.boxes import corner_offsets, corners_from_offsets
+from tbsim_env.core.torch_utils import cached_arange, const, gather_rows, listed, valid_first
 from tbsim_env.sim.collision import (
     agent_distances,
     collided_with_others,
-    corner_offsets,
-    corners_from_offsets,
     near_limits,
 )
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import box_offroad_distance
 from tbsim_env.sim.state import RoadEdges, SimState
-from tbsim_env.torch_utils import cached_arange, const, gather_rows, listed, valid_first
 
 
 @dataclass(frozen=True)

@@ -29,30 +29,30 @@ from typing import Any
 import torch
 
 from policies.base import Policy, PolicyState
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import PolicyError
+from tbsim_env.core.torch_utils import cached_arange, cast, const, gather_rows, scalar
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env.agent_metrics import Route, StepMetrics, build_route, goal_mask, step_metrics
 from tbsim_env.env.rewards import Baseline, reward_and_termination, reward_weights
-from tbsim_env.errors import PolicyError
-from tbsim_env.observation import (
+from tbsim_env.observation.rows import cat_rows, take_rows, with_rows
+from tbsim_env.observation.tokens import (
     History,
     IndexedObservation,
     MapContext,
     ObsConfig,
     agent_static_features,
     build_map_context,
-    densify,
+    densify_flat,
     init_history,
     observe_indexed,
     push_history,
 )
-from tbsim_env.rows import cat_rows, take_rows, with_rows
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.dynamics import action_limits, inverse_step
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, gather_rows
 
 
 @dataclass(frozen=True)
@@ -148,8 +148,9 @@ class StepConfig:
     Attributes:
         env: episode, reward and termination settings.
         obs: observation sizes.
-        dense: ``StepOutput.obs`` in the dense layout (``observe``'s dict) instead of an
-            ``IndexedObservation``.
+        dense: ``StepOutput.obs`` in the dense layout instead of an ``IndexedObservation``:
+            each observer's keys in one row, [B, Q, D] (``observation.densify_flat``;
+            ``observation.dense_views`` reads the keys of ``observe``'s dict from it).
     """
 
     env: EnvConfig
@@ -166,7 +167,7 @@ class StepOutput:
 
     Attributes:
         obs: observations of the query agents in the new state (``IndexedObservation``, or
-            the dense dict of ``StepConfig.dense``), for every observer (mask with
+            the dense rows of ``StepConfig.dense``), for every observer (mask with
             ``active`` or ``alive`` as the API needs).
         reward: float32, the weighted reward terms; 0 for agents not active.
         terms: {name: [B, Q]} the unweighted reward terms (``env.rewards``).
@@ -355,9 +356,9 @@ def slot_actions(
     either input, NaN included, are never read)."""
     setup = state.setup
     ext = gather_rows(actions, setup.slot_query)
-    on = setup.external & gather_rows(state.alive, setup.slot_query)
+    on = torch.bitwise_and(setup.external, gather_rows(state.alive, setup.slot_query))
     if npc_action is None:
-        return torch.where(on[..., None], ext, torch.zeros_like(ext))
+        return torch.where(on.unsqueeze(-1), ext, const(0.0, ext))
     return core.merge_actions((setup.npc, npc_action), (on, ext))
 
 
@@ -381,13 +382,15 @@ def step(
         ``config.env.remove_terminated``; the history and observations see the state after.
     """
     setup, env = state.setup, config.env
-    sim = core.step(state.sim, slot_actions(state, actions, npc_action))
+    # Without NPC actions only the external agents move (the others replay the log).
+    movers = setup.query if npc_action is None else None
+    sim = core.step(state.sim, slot_actions(state, actions, npc_action), movers)
     metrics = step_metrics(sim, setup.query, setup.route)
     baseline = Baseline(state.progress, state.goal_reached, setup.has_goal)
     speed = gather_rows(sim.speed, setup.query)
     outcome = reward_and_termination(metrics, speed, baseline, env.reward, env.termination)
     active = state.alive
-    terminated = outcome.terminated & active
+    terminated = torch.bitwise_and(outcome.terminated, active)
     # Eagerly, skip the removal when nobody leaves; a compiled graph cannot branch on data.
     if env.remove_terminated and (torch.compiler.is_compiling() or bool(terminated.any())):
         sim = remove_agents(sim, setup.query, terminated)
@@ -407,20 +410,21 @@ def step(
     if torch.compiler.is_compiling():
         stale = metrics.offroad_stale.any(-1)
     if config.dense:
-        obs = densify(obs, config.obs.tokens.piece_segments)
-    reward = outcome.reward * active
-    last = (sim.step >= env.last_step)[:, None]
-    truncated = active & last & ~terminated
-    alive = active & ~terminated & ~truncated
+        obs = densify_flat(obs, config.obs.tokens.piece_segments)
+    reward = torch.where(active, outcome.reward, const(0.0, outcome.reward))
+    last = sim.step.view(-1, 1) >= scalar(env.last_step, sim.step.dtype, sim.device)
+    # Truncated: active, at the last step and not terminated (terminated implies active).
+    truncated = torch.bitwise_and(torch.bitwise_and(active, last), ~terminated)
+    alive = torch.bitwise_and(active, ~torch.bitwise_or(terminated, truncated))
     nxt = dataclasses.replace(
         state,
         sim=sim,
         history=history,
         progress=outcome.progress_best,
-        goal_reached=state.goal_reached | outcome.goal_now,
+        goal_reached=torch.bitwise_or(state.goal_reached, outcome.goal_now),
         alive=alive,
         episode_return=state.episode_return + reward,
-        episode_length=state.episode_length + 1,
+        episode_length=torch.add(state.episode_length, scalar(1, torch.int64, sim.device)),
     )
     out = StepOutput(
         obs=obs,
@@ -438,15 +442,16 @@ def step(
 
 def remove_agents(sim: SimState, query: torch.Tensor, remove: torch.Tensor) -> SimState:
     """``sim`` without the query agents flagged in ``remove`` [B, Q] (they leave for good)."""
-    slots = cached_arange(sim.num_agents, sim.device)
-    gone = ((query.unsqueeze(-1) == slots) & remove.unsqueeze(-1)).any(1)  # [B, N]
-    return sim.replace(valid=sim.valid & ~gone)
+    # Counts per slot (padding columns repeat a slot, never flagged): deterministic.
+    gone = torch.zeros(sim.valid.shape, dtype=torch.int32, device=sim.device)
+    gone = gone.scatter_add_(1, query, cast(remove, torch.int32))
+    return sim.replace(valid=torch.bitwise_and(sim.valid, gone == 0))
 
 
 # ---------------------------------------------------------------------- reading
-def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation | dict:
+def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation | torch.Tensor:
     """Observations of the query agents in the current state, as ``step`` makes them (the
-    dense dict with ``config.dense``)."""
+    dense rows with ``config.dense``)."""
     setup = state.setup
     obs = observe_indexed(
         state.sim,
@@ -457,7 +462,7 @@ def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation
         setup.static,
         observer_mask=state.alive,
     )
-    return densify(obs, config.obs.tokens.piece_segments) if config.dense else obs
+    return densify_flat(obs, config.obs.tokens.piece_segments) if config.dense else obs
 
 
 def agent_infos(state: EpisodeState, metrics: StepMetrics) -> dict[str, torch.Tensor]:

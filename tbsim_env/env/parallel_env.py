@@ -38,8 +38,10 @@ from gymnasium.utils import EzPickle
 from pettingzoo import ParallelEnv
 
 from policies.base import Policy
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import ActionError
+from tbsim_env.core.torch_utils import torch_threads
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.env import episode as ep
 from tbsim_env.env.agent_metrics import StepMetrics
@@ -54,10 +56,8 @@ from tbsim_env.env.setup import (
     resolve_scenarios,
     select_scenarios,
 )
-from tbsim_env.errors import ActionError
-from tbsim_env.observation import ObsConfig, observation_space
+from tbsim_env.observation.tokens import ObsConfig, dense_views, observation_space
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import torch_threads
 
 AgentDict = dict[str, Any]
 
@@ -220,6 +220,12 @@ class TrafficEnv(ParallelEnv, EzPickle):
         return self._step_fn
 
     @property
+    def agent_columns(self) -> dict[str, int]:
+        """Each agent's column in the controlled-agent tensors of the episode
+        (``episode.setup.query``, ``episode.progress``): a copy, for this scenario."""
+        return dict(self._slot_of)
+
+    @property
     def episode_steps(self) -> int:
         """Steps of a full episode (from the start step to the last step)."""
         return self.config.last_step - self.config.start_step
@@ -291,7 +297,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         state, metrics = ep.start(bank, ks)
         names = [agent_name(sc.tracks.id[i]) for i in query]
         obs = ep.observe_state(state, self._step_config)
-        columns, _, _ = self._info_columns(state, metrics, None)
+        columns = self._info_columns(state, metrics, None)[0]
         infos = {a: {c: v[j] for c, v in columns.items()} for j, a in enumerate(names)}
         slot_of = {n: j for j, n in enumerate(names)}
         return _Start(state, names, self._per_agent(names, obs, slot_of), infos)
@@ -348,65 +354,65 @@ class TrafficEnv(ParallelEnv, EzPickle):
             state = dataclasses.replace(state, policy_state=policy_state)
         state, out = self._step_fn(state, act, npc_action)
         self._state = state
-        columns, reward_l, flags = self._info_columns(state, out.metrics, out)
+        columns, reward_l, flags, values = self._info_columns(state, out.metrics, out)
         term_l, trunc_l = flags
         rewards, terms, truncs, infos = {}, {}, {}, {}
         names = list(out.terms)
-        values = torch.stack([t.float() for t in out.terms.values()]).tolist() if names else []
         for name in live_before:
             j = self._slot_of[name]
             rewards[name] = reward_l[j]
             terms[name] = term_l[j]
             truncs[name] = trunc_l[j]
             infos[name] = {k: v[j] for k, v in columns.items()}
-            infos[name]["reward_terms"] = {t: values[i][0][j] for i, t in enumerate(names)}
+            infos[name]["reward_terms"] = {t: values[i][j] for i, t in enumerate(names)}
         obs = self._per_agent(live_before, out.obs, self._slot_of)
         self.agents = [a for a in live_before if not (terms[a] or truncs[a])]
         return obs, rewards, terms, truncs, infos
 
     # ------------------------------------------------------------------ helpers
     def _per_agent(
-        self, names: list[str], o: dict[str, torch.Tensor], slot_of: dict[str, int]
+        self, names: list[str], rows: torch.Tensor, slot_of: dict[str, int]
     ) -> dict[str, dict[str, np.ndarray]]:
-        """Per-agent numpy views of dense [1, Q, ...] observations, for ``names``."""
-        if self.device.type == "cpu":
-            o = {k: v.numpy()[0] for k, v in o.items()}
-        else:
-            o = {k: v.cpu().numpy()[0] for k, v in o.items()}
-        return {n: {k: v[slot_of[n]] for k, v in o.items()} for n in names}
+        """Per-agent numpy views of the dense rows [1, Q, D] (``episode.StepConfig.dense``),
+        for ``names``: one conversion of the batch, then numpy slicing."""
+        flat = (rows if self.device.type == "cpu" else rows.cpu()).numpy()[0]
+        cfg = self.obs_config
+        sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
+        p = cfg.tokens.piece_segments
+        return {n: dense_views(flat[slot_of[n]], sizes, p) for n in names}
 
     def _info_columns(
         self, state: EpisodeState, m: StepMetrics, out: StepOutput | None
-    ) -> tuple[dict[str, list], list[float], tuple[list[bool], list[bool]]]:
+    ) -> tuple[dict[str, list], list[float], tuple[list[bool], list[bool]], list[list[float]]]:
         """Per-agent info values as lists indexed like the controlled agents.
 
         Returns:
-            (info columns, rewards, (terminations, truncations)) where the last two are
-            those of ``out`` (empty without one). All values come from two ``tolist`` calls.
+            (info columns, rewards, (terminations, truncations), reward terms) where the last
+            three are those of ``out`` (empty without one). The values come from one
+            concatenation and one ``tolist`` per dtype.
         """
         info = ep.agent_infos(state, m)
         float_keys = ("offroad_distance", "progress", "goal_distance", "log_divergence", "speed")
         flag_keys = ("collision", "offroad", "goal_reached")
-        floats = [info[k] for k in float_keys]
-        flags = [info[k] for k in flag_keys]
+        parts = [info[k] for k in float_keys + flag_keys]
         if out is not None:
-            floats.append(out.reward)
-            flags += [out.terminated, out.truncated]
-        # [field][batch of one][agent] lists.
-        float_rows = [x[0] for x in torch.stack(floats).tolist()]
-        flag_rows = [x[0] for x in torch.stack(flags).tolist()]
-        sc, q = self.scenario, info["speed"].shape[1]
+            parts += [out.reward, out.terminated, out.truncated, *out.terms.values()]
+        rows = _rows_by_dtype(parts)  # [part][agent]
+        n_f, n_b, q = len(float_keys), len(flag_keys), info["speed"].shape[1]
+        sc = self.scenario
         query = self.controlled_tracks[self._scenario_index]
         columns = {
             "scenario_id": [sc.scenario_id] * q,
             "track_id": [int(sc.tracks.id[i]) for i in query],
-            "step": [int(state.sim.step.item())] * q,
-            **dict(zip(flag_keys, flag_rows)),
-            **dict(zip(float_keys, float_rows)),
+            "step": [int(state.sim.step)] * q,
+            **dict(zip(flag_keys, rows[n_f : n_f + n_b])),
+            **dict(zip(float_keys, rows[:n_f])),
         }
-        reward = float_rows[len(float_keys)] if out is not None else []
-        done = (flag_rows[-2], flag_rows[-1]) if out is not None else ([], [])
-        return columns, reward, done
+        if out is None:
+            return columns, [], ([], []), []
+        at = n_f + n_b
+        terms = [[float(x) for x in row] for row in rows[at + 3 :]]
+        return columns, rows[at], (rows[at + 1], rows[at + 2]), terms
 
     @torch.inference_mode()
     def expert_actions(self) -> dict[str, np.ndarray]:
@@ -437,6 +443,19 @@ class TrafficEnv(ParallelEnv, EzPickle):
 
     def close(self) -> None:
         self._renderer = None
+
+
+def _rows_by_dtype(parts: list[torch.Tensor]) -> list[list]:
+    """``[p[0].tolist() for p in parts]`` of [1, Q] tensors, with one concatenation and one
+    ``tolist`` per dtype (a concatenation of mixed dtypes converts each input)."""
+    groups: dict[torch.dtype, list[int]] = {}
+    for i, p in enumerate(parts):
+        groups.setdefault(p.dtype, []).append(i)
+    rows: list[list] = [[] for _ in parts]
+    for members in groups.values():
+        for i, row in zip(members, torch.cat([parts[i] for i in members]).tolist()):
+            rows[i] = row
+    return rows
 
 
 def episode_length(env: TrafficEnv) -> int:

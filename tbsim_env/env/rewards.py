@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.config import RewardConfig, TerminationConfig
+from tbsim_env.core.config import RewardConfig, TerminationConfig
+from tbsim_env.core.torch_utils import const
 from tbsim_env.env.agent_metrics import StepMetrics
-from tbsim_env.torch_utils import const
 
 
 @dataclass(frozen=True)
@@ -149,9 +149,12 @@ def reward_and_termination(
         termination_config: termination events.
     """
     best = baseline.progress_best
-    gained = (metrics.progress - best).clamp_min(0.0)
+    gained = (metrics.progress - best).clamp_min_(const(0.0, best))
     radius = const(float(reward_config.goal_radius), best)
-    goal_now = (metrics.goal_distance <= radius) & baseline.has_goal & ~baseline.goal_reached
+    goal_now = torch.bitwise_and(
+        torch.bitwise_and(metrics.goal_distance <= radius, baseline.has_goal),
+        ~baseline.goal_reached,
+    )
     inputs = RewardInputs(metrics=metrics, gained=gained, goal_now=goal_now, speed=speed)
     terms: dict[str, torch.Tensor] = {}
     reward = None
@@ -162,15 +165,15 @@ def reward_and_termination(
         weighted = const(weight, best) * value
         reward = weighted if reward is None else reward + weighted
     # "+ 0.0" makes an all -0 sum +0, as a sum over the zero-weight terms would.
-    reward = torch.zeros_like(gained) if reward is None else reward + 0.0
+    reward = torch.zeros_like(gained) if reward is None else reward + const(0.0, reward)
     tc = termination_config
     events = [x for on, x in ((tc.collision, metrics.collision), (tc.offroad, metrics.offroad),
                               (tc.goal, goal_now)) if on]  # fmt: skip
     terminated = torch.zeros_like(metrics.collision) if not events else events[0]
     for x in events[1:]:
-        terminated = terminated | x
+        terminated = torch.bitwise_or(terminated, x)
     return RewardOutcome(
-        reward=reward.float(),
+        reward=reward if reward.dtype == torch.float32 else reward.float(),
         terms=terms,
         terminated=terminated,
         goal_now=goal_now,

@@ -19,10 +19,10 @@ import torch
 
 from policies import make_policy
 from policies.base import Policy
-from tbsim_env.config import EnvConfig
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import UnusableScenarioError
+from tbsim_env.core.malloc import keep_freed_memory
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import UnusableScenarioError
-from tbsim_env.malloc import keep_freed_memory
 from tbsim_env.sim.horizon import episode_scenario
 
 ControlledSpec = str | Sequence[int]

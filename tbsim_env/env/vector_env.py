@@ -43,7 +43,9 @@ import numpy as np
 import torch
 
 from policies.base import Policy, PolicyState
-from tbsim_env.config import EnvConfig
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import ActionError
+from tbsim_env.core.torch_utils import cached_arange, gather_rows, torch_threads
 from tbsim_env.env import episode as ep
 from tbsim_env.env.agent_metrics import Route, StepMetrics
 from tbsim_env.env.compiled import StepFunction
@@ -55,18 +57,17 @@ from tbsim_env.env.setup import (
     resolve_device,
     select_scenarios,
 )
-from tbsim_env.errors import ActionError
-from tbsim_env.observation import (
+from tbsim_env.observation.rows import with_rows
+from tbsim_env.observation.tokens import (
     IndexedObservation,
     ObsConfig,
-    densify,
+    dense_views,
+    densify_flat,
     observation_shapes,
 )
-from tbsim_env.rows import with_rows
 from tbsim_env.sim.dynamics import action_limits
 from tbsim_env.sim.geometry import to_local
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, gather_rows, torch_threads
 
 ROUTE_KEY = "route"
 """Optional extra observation key: upcoming points of the logged route in the ego frame."""
@@ -242,7 +243,7 @@ class BatchedTrafficEnv:
 
     def single_observation_space(self) -> gym.spaces.Dict:
         """Gymnasium ``Dict`` space of one agent's observation (as ``TrafficEnv``'s)."""
-        from tbsim_env.observation import observation_space
+        from tbsim_env.observation.tokens import observation_space
 
         space = dict(observation_space(self.obs_config).spaces)
         if self.route_points:
@@ -468,7 +469,7 @@ class BatchedTrafficEnv:
 
     def _package(
         self,
-        obs: IndexedObservation | dict[str, torch.Tensor],
+        obs: IndexedObservation | torch.Tensor,
         mask: torch.Tensor,
         state: EpisodeState,
     ) -> dict[str, torch.Tensor]:
@@ -498,8 +499,13 @@ class BatchedTrafficEnv:
                 "observer_mask": m,
                 **extra,
             }
-        obs = {k: v * m.view(*m.shape, *([1] * (v.dim() - 2))) for k, v in obs.items()}
-        return {**obs, **extra}
+        return {**self._dense_keys(obs * m.unsqueeze(-1)), **extra}
+
+    def _dense_keys(self, rows: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The dense keys of rows [B, Q, D] (``episode.StepConfig.dense``): views."""
+        cfg = self.obs_config
+        sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
+        return dense_views(rows, sizes, cfg.tokens.piece_segments)
 
     def densify(self, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """The dense layout of an ``obs_layout="indexed"`` observation (``step``'s, ``reset``'s
@@ -523,8 +529,7 @@ class BatchedTrafficEnv:
             sizes=(obs_cfg.num_agents, obs_cfg.num_map, obs_cfg.num_traffic_lights),
         )
         m = obs["observer_mask"]
-        o = densify(ind, obs_cfg.tokens.piece_segments)
-        o = {k: v * m.view(*m.shape, *([1] * (v.dim() - 2))) for k, v in o.items()}
+        o = self._dense_keys(densify_flat(ind, obs_cfg.tokens.piece_segments) * m.unsqueeze(-1))
         if ROUTE_KEY in obs:
             o[ROUTE_KEY] = obs[ROUTE_KEY]
         return o

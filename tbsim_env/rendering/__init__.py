@@ -12,7 +12,6 @@ Typical use::
 from tbsim_env.rendering.frame import (
     AgentLayer,
     SignalLayer,
-    agent_corners,
     default_groups,
     log_groups,
     render_frame,
@@ -33,7 +32,6 @@ __all__ = [
     "AgentGroup",
     "MapLayer",
     "View",
-    "agent_corners",
     "default_groups",
     "follow",
     "log_groups",

@@ -14,7 +14,8 @@ import numpy as np
 import torch
 from PIL import Image, ImageDraw, ImageFont
 
-from tbsim_env.constants import DT, NUM_TL_STATES, SIGNAL_TO_TL_STATE, ObjectType, TLState
+from tbsim_env.core.boxes import box_corners_numpy
+from tbsim_env.core.constants import DT, NUM_TL_STATES, SIGNAL_TO_TL_STATE, ObjectType, TLState
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.rendering import palette as P
 from tbsim_env.rendering.map_layer import MapLayer
@@ -44,28 +45,6 @@ def _as(name: str, value: np.ndarray, shape: tuple[int, ...], dtype: type) -> np
     if arr.shape != shape:
         raise ValueError(f"{name} has shape {arr.shape}, expected {shape}")
     return arr.astype(dtype, copy=False)
-
-
-def agent_corners(xy: np.ndarray, yaw: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """Box corners of oriented rectangles.
-
-    Args:
-        xy: [N, 2] box centres, metres.
-        yaw: [N] headings, radians CCW from +x.
-        size: [N, 2] (length, width), metres.
-
-    Returns:
-        [N, 4, 2] corners (front-left, front-right, rear-right, rear-left), metres.
-    """
-    c, s = np.cos(yaw), np.sin(yaw)
-    hl, hw = 0.5 * size[:, 0], 0.5 * size[:, 1]
-    lon = np.array([1.0, 1.0, -1.0, -1.0])
-    lat = np.array([1.0, -1.0, -1.0, 1.0])
-    dx = lon[None] * hl[:, None]
-    dy = lat[None] * hw[:, None]
-    x = xy[:, None, 0] + c[:, None] * dx - s[:, None] * dy
-    y = xy[:, None, 1] + s[:, None] * dx + c[:, None] * dy
-    return np.stack([x, y], axis=-1)
 
 
 def _draw_text_box(
@@ -271,7 +250,7 @@ def _draw_agents(draw: ImageDraw.ImageDraw, view: View, agents: AgentLayer) -> N
     xy, yaw, size, group = agents.xy, agents.yaw, agents.size, agents.group
     uv = view.to_pixels(np.where(agents.valid[:, None], xy, 0.0))
     size_d = np.maximum(size, P.AGENT_MIN_PX * mpp)
-    corners = view.to_pixels(agent_corners(xy, yaw, size_d)) - 0.5
+    corners = view.to_pixels(box_corners_numpy(xy, yaw, size_d[:, 0], size_d[:, 1])) - 0.5
     front = view.to_pixels(xy + 0.5 * size_d[:, :1] * np.stack([np.cos(yaw), np.sin(yaw)], 1))
     front -= 0.5
     centre = uv - 0.5

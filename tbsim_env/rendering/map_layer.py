@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image, ImageDraw
 
-from tbsim_env.constants import LaneType, MapFeatureType, RoadEdgeType, RoadLineType
+from tbsim_env.core.constants import LaneType, MapFeatureType, RoadEdgeType, RoadLineType
 from tbsim_env.data.scenario import RoadMap, Scenario
 from tbsim_env.rendering import palette as P
 from tbsim_env.rendering.view import View

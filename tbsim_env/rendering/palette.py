@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import enum
 
-from tbsim_env.constants import TLState
+from tbsim_env.core.constants import TLState
 
 RGB = tuple[int, int, int]
 RGBA = tuple[int, int, int, int]

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tbsim_env.constants import (
+from tbsim_env.core.constants import (
     DT,
     NUM_FUTURE,
     NUM_TL_STATES,
@@ -36,8 +36,8 @@ from tbsim_env.constants import (
     ObjectType,
     TLState,
 )
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.features import slice_steps
 from tbsim_env.metrics.wosac.features_interactive import distance_to_nearest_object
 from tbsim_env.metrics.wosac.features_kinematic import linear_speed
@@ -112,7 +112,7 @@ def wosac_grid(scenario: Scenario) -> Scenario:
 
 def sim_agent_objects(scenario: Scenario) -> MetricObjects:
     """Every sim agent (valid at the current step), all of them "evaluated", in track order."""
-    idx = np.flatnonzero(scenario.tracks.valid[:, scenario.current_index]).astype(np.int64)
+    idx = scenario.sim_agent_indices()
     return MetricObjects(
         track_index=idx, object_id=scenario.tracks.id[idx].astype(np.int64), num_eval=len(idx)
     )
@@ -254,20 +254,10 @@ def simulated_rollouts(
         ViewerError: rollouts of another scenario, of another length, or missing sim agents.
     """
     scenario = wosac_grid(scenario)
-    if rollouts.scenario_id != scenario.scenario_id:
-        raise ViewerError(
-            f"rollouts are for scenario {rollouts.scenario_id!r}, not {scenario.scenario_id!r}"
-        )
-    if rollouts.num_steps != NUM_FUTURE:
-        raise ViewerError(
-            f"scenario {scenario.scenario_id}: rollouts have {rollouts.num_steps} steps, "
-            f"expected {NUM_FUTURE}"
-        )
+    mismatch = rollouts.mismatch(scenario, NUM_FUTURE)
+    if mismatch:
+        raise ViewerError(mismatch)
     objects = sim_agent_objects(scenario)
-    have = set(rollouts.object_id.tolist())
-    missing = [int(i) for i in objects.object_id if int(i) not in have]
-    if missing:
-        raise ViewerError(f"scenario {scenario.scenario_id}: rollouts miss sim agents {missing}")
     log = log_trajectories(scenario, objects)
     sim = simulated_trajectories(log, objects, rollouts.to("cpu"), scenario.current_index)
     flags = _Flags(objects, *_future_flags(scenario, sim))
@@ -391,7 +381,7 @@ def map_json(scenario: Scenario) -> dict:
     Road lines are one entry per painted stroke (double lines as two polylines offset by
     ``DOUBLE_LINE_GAP_M`` each side), with their colour and whether dashed.
     """
-    from tbsim_env.constants import LaneType, RoadEdgeType
+    from tbsim_env.core.constants import LaneType, RoadEdgeType
     from tbsim_env.rendering.map_layer import offset_polyline, road_line_style
 
     rm = scenario.road_map
@@ -428,7 +418,7 @@ def map_json(scenario: Scenario) -> dict:
 
 
 def signals_json(scenario: Scenario) -> dict:
-    """Signal stop points and their ``TLState`` per step ([S][T], -1 where no state)."""
+    """Signal stop points and their ``TLState`` per step (``[S][T]``, -1 where no state)."""
     sig = wosac_grid(scenario).signals
     tl = np.asarray(SIGNAL_TO_TL_STATE, np.int64)[sig.state.astype(np.int64)]
     state = np.where(sig.valid, tl, -1)
@@ -463,7 +453,7 @@ def agents_json(scenario: Scenario) -> list[dict]:
 
 
 def rollout_json(rollout: ViewerRollout) -> dict:
-    """One rollout: [A][T] poses and speeds (null where not shown), flag steps per agent."""
+    """One rollout: ``[A][T]`` poses and speeds (null where not shown), flag steps per agent."""
     hide = ~rollout.valid
     return {
         "name": rollout.name,

@@ -9,7 +9,7 @@ import numpy as np
 import shapely
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 from tbsim_env.data.preprocess.scene import scene_origin
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.dynamics import signed_speed
@@ -170,7 +170,9 @@ def _padded_edges(edges: list[tuple[np.ndarray, ...]], device: torch.device) -> 
         valid=tt(valid),
         prev_index=tt(prev),
         next_index=tt(nxt),
-        grid=build_edge_grid([(x[0], x[1]) for x in edges], device),
+        grid=build_edge_grid(
+            [(x[0], x[1]) for x in edges], device, links=[(x[2], x[3]) for x in edges]
+        ),
     )
 
 

@@ -6,56 +6,8 @@ from typing import NamedTuple
 
 import torch
 
-from tbsim_env.sim.geometry import cos_sin
-from tbsim_env.torch_utils import cached_arange, const
-
-_HALF_SIGNS_X = (0.5, -0.5, -0.5, 0.5)
-_HALF_SIGNS_Y = (0.5, 0.5, -0.5, -0.5)
-
-
-def box_corner_xy(
-    pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """``box_corners`` as separate coordinates: (x [..., 4], y [..., 4])."""
-    x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [..., 1]
-    return corners_from_offsets(x0, y0, cos_sin(yaw), corner_offsets(length, width))
-
-
-def corner_offsets(length: torch.Tensor, width: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Box corners in the box frame, counter-clockwise from front-left: (along [..., 4],
-    across [..., 4]) m, from ``length`` and ``width`` [...]."""
-    # (+-0.5 * length) is exactly +-(0.5 * length).
-    return (
-        length.unsqueeze(-1) * const(_HALF_SIGNS_X, length),
-        width.unsqueeze(-1) * const(_HALF_SIGNS_Y, width),
-    )
-
-
-def corners_from_offsets(
-    x0: torch.Tensor,
-    y0: torch.Tensor,
-    cos_sin_yaw: tuple[torch.Tensor, torch.Tensor],
-    offsets: tuple[torch.Tensor, torch.Tensor],
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Corners (x [..., 4], y [..., 4]) of boxes at centres ``x0``, ``y0`` [..., 1] with heading
-    (cos, sin) [..., 1], from their ``corner_offsets``."""
-    c, s = cos_sin_yaw
-    lx, ly = offsets
-    return x0 + c * lx - s * ly, y0 + s * lx + c * ly
-
-
-def box_corners(pose: torch.Tensor, length: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
-    """Corners of oriented boxes, counter-clockwise from front-left.
-
-    Args:
-        pose: [..., 3] (x, y, yaw) of the box centre.
-        length: [...] m along the heading.
-        width: [...] m across.
-
-    Returns:
-        [..., 4, 2].
-    """
-    return torch.stack(box_corner_xy(pose, length, width), dim=-1)
+from tbsim_env.core.boxes import cos_sin
+from tbsim_env.core.torch_utils import cached_arange, const
 
 
 class _BoxPairs(NamedTuple):
@@ -210,16 +162,39 @@ def _near_pairs_overlap(
     size: torch.Tensor,
 ) -> torch.Tensor:
     """[B, K] bool: some pair flagged in ``near`` [B, K, N] overlaps (``pairwise_overlap`` of
-    the gathered pairs; arguments as ``collided_with_others``)."""
-    out = torch.zeros(near.shape[:2], dtype=torch.bool, device=near.device)
-    b, k, n = near.nonzero(as_tuple=True)
-    if not len(b):
-        return out
-    hit = pairwise_overlap(
-        pose_q[b, k].unsqueeze(-2), size_q[b, k].unsqueeze(-2), pose[b, n].unsqueeze(-2),
-        size[b, n].unsqueeze(-2),
-    )[:, 0, 0]  # fmt: skip
-    return out.index_put_((b[hit], k[hit]), torch.ones_like(b[hit], dtype=torch.bool))
+    the gathered pairs, the same arithmetic; arguments as ``collided_with_others``)."""
+    b, k, n = near.shape
+    pairs = near.nonzero()  # [P, 3]: (row, query, slot)
+    out = torch.zeros(b * k, dtype=torch.bool, device=near.device)
+    if not len(pairs):
+        return out.view(b, k)
+    row, query, slot = pairs.unbind(1)
+    qi = torch.add(query, row, alpha=k)  # the query's row in [B K]
+    box_a = torch.cat([pose_q, size_q], -1).view(b * k, 5).index_select(0, qi)
+    si = torch.add(slot, row, alpha=n)  # the partner's row in [B N]
+    box_b = torch.cat([pose, size], -1).view(b * n, 5).index_select(0, si)
+    hit = _rows_overlap(box_a, box_b)
+    return out.index_put_((qi,), hit, accumulate=True).view(b, k)
+
+
+def _rows_overlap(box_a: torch.Tensor, box_b: torch.Tensor) -> torch.Tensor:
+    """[P] bool: box a of each row overlaps box b of the row (``pairwise_overlap``'s test and
+    arithmetic): boxes [P, 5] (x, y, yaw, length, width)."""
+    xa, ya, yaw_a, length_a, width_a = box_a.unbind(1)
+    xb, yb, yaw_b, length_b, width_b = box_b.unbind(1)
+    half = const(0.5, box_a)
+    dx, dy = xb - xa, yb - ya
+    la, wa, lb, wb = half * length_a, half * width_a, half * length_b, half * width_b
+    cd, sd = cos_sin(yaw_b - yaw_a)
+    cd, sd = cd.abs(), sd.abs()
+    ndx = -dx
+    ca, sa = cos_sin(yaw_a)
+    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
+    sep |= (ndx * sa + dy * ca).abs() > wa + lb * sd + wb * cd
+    cb, sb = cos_sin(yaw_b)
+    sep |= (dx * cb + dy * sb).abs() > lb + la * cd + wa * sd
+    sep |= (ndx * sb + dy * cb).abs() > wb + la * sd + wa * cd
+    return ~sep
 
 
 def collided(

@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import torch
 
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import const, gather_rows, row_offsets, scalar
 from tbsim_env.sim.dynamics import unicycle_step
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import cached_arange, listed
 
 
 def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
@@ -34,7 +35,7 @@ def seen_before(state: SimState) -> torch.Tensor:
     return state.log.first_valid <= state.step[:, None]
 
 
-def step(state: SimState, action: torch.Tensor) -> SimState:
+def step(state: SimState, action: torch.Tensor, movers: torch.Tensor | None = None) -> SimState:
     """Advance every scenario of the batch by one step.
 
     * Controlled agents that are present move by the unicycle with the action clipped to their
@@ -48,52 +49,68 @@ def step(state: SimState, action: torch.Tensor) -> SimState:
         state: current state (``step`` < T - 1 for every scenario).
         action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s), finite; only read where
             ``state.controlled``.
+        movers: optional [B, K] int64 slots that include every controlled slot (repeats
+            allowed): on a large batch only these integrate (e.g. the external agents when
+            the NPCs replay the log), not every slot.
 
     Returns:
         The state at ``step + 1``.
     """
-    n_t = state.log.valid.shape[-1]
-    nxt = (state.step + 1).clamp(max=n_t - 1)
-    log_valid, log_pose, log_speed = _log_at(state, nxt)
-    log_valid = log_valid & state.agents.mask
-    fresh = state.log.first_valid > state.step.unsqueeze(1)  # not seen_before(state)
+    b, n = state.valid.shape
+    n_t = state.log.by_step.shape[1]
+    nxt = torch.add(state.step, scalar(1, state.step.dtype, state.device))
+    nxt = nxt.clamp_max_(scalar(n_t - 1, nxt.dtype, nxt.device))
+    at = _log_at(state, nxt)  # [B, N, 5]
+    log_valid = torch.bitwise_and(at[..., 4] > const(0.0, at), state.agents.mask)
+    fresh = state.log.first_valid > state.step.view(b, 1)  # not seen_before(state)
 
-    moving = state.controlled & state.valid
+    moving = torch.bitwise_and(state.controlled, state.valid)
     # Spawn (controlled, not present, not seen before) or replay (not controlled, present or
     # not seen before) where the log has the agent. For a moving agent ``from_log`` may be
     # anything: ``moving`` wins below. (``valid > controlled`` is ``valid & ~controlled``.)
-    from_log = log_valid & (fresh | (state.valid > state.controlled))
-    pose = torch.where(from_log.unsqueeze(-1), log_pose, state.pose)
-    speed = torch.where(from_log, log_speed, state.speed)
-    pairs = listed(moving)
-    if pairs is None:
-        moving_ = moving.unsqueeze(-1)
+    from_log = torch.bitwise_and(log_valid, torch.bitwise_or(fresh, state.valid > state.controlled))
+    pose = torch.where(from_log.view(b, n, 1), at[..., :3], state.pose)
+    speed = torch.where(from_log, at[..., 3], state.speed)
+    if movers is None or b * n <= C.DENSE_DYNAMICS_MAX_SLOTS:
+        # Every slot integrates (a few operations on [B, N]); only the moving ones keep it.
         limit = state.agents.action_limit
-        act = torch.clamp(action, -limit, limit) * moving_  # clip_action
+        act = torch.clamp(action, -limit, limit)  # clip_action
         sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
-        pose = torch.where(moving_, sim_pose, pose)
+        pose = torch.where(moving.view(b, n, 1), sim_pose, pose)
         speed = torch.where(moving, sim_speed, speed)
-    else:  # the moving agents alone (a few of the slots: the rest replay the log)
-        limit = state.agents.action_limit[pairs]
-        act = torch.clamp(action[pairs], -limit, limit)
-        sim_pose, sim_speed = unicycle_step(state.pose[pairs], state.speed[pairs], act)
-        pose = pose.index_put(pairs, sim_pose)
-        speed = speed.index_put(pairs, sim_speed)
-    return state.replace(step=nxt, pose=pose, speed=speed, valid=moving | from_log)
+    else:
+        pose, speed = _integrate_movers(state, action, movers, moving, (pose, speed))
+    return state.replace(step=nxt, pose=pose, speed=speed, valid=torch.bitwise_or(moving, from_log))
 
 
-def _log_at(state: SimState, t: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """The log at step ``t`` [B] of each scenario: (valid [B, N], pose [B, N, 3], speed [B, N]).
+def _integrate_movers(
+    state: SimState,
+    action: torch.Tensor,
+    movers: torch.Tensor,
+    moving: torch.Tensor,
+    merged: tuple[torch.Tensor, torch.Tensor],
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(pose [B, N, 3], speed [B, N]): ``merged`` with the ``moving`` slots among ``movers``
+    [B, K] integrated (``step``'s rule on K slots per row instead of N)."""
+    b, k = movers.shape
+    pose, speed = merged
+    limit = gather_rows(state.agents.action_limit, movers)
+    act = torch.clamp(gather_rows(action, movers), -limit, limit)
+    sim_pose, sim_speed = unicycle_step(
+        gather_rows(state.pose, movers), gather_rows(state.speed, movers), act
+    )
+    on = gather_rows(moving, movers)  # [B, K]
+    # Repeated slots write the same values (all read by slot).
+    new_pose = torch.where(on.view(b, k, 1), sim_pose, gather_rows(pose, movers))
+    new_speed = torch.where(on, sim_speed, gather_rows(speed, movers))
+    pose = pose.scatter(1, movers.view(b, k, 1).expand(b, k, 3), new_pose)
+    return pose, speed.scatter(1, movers, new_speed)
 
-    A batch of one on the CPU reads the step as a number (a view per field instead of an
-    indexing operation; not under ``torch.compile``, where that would break the graph);
-    otherwise one ``index_select`` of the time-major ``by_step`` blocks, b-th row at t[b].
-    """
+
+def _log_at(state: SimState, t: torch.Tensor) -> torch.Tensor:
+    """[B, N, 5] the log at step ``t`` [B] of each scenario (x, y, yaw, speed, valid as 0 / 1):
+    one ``index_select`` of the time-major ``by_step`` blocks, b-th row at t[b]."""
     log = state.log
-    if state.batch_size == 1 and t.device.type == "cpu" and not torch.compiler.is_compiling():
-        i = int(t.item())
-        return log.valid[:, :, i], log.pose[:, :, i], log.speed[:, :, i]
-    n_t = log.by_step.shape[1]
-    rows = cached_arange(state.batch_size, state.device) * n_t + t
-    at = log.by_step.flatten(0, 1).index_select(0, rows)  # [B, N, 5]
-    return at[..., 4] > 0, at[..., :3], at[..., 3]
+    b, n_t = state.batch_size, log.by_step.shape[1]
+    rows = t + row_offsets(b, n_t, 1, state.device)
+    return log.by_step.view(b * n_t, *log.by_step.shape[2:]).index_select(0, rows)

@@ -1,4 +1,4 @@
-"""Unicycle dynamics: the one source of truth for how agents move (TrafficBots spec, section 4).
+"""Unicycle dynamics: the one source of truth for how agents move (docs/model.md §4).
 
 State per agent: pose (x m, y m, yaw rad) and signed speed v (m/s). Action: acceleration a (m/s^2)
 and yaw rate w (rad/s), bounded per object type by ``constants.MAX_ACCEL`` / ``MAX_YAW_RATE``.
@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import const
 from tbsim_env.sim.geometry import cos_sin, wrap_angle
-from tbsim_env.torch_utils import const
 
 
 def action_limits(object_type: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -106,7 +106,7 @@ def unicycle_step(
 
 
 def signed_speed(velocity: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
-    """Signed speed: ``sign(cos(yaw) vx + sin(yaw) vy) * |v|`` (spec 1.4).
+    """Signed speed: ``sign(cos(yaw) vx + sin(yaw) vy) * |v|`` (docs/model.md §1.4).
 
     Args:
         velocity: [..., 2] (vx, vy) m/s.

@@ -22,10 +22,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import const, gather_rows, scalar
 from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
-from tbsim_env.torch_utils import gather_columns, gather_rows
 
 
 def scene_edge_grid(
@@ -94,6 +94,7 @@ def build_edge_grid(
     cell: float = C.EDGE_GRID_CELL,
     count: int = C.EDGE_GRID_CANDIDATES,
     margin: float = C.EDGE_GRID_MARGIN,
+    links: list[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> EdgeGrid:
     """Batch the grids of B scenarios.
 
@@ -102,19 +103,61 @@ def build_edge_grid(
             order of the rows of its ``RoadEdges``.
         device: torch device.
         cell, count, margin: grid cell size (m), candidates per cell, extent beyond the edges
-            (m); constants in ``tbsim_env.constants``.
+            (m); constants in ``tbsim_env.core.constants``.
+        links: optional, per scenario (previous [E_i], next [E_i]) segment indices as in
+            ``RoadEdges``: the grid then carries the joint table (``EdgeGrid.joints``).
     """
     grids = [scene_edge_grid(s, e, cell, count, margin) for s, e in segments]
-    table = np.zeros((len(grids), max(max(len(s) for s, _ in segments), 1), 4), np.float32)
+    n_e = max(max(len(s) for s, _ in segments), 1)
+    table = np.zeros((len(grids), n_e, 4), np.float32)
     for i, (s, e) in enumerate(segments):
         start = np.asarray(s, np.float32)  # the RoadEdges' float32 values
         table[i, : len(start), :2] = start
         table[i, : len(start), 2:] = np.asarray(e, np.float32) - start
     dev = torch.device(device)
+    columns = torch.from_numpy(table).to(dev)  # [K, E, 4]
+    vec = columns[..., 2:]
+    len2 = (vec[..., 0] * vec[..., 0] + vec[..., 1] * vec[..., 1]).clamp_min(1e-12)
+    lookup = torch.cat([columns, len2[..., None]], -1).transpose(1, 2).contiguous()
+    rows = torch.arange(len(grids), device=dev)
+    joints = None
+    if links is not None:
+        joints = Shared(_joint_table(columns, links, dev))
     return EdgeGrid(
         **stack_cell_lists(grids, cell, dev),
-        segments=Shared(torch.from_numpy(table).transpose(1, 2).contiguous().to(dev)),
+        segments=Shared(lookup),
+        row_columns=(rows * (5 * n_e)).view(-1, 1, 1),
+        has_edge=torch.tensor([[len(s) > 0] for s, _ in segments], device=dev),
+        joints=joints,
+        row_joints=None if joints is None else (rows * (3 * n_e)).view(-1, 1),
     )
+
+
+def _joint_table(
+    columns: torch.Tensor, links: list[tuple[np.ndarray, np.ndarray]], device: torch.device
+) -> torch.Tensor:
+    """``EdgeGrid.joints`` [K, 3 E, 9] of the segments ``columns`` [K, E, 4] (start x, start y,
+    vector x, vector y) and their ``links`` (previous, next per scenario)."""
+    k, e = columns.shape[:2]
+    prev = torch.arange(e, device=device).repeat(k, 1)
+    nxt = prev.clone()
+    for i, (pr, nx) in enumerate(links):
+        prev[i, : len(pr)] = torch.as_tensor(np.asarray(pr), device=device)
+        nxt[i, : len(nx)] = torch.as_tensor(np.asarray(nx), device=device)
+    me = columns[..., [0, 1, 3, 2]]  # start x, start y, vector y, vector x
+    rows = torch.arange(k, device=device)[:, None]
+    before, after = me[rows, prev], me[rows, nxt]
+    dx0, dy0 = columns[..., 2], columns[..., 3]
+    # The convexity of joint_sign, in its arithmetic: cross(previous, this), cross(this, next).
+    convex_prev = before[..., 3] * dy0 - before[..., 2] * dx0 > 0
+    convex_next = dx0 * after[..., 2] - dy0 * after[..., 3] > 0
+    sign = lambda convex: torch.where(convex, 1.0, -1.0)[..., None]  # noqa: E731
+    cases = [
+        torch.cat([me, before, sign(convex_prev)], -1),
+        torch.cat([me, me, torch.ones_like(dx0)[..., None]], -1),
+        torch.cat([me, after, sign(convex_next)], -1),
+    ]
+    return torch.stack(cases, 2).reshape(k, 3 * e, 9).contiguous()
 
 
 def stack_cell_lists(
@@ -130,28 +173,59 @@ def stack_cell_lists(
     for i, x in enumerate(grids):
         n = len(x["bound"])
         cells[i, :n], bound[i, :n], center[i, :n] = x["cells"], x["bound"], x["center"]
+    lower = torch.from_numpy(np.stack([x["lower"] for x in grids]).astype(np.float32)).to(device)
+    shape = torch.from_numpy(np.stack([x["shape"] for x in grids])).to(device)
+    row = torch.arange(b, device=device)
+    stride = torch.stack([shape[:, 1], torch.ones_like(shape[:, 1])], -1)
+    info = np.concatenate([center, bound[..., None]], -1)
     return {
         "cell": torch.full((b, 1, 1), float(cell), dtype=torch.float32, device=device),
-        "lower": torch.from_numpy(np.stack([x["lower"] for x in grids]).astype(np.float32)).to(
-            device
-        ),
-        "shape": torch.from_numpy(np.stack([x["shape"] for x in grids])).to(device),
-        "row": torch.arange(b, device=device),
+        "lower": lower,
+        "shape": shape,
+        "row": row,
         "cells": Shared(torch.from_numpy(cells).to(device)),
         "bound": Shared(torch.from_numpy(bound).to(device)),
         "center": Shared(torch.from_numpy(center).to(device)),
+        "corner": lower[:, None].contiguous(),
+        "last": (shape - 1).float()[:, None].contiguous(),
+        "stride": stride.float()[:, None].contiguous(),
+        "row_cells": (row * g)[:, None],
+        "cell_info": Shared(torch.from_numpy(info).to(device)),
     }
+
+
+def cell_index(grid: CellLists, xy: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
+    """[B, K] int64 flat cell index, in the flattened [K' G] tables of ``grid`` (the row's
+    offset included), of points [B, K, 2] (clamped into the grid) of the grid rows ``rows``
+    [B] (each row its own by default)."""
+    corner, cell, last, stride, base = (
+        grid.corner,
+        grid.cell,
+        grid.last,
+        grid.stride,
+        grid.row_cells,
+    )
+    if rows is not None:
+        corner, cell, last = corner[rows], cell[rows], last[rows]
+        stride, base = stride[rows], base[rows]
+    # Cell indices stay far below 2**24: exact in float32 (and the same as in int64).
+    ij = torch.floor((xy - corner) / cell).clamp(min=scalar(0.0, xy.dtype, xy.device), max=last)
+    return (ij * stride).sum(-1).to(torch.int64) + base
 
 
 def cell_of(grid: CellLists, xy: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
     """[B, K] flat cell index of points [B, K, 2] (clamped into the grid) of the grid rows
-    ``rows`` [B] (each row its own by default)."""
-    lower, cell, shape = grid.lower, grid.cell, grid.shape
-    if rows is not None:
-        lower, cell, shape = lower[rows], cell[rows], shape[rows]
-    ij = torch.floor((xy - lower[:, None]) / cell).long()
-    ij = torch.minimum(ij.clamp_min(0), shape[:, None] - 1)
-    return ij[..., 0] * shape[:, None, 1] + ij[..., 1]
+    ``rows`` [B] (each row its own by default), within the row's own table."""
+    base = grid.row_cells if rows is None else grid.row_cells[rows]
+    return cell_index(grid, xy, rows) - base
+
+
+def cell_rows(table: Shared, flat: torch.Tensor) -> torch.Tensor:
+    """The rows ``flat`` [B, K] (``cell_index``) of a per-cell table [K', G, ...]:
+    [B, K, ...]."""
+    value = table.value
+    rows = value.view(-1, *value.shape[2:]).index_select(0, flat.view(-1))
+    return rows.view(*flat.shape, *value.shape[2:])
 
 
 def cell_slack(
@@ -163,6 +237,14 @@ def cell_slack(
     centre = gather_rows(grid.center.value, cell, table)
     bound = gather_rows(grid.bound.value, cell, table)
     return bound - torch.hypot(xy[..., 0] - centre[..., 0], xy[..., 1] - centre[..., 1])
+
+
+def slack_at(grid: CellLists, xy: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
+    """``cell_slack`` of points ``xy`` [B, K, 2] in the cells ``flat`` [B, K]
+    (``cell_index``), from one gather of ``cell_info``."""
+    info = cell_rows(grid.cell_info, flat)  # [B, K, 3]
+    away = xy - info[..., :2]
+    return info[..., 2] - torch.hypot(away[..., 0], away[..., 1])
 
 
 def grid_signed_distance(
@@ -182,11 +264,43 @@ def grid_signed_distance(
         stale [B, K] bool: the nearest segment may be outside the cell's list, so the value
         may be wrong there).
     """
-    cell = cell_of(grid, points, rows)  # [B, K]
-    table = grid.row if rows is None else grid.row[rows]
-    cand = gather_rows(grid.cells.value, cell, table)  # [B, K, Cc]
-    out, d = signed_over(points, edges, cand, rows)
-    return out, d > cell_slack(grid, points, cell, table)
+    flat = cell_index(grid, points, rows)  # [B, K]
+    cand = cell_rows(grid.cells, flat)  # [B, K, Cc] int32
+    if grid.joints is None:
+        out, d = signed_over(points, edges, cand, rows)
+    else:
+        out, d = _signed_by_joints(points, grid, cand, rows)
+    return out, d > slack_at(grid, points, flat)
+
+
+def _signed_by_joints(
+    points: torch.Tensor, grid: EdgeGrid, cand: torch.Tensor, rows: torch.Tensor | None
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``signed_over`` of a grid with its joint table: (signed, unsigned distance) [B, K] m
+    of points [B, K, 2] to the nearest of their candidates ``cand`` [B, K, C] int32."""
+    ax, ay, bx, by, len2 = _segment_columns(grid, cand, rows)  # [B, K, C] each
+    qx, qy = points[..., :1], points[..., 1:]
+    t = ((qx - ax) * bx + (qy - ay) * by) / len2  # 0 for a zero-length segment (b = 0)
+    inside = t.clamp(0.0, 1.0)
+    dist, local = torch.hypot(qx - (ax + inside * bx), qy - (ay + inside * by)).min(-1)
+    at = local.unsqueeze(-1)
+    t_best, best = t.gather(-1, at).squeeze(-1), cand.gather(-1, at).squeeze(-1)
+    base = grid.row_joints if rows is None else grid.row_joints[rows]
+    case = torch.bucketize(t_best, const(_JOINT_CASES, t_best), right=True)
+    key = torch.add(case, best, alpha=3) + base
+    joint = cell_rows(grid.joints, key)  # [B, K, 9]
+    seg = joint[..., :8].view(*key.shape, 2, 2, 2)  # (this, other) x (start, vector) x 2
+    lever = (points.unsqueeze(-2) - seg[..., 0, :]) * seg[..., 1, :]  # [B, K, 2, 2]
+    side = torch.sign(lever[..., 0] - lever[..., 1])  # [B, K, 2]: cross(p - a, vector)
+    turn = joint[..., 8:]  # +1: the max of the two sides, -1: the min
+    sign = (side * turn).amax(-1) * turn.squeeze(-1)
+    has_edge = grid.has_edge if rows is None else grid.has_edge[rows]
+    return torch.where(has_edge, sign * dist, const(C.NO_EDGE_DISTANCE, dist)), dist
+
+
+_JOINT_CASES = (0.0, float(np.nextafter(np.float32(1.0), np.float32(2.0))))
+"""Bucket edges of a projection parameter t: t < 0, 0 <= t <= 1 (below the float32 after 1),
+t > 1 (``EdgeGrid.joints``' cases)."""
 
 
 def signed_over(
@@ -232,17 +346,41 @@ def nearest_signed(
 
 
 def _segment_columns(
-    edges: RoadEdges, seg: torch.Tensor, rows: torch.Tensor | None
+    edges: RoadEdges | EdgeGrid, seg: torch.Tensor, rows: torch.Tensor | None
 ) -> tuple[torch.Tensor, ...]:
     """(start x, start y, (end - start) x, (end - start) y) of the segments ``seg`` [B, ...] of
     edge row b (or ``rows[b]``), each [B, ...]: from the grid's column table when there is one
-    (one index for all four, contiguous results), else from the edges."""
-    if edges.grid is not None:
-        table = edges.grid.row if rows is None else edges.grid.row[rows]
-        return gather_columns(edges.grid.segments.value, seg, table)
+    (one index for all, contiguous results; a grid also gives the clamped squared length as a
+    fifth column), else from the edges."""
+    grid = edges if isinstance(edges, EdgeGrid) else edges.grid
+    if grid is not None:
+        table = grid.segments.value  # [K, 5, E]
+        c, e = table.shape[1:]
+        base = grid.row_columns if rows is None else grid.row_columns[rows]
+        base = base.view(-1, *([1] * (seg.dim() - 1)))
+        flat = (seg + base).unsqueeze(0) + _column_offsets(c, e, seg.dim(), seg.device)
+        cols = table.view(-1).index_select(0, flat.view(-1)).view(c, *seg.shape).unbind(0)
+        return cols if isinstance(edges, EdgeGrid) else cols[:4]
     sa = gather_rows(edges.start, seg, rows)
     sab = gather_rows(edges.end, seg, rows) - sa
     return sa[..., 0], sa[..., 1], sab[..., 0], sab[..., 1]
+
+
+_COLUMN_OFFSETS: dict[tuple, torch.Tensor] = {}
+
+
+def _column_offsets(c: int, e: int, dim: int, device: torch.device) -> torch.Tensor:
+    """[C, 1, ...] (``dim`` ones) ``arange(C) * E``: column c's offset in a [., C, E] table,
+    cached (built anew under ``torch.compile``, like ``torch_utils.cached_arange``)."""
+    shape = (c,) + (1,) * dim
+    if torch.compiler.is_compiling():
+        return (torch.arange(c, device=device) * e).view(shape)
+    key = (c, e, dim, device)
+    out = _COLUMN_OFFSETS.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _COLUMN_OFFSETS[key] = (torch.arange(c, device=device) * e).view(shape)
+    return out
 
 
 def joint_sign(
@@ -278,12 +416,15 @@ def joint_sign(
 __all__ = [
     "EdgeGrid",
     "build_edge_grid",
+    "cell_index",
     "cell_of",
+    "cell_rows",
     "cell_slack",
     "grid_signed_distance",
     "joint_sign",
     "nearest_signed",
     "scene_edge_grid",
     "signed_over",
+    "slack_at",
     "stack_cell_lists",
 ]

@@ -8,17 +8,8 @@ import math
 
 import torch
 
-from tbsim_env.torch_utils import const
-
-
-def cos_sin(angle: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(cos, sin) of ``angle``.
-
-    The input is made contiguous first: on CPU with several threads, torch's cos/sin of a
-    strided view (e.g. ``pose[..., 2]``) can be ~1000x slower than of a contiguous tensor.
-    """
-    a = angle.contiguous()
-    return torch.cos(a), torch.sin(a)
+from tbsim_env.core.boxes import cos_sin  # noqa: F401  (re-exported)
+from tbsim_env.core.torch_utils import const
 
 
 def wrap_angle(angle: torch.Tensor) -> torch.Tensor:
@@ -52,6 +43,15 @@ def to_local_xy(
     return c * dx - s * dy, s * dx + c * dy
 
 
+def rotate_by(d: torch.Tensor, c: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """Vectors ``d`` [..., 2] rotated by the angle of (cos, sin) = (``c``, ``s``) [..., 1]:
+    (c dx - s dy, s dx + c dy), bit for bit ``to_local_xy``'s arithmetic (with the origin's
+    c = cos(-yaw), s = sin(-yaw)), as a few operations on the pair instead of one per
+    coordinate: ``d * c`` plus the swapped ``d * s`` signed (-1, 1) (sums commute, and
+    ``a + (-b)`` is ``a - b``)."""
+    return d * c + d.flip(-1) * (s * const((-1.0, 1.0), s))
+
+
 def to_local(xy: torch.Tensor, origin: torch.Tensor) -> torch.Tensor:
     """Express points in the frame of ``origin`` poses.
 
@@ -76,9 +76,10 @@ def relative_pose(query: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     Returns:
         [..., 3].
     """
-    x, y, yaw = target.unbind(-1)
-    dx, dy = to_local_xy(x, y, query)
-    return torch.stack([dx, dy, wrap_angle(yaw - query[..., 2])], dim=-1)
+    yaw = query[..., 2:]
+    c, s = cos_sin(-yaw)
+    local = rotate_by(target[..., :2] - query[..., :2], c, s)
+    return torch.cat([local, wrap_angle(target[..., 2:] - yaw)], -1)
 
 
 def segment_projection(

@@ -15,10 +15,10 @@ log covers the horizon (``Scenario.require_log_until``), and refuses with a
 
 from __future__ import annotations
 
-from tbsim_env import constants as C
-from tbsim_env.config import EnvConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig
+from tbsim_env.core.errors import UnusableScenarioError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import UnusableScenarioError
 
 
 def wosac_end_step(scenario: Scenario) -> int:

@@ -1,6 +1,6 @@
 """The one rule that ranks neighbours by distance: 1 cm buckets, ties to the lower index.
 
-Observations (``tbsim_env.observation``) and TrafficBots' attention neighbours
+Observations (``tbsim_env.observation.tokens``) and TrafficBots' attention neighbours
 (``policies.trafficbots.knn``) both pick their k nearest targets with ``nearest_k``.
 
 Distances rank in buckets of ``KNN_DISTANCE_RESOLUTION`` (1 cm) whose edges sit
@@ -23,8 +23,8 @@ import math
 
 import torch
 
-from tbsim_env.constants import KNN_BUCKET_OFFSET, KNN_DISTANCE_RESOLUTION
-from tbsim_env.torch_utils import cached_arange, const
+from tbsim_env.core.constants import KNN_BUCKET_OFFSET, KNN_DISTANCE_RESOLUTION
+from tbsim_env.core.torch_utils import cached_arange, cast, const, scalar
 
 INT64_LAST_BUCKET = 2**30
 """Last bucket of the int64 key (1e7 m): +inf and anything farther share it."""
@@ -70,11 +70,11 @@ def nearest_k(
     if ids is not None and num_ids is None:
         raise ValueError("nearest_k needs num_ids with ids")
     dtype, bits, last = _key_layout(m if ids is None else int(num_ids), exact_within)
+    # The scaled distances are > 0, so truncation is the floor (``cast``); built in place.
     scaled = dist * const(1.0 / KNN_DISTANCE_RESOLUTION, dist) + const(KNN_BUCKET_OFFSET, dist)
-    # The scaled distances are > 0, so truncation is the floor.
-    key = scaled.clamp_(max=float(last)).to(dtype)
-    col = cached_arange(m, dist.device, dtype) if ids is None else ids.to(dtype)
-    key.bitwise_left_shift_(bits).bitwise_or_(col)
+    key = cast(scaled.clamp_max_(const(float(last), scaled)), dtype)
+    col = cached_arange(m, dist.device, dtype) if ids is None else ids
+    key.bitwise_left_shift_(scalar(bits, dtype, dist.device)).bitwise_or_(col)
     return torch.topk(key, k, dim=-1, largest=False, sorted=True).indices
 
 
@@ -117,7 +117,7 @@ def k_nearest(
         entry is arbitrary, but a valid target index).
     """
     m = dist.shape[-1]
-    d = dist if invalid is None else dist.masked_fill(invalid, float("inf"))
+    d = dist if invalid is None else torch.where(invalid, const(float("inf"), dist), dist)
     # Fewer targets than k: pad with +inf. A compiled graph always pads (by k), so that scenes
     # with fewer and with more than k targets share one graph instead of specialising on it.
     pad = k if torch.compiler.is_compiling() else max(k - m, 0)

@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import cached_arange, gather_rows
 from tbsim_env.sim.edge_grid import grid_signed_distance, nearest_signed, signed_over
 from tbsim_env.sim.geometry import segment_projection
 from tbsim_env.sim.state import RoadEdges
-from tbsim_env.torch_utils import cached_arange, gather_rows
 
 NO_EDGE_DISTANCE = C.NO_EDGE_DISTANCE
 """Distance reported when a scenario has no road edge (always on-road)."""

@@ -1,7 +1,7 @@
 """The policy interface: any controller of agents in the batched simulator.
 
 The simulation layer defines it and the policies (``policies/``) implement it, so that the
-closed-loop rollouts (``sim.rollout``) drive any policy without depending on one.
+closed-loop rollouts (``metrics.wosac.simulate``) drive any policy without depending on one.
 
 A policy keeps no hidden per-rollout attributes: whatever it remembers (history windows, latent
 samples, destinations) lives in an explicit ``PolicyState`` that ``act`` returns and the caller

@@ -97,9 +97,9 @@ class SignalLog:
 class Shared:
     """A table of K scenarios that batch rows read through a row map (``CellLists.row``).
 
-    Row operations (``tbsim_env.rows``) pass it through instead of splitting it: rows of one
-    bank share its tables, so starting a new episode in a row copies none of them (a road-edge
-    grid is megabytes per scenario).
+    Row operations (``tbsim_env.observation.rows``) pass it through instead of splitting it:
+    rows of one bank share its tables, so starting a new episode in a row copies none of them
+    (a road-edge grid is megabytes per scenario).
 
     Attributes:
         value: [K, ...] tensor.
@@ -128,6 +128,12 @@ class CellLists:
         bound: Shared [K, G] float32, distance from the cell centre of the nearest target not
             listed (inf when every target is listed), less a rounding slack.
         center: Shared [K, G, 2] float32, cell centres.
+        corner: [B, 1, 2] float32, ``lower`` shaped for a lookup (derived, as the rest).
+        last: [B, 1, 2] float32, the last cell index along x and y (``shape - 1``).
+        stride: [B, 1, 2] float32, (``shape_y``, 1): a cell's flat index is ``ij . stride``.
+        row_cells: [B, 1] int64, ``row * G``: the row's first cell in the flattened tables.
+        cell_info: Shared [K, G, 3] float32, (centre x, centre y, bound) per cell: what a
+            lookup reads of its cell, in one gather.
     """
 
     cell: torch.Tensor
@@ -137,6 +143,11 @@ class CellLists:
     cells: Shared
     bound: Shared
     center: Shared
+    corner: torch.Tensor
+    last: torch.Tensor
+    stride: torch.Tensor
+    row_cells: torch.Tensor
+    cell_info: Shared
 
 
 @dataclass(frozen=True)
@@ -145,12 +156,27 @@ class EdgeGrid(CellLists):
     ``cells`` repeat the last real one.
 
     Attributes:
-        segments: Shared [K, 4, E] float32, the road-edge segments as a lookup reads them,
-            a column each: start x, start y, (end - start) x, (end - start) y; in the order
-            of the rows of their ``RoadEdges``.
+        segments: Shared [K, 5, E] float32, the road-edge segments as a lookup reads them,
+            a column each: start x, start y, (end - start) x, (end - start) y, squared
+            length clamped to >= 1e-12 m^2; in the order of the rows of their ``RoadEdges``.
+        row_columns: [B, 1, 1] int64, ``row * 5 E``: the row's first entry of the flattened
+            ``segments``.
+        has_edge: [B, 1] bool, the row's scene has a road edge.
+        joints: optional Shared [K, 3 E, 9] float32, what the side rule at polyline joints
+            (``joint_sign``) reads of a segment s, per case k of its projection parameter t
+            (row ``3 s + k``; k = 0: t < 0, 1: 0 <= t <= 1, 2: t > 1): s's (start x, start y,
+            vector y, vector x), the same of the segment it meets there (the previous one
+            for k = 0, the next one for k = 2; s itself for k = 1 or where it meets none),
+            and +1 where the two make a convex turn (the side is the max of theirs), else -1
+            (the min). None: the lookup gathers both segments and decides per step.
+        row_joints: [B, 1] int64, ``row * 3 E``.
     """
 
     segments: Shared
+    row_columns: torch.Tensor
+    has_edge: torch.Tensor
+    joints: Shared | None = None
+    row_joints: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)

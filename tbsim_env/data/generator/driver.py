@@ -43,7 +43,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from tbsim_env.constants import DT, SignalState
+from tbsim_env.core.constants import DT, SignalState
 from tbsim_env.data.generator.crossings import (
     PATH_CLEARANCE,
     PED_ACCEL,

@@ -34,6 +34,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from tbsim_env.core.boxes import box_corners_numpy
 from tbsim_env.core.constants import ObjectType
 from tbsim_env.data.generator.driver import CAR_SIZE_RANGE, VAN_SIZE_RANGE
 
@@ -150,13 +151,6 @@ step. What a simulated trajectory lacks to look like a WOMD log
 jitter is ``RECORDED``'s (the WOSAC features do not read it)."""
 
 
-def _box(centre: np.ndarray, heading: float, length: float, width: float) -> np.ndarray:
-    """[4, 2] corners of a box."""
-    c, s = np.cos(heading), np.sin(heading)
-    ax, lat = np.array([c, s]) * length / 2, np.array([-s, c]) * width / 2
-    return centre + np.array([ax + lat, ax - lat, -ax - lat, -ax + lat])
-
-
 def _car_sizes(rng: np.random.Generator, n: int) -> np.ndarray:
     """[n, 3] (length, width, height) of parked cars and vans, m (the driver's car and van
     ranges)."""
@@ -210,7 +204,7 @@ def parked_vehicles(
             )
             heading = float(np.arctan2(base[1], base[0]) + (np.pi if flip[k] else 0.0))
             heading += float(yaw_noise[k])
-            poly = shapely.Polygon(_box(centre, heading, length, width))
+            poly = shapely.Polygon(box_corners_numpy(centre, np.float64(heading), length, width))
             if edges is not None and poly.distance(edges) < ROAD_CLEARANCE_M:
                 continue
             if any(poly.distance(b) < PARKED_GAP_M for b in boxes):

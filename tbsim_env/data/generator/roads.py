@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.constants import (
+from tbsim_env.core.constants import (
     LaneType,
     MapFeatureType,
     RoadEdgeType,

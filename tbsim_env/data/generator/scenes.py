@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
+from tbsim_env.core.constants import CURRENT_INDEX, DT, NUM_STEPS, ObjectType
 from tbsim_env.data.generator.behaviour import CALIBRATED, Behaviour
 from tbsim_env.data.generator.crossings import CrossingPlan, plan_crossings
 from tbsim_env.data.generator.driver import (

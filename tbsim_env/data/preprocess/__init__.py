@@ -1,4 +1,4 @@
-"""Preprocessing of a ``Scenario`` into ``SceneTokens`` (TrafficBots V1.5 spec section 1).
+"""Preprocessing of a ``Scenario`` into ``SceneTokens`` (TrafficBots V1.5, docs/model.md §1).
 
 Pure numpy functions, one job per module:
 

@@ -1,4 +1,4 @@
-"""Agent attributes and gap filling (TrafficBots V1.5 spec section 1.4)."""
+"""Agent attributes and gap filling (TrafficBots V1.5, docs/model.md §1.4)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.constants import DT
+from tbsim_env.core.constants import DT
 from tbsim_env.data.scenario import Tracks, wrap_angle_np
 
 
@@ -133,8 +133,8 @@ def fill_gaps(
     """Linear gap filling between the first and last valid step, then acc and yaw rate.
 
     pos, vel, speed and the *unwrapped* yaw are interpolated over invalid steps inside each
-    agent's valid interval; outside it everything is 0 and invalid (spec 1.4). Agents with a
-    single valid step are copied with acc = yaw_rate = 0.
+    agent's valid interval; outside it everything is 0 and invalid (docs/model.md §1.4). Agents with
+    a single valid step are copied with acc = yaw_rate = 0.
 
     Args:
         valid: [N, T] bool.

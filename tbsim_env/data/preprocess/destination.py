@@ -1,4 +1,4 @@
-"""Destination label of each agent: one map-piece row (TrafficBots V1.5 spec section 1.7)."""
+"""Destination label of each agent: one map-piece row (TrafficBots V1.5, docs/model.md §1.7)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.constants import MapClass, ObjectType
+from tbsim_env.core.constants import MapClass, ObjectType
 from tbsim_env.data.preprocess import spec
 from tbsim_env.data.preprocess.map_pieces import VEHICLE_LANE_CLASSES, MapPieces
 from tbsim_env.data.scenario import RoadMap
@@ -16,7 +16,7 @@ NO_DESTINATION = -1
 
 @dataclass(frozen=True)
 class Goals:
-    """Last valid state of each agent (spec 1.4 ``goal``).
+    """Last valid state of each agent (docs/model.md §1.4 ``goal``).
 
     Attributes:
         pos: [N, 2] float64 xy, metres (map frame).
@@ -97,7 +97,8 @@ def walk_lane_graph(
 
     At each hop a random exit edge (lane, next) is drawn (lane, -1 when there is no exit);
     ``lane`` becomes the candidate. The walk stops when ``next`` is not a kept vehicle lane, when
-    the lane just left had several exits and >= 2 hops are done, or after 4 hops (spec 1.7).
+    the lane just left had several exits and >= 2 hops are done, or after 4 hops
+    (docs/model.md §1.7).
 
     Args:
         start_lane: feature id of the lane matched at the goal (a kept vehicle lane).
@@ -131,7 +132,7 @@ def destination_labels(
     road_map: RoadMap,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """Destination piece row of each agent (spec 1.7).
+    """Destination piece row of each agent (docs/model.md §1.7).
 
     Vehicles: the lane under the goal (node within 3 m, aligned with the goal heading), then a
     random walk of up to 4 hops over exits; the destination is the last kept piece of the final

@@ -1,10 +1,13 @@
-"""Keep at most ``max_map_pieces`` pieces near the relevant agents (spec 1.6, map steps 2-4)."""
+"""Keep at most ``max_map_pieces`` pieces near the relevant agents.
+
+docs/model.md §1.6, map steps 2-4.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
+from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.preprocess import spec
 from tbsim_env.data.preprocess.map_pieces import MapPieces
 
@@ -39,8 +42,8 @@ def prune_by_distance(
     """Drop far candidates in index order until ``limit`` remain, halving the radius per pass.
 
     A pass with radius r walks the kept, unprotected rows in index order and drops those with
-    ``distance >= r``, stopping the moment exactly ``limit`` rows remain (spec 1.6 map step 4 and
-    agent filter f).
+    ``distance >= r``, stopping the moment exactly ``limit`` rows remain (docs/model.md §1.6 map
+    step 4 and agent filter f).
 
     Args:
         distance: [K] float64 metres, the distance of each row to the relevant positions.
@@ -79,8 +82,8 @@ def box_filter(
 ) -> np.ndarray:
     """[K] bool: pieces inside the enlarged bounding box of the relevant positions.
 
-    Each of the six bounds is tested separately with "some valid node" (spec 1.6 step 2); the
-    margin is max(extent, 500 m) in x and y and max(extent, 6 m) in z. The box is axis-aligned
+    Each of the six bounds is tested separately with "some valid node" (docs/model.md §1.6 step 2);
+    the margin is max(extent, 500 m) in x and y and max(extent, 6 m) in z. The box is axis-aligned
     in the spec's scene frame (x along ``frame_yaw``), not in the token frame, so that it
     does not depend on the orientation of the file's world frame.
 
@@ -104,7 +107,7 @@ def box_filter(
 def filter_map_pieces(
     pieces: MapPieces, relevant_positions: np.ndarray, cfg: TokenConfig, frame_yaw: float = 0.0
 ) -> np.ndarray:
-    """Rows of the pieces to keep, in their original order (spec 1.6 map steps 2-4).
+    """Rows of the pieces to keep, in their original order (docs/model.md §1.6 map steps 2-4).
 
     1. Box filter around the relevant positions (axis-aligned in the scene frame of
        ``frame_yaw``), undone if fewer than 10 pieces survive.

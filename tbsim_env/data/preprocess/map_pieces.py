@@ -1,9 +1,9 @@
-"""Map features -> map pieces of <= 20 segments (TrafficBots V1.5 spec section 1.2).
+"""Map features -> map pieces of <= 20 segments (TrafficBots V1.5, docs/model.md §1.2).
 
 A *piece* is one row of up to P nodes: node k holds the start point of segment k (``pos``) and
 the segment vector to the next point (``dir``, not normalised, ~1 m). Positions are shifted by
-``origin`` (float64 arithmetic); there is no rotation (deliberate deviation from spec 1.5, see
-``tbsim_env.data.tokens``).
+``origin`` (float64 arithmetic); there is no rotation (deliberate deviation from the reference,
+docs/model.md §1.5; see ``tbsim_env.data.tokens``).
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import (
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import (
     GEOMETRY_TIE_TOLERANCE,
     LaneType,
     MapClass,
@@ -59,7 +59,7 @@ VEHICLE_LANE_CLASSES = (
     int(MapClass.SURFACE_STREET),
     int(MapClass.STOP_SIGN),
 )
-"""Classes of the lanes a vehicle drives on (spec 1.6 d, 1.7)."""
+"""Classes of the lanes a vehicle drives on (docs/model.md §1.6 d, §1.7)."""
 LANE_CLASSES = (*VEHICLE_LANE_CLASSES, int(MapClass.BIKE_LANE))
 """Every lane class (pieces that may carry a traffic light)."""
 
@@ -147,7 +147,9 @@ def feature_classes(road_map: RoadMap) -> np.ndarray:
 
 
 def densify_segment(start: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """Points from ``start`` to ``end`` at 1 m steps, end point included (spec 1.2 step 3.4).
+    """Points from ``start`` to ``end`` at 1 m steps, end point included.
+
+    docs/model.md §1.2 step 3.4.
 
     Args:
         start: [3] float64 metres.
@@ -174,7 +176,7 @@ def polygon_to_polylines(polygon: np.ndarray) -> tuple[np.ndarray, ...]:
     """A crosswalk/speed-bump/driveway polygon -> its two long sides, each both ways.
 
     Takes vertices 0, n/4, n/2, 3n/4 (floored); the long sides are v0->v1 and v2->v3 when
-    |v1 - v0| > |v2 - v1|, else v0->v3 and v2->v1 (spec 1.2 step 3). Sides equal within
+    |v1 - v0| > |v2 - v1|, else v0->v3 and v2->v1 (docs/model.md §1.2 step 3). Sides equal within
     ``GEOMETRY_TIE_TOLERANCE`` (a square) count as equal, so the choice does not depend on the
     float rounding of the world frame.
 
@@ -195,7 +197,7 @@ def polygon_to_polylines(polygon: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def piece_starts(num_segments: int, piece_segments: int) -> np.ndarray:
-    """Start segment of every piece of a polyline with S segments (spec 1.2 step 4).
+    """Start segment of every piece of a polyline with S segments (docs/model.md §1.2 step 4).
 
     Args:
         num_segments: S = N - 1 >= 1.

@@ -1,4 +1,4 @@
-"""``preprocess_scenario``: a ``Scenario`` -> padded ``SceneTokens`` (spec section 1).
+"""``preprocess_scenario``: a ``Scenario`` -> padded ``SceneTokens`` (docs/model.md §1).
 
 Order of the steps: frame origin and yaw, map pieces, map filtering, traffic-light tokens, agent
 selection, gap filling, destinations, padding to the ``TokenConfig`` limits.
@@ -10,7 +10,7 @@ import hashlib
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
+from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.preprocess.agents import AgentAttributes, agent_attributes
 from tbsim_env.data.preprocess.destination import destination_labels, last_valid_goals
 from tbsim_env.data.preprocess.map_filter import filter_map_pieces, rotate_xy
@@ -69,7 +69,7 @@ def map_boundary(
     pieces: MapPieces, agents: AgentAttributes, current_index: int, frame_yaw: float = 0.0
 ) -> np.ndarray:
     """[4] (x_min, x_max, y_min, y_max) over valid map nodes; without map, over the agents'
-    valid history positions (spec 1.6); zeros if neither exists.
+    valid history positions (docs/model.md §1.6); zeros if neither exists.
 
     The box is axis-aligned in the spec's scene frame: the token frame rotated by
     ``frame_yaw`` (rad). Tokens are not rotated into that frame (a deviation, see
@@ -92,8 +92,8 @@ def preprocess_scenario(
 ) -> SceneTokens:
     """Preprocess one scenario into fixed-size token arrays.
 
-    Deliberate deviations from the reference (spec 1.5): positions are shifted by the SDC xy
-    at the current step but not rotated, and no random frame augmentation is applied. The
+    Deliberate deviations from the reference (docs/model.md §1.5): positions are shifted by the SDC
+    xy at the current step but not rotated, and no random frame augmentation is applied. The
     steps of the spec that depend on the frame's orientation (the map box filter and
     ``map_boundary``) still use the spec's scene frame, x along the SDC's heading
     (``frame_yaw``), so the tokens of a rotated scene are the rotated tokens.
@@ -114,7 +114,7 @@ def preprocess_scenario(
     rng = rng if rng is not None else scenario_rng(scenario.scenario_id)
     origin, frame_yaw = scene_origin(scenario), scene_yaw(scenario)
     history = np.zeros_like(scenario.tracks.valid)
-    # Spec 1.6 step 1: map reference points are history positions in every split.
+    # docs/model.md §1.6 step 1: map reference points are history positions in every split.
     history[:, : scenario.current_index + 1] = scenario.tracks.valid[
         :, : scenario.current_index + 1
     ]

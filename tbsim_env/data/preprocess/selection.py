@@ -1,11 +1,14 @@
-"""Choose at most ``max_agents`` simulated agents (spec 1.6, ``filter_episode_agents``)."""
+"""Choose at most ``max_agents`` simulated agents.
+
+docs/model.md §1.6 (the reference's ``filter_episode_agents``).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import DT, ObjectType
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import DT, ObjectType
 from tbsim_env.data.preprocess import spec
 from tbsim_env.data.preprocess.agents import signed_speed
 from tbsim_env.data.preprocess.map_filter import min_distance, prune_by_distance
@@ -69,8 +72,8 @@ def select_agents(
     """Track rows of the simulated agents: SDC first, then the others in track order.
 
     Relevant agents (SDC, objects_of_interest, tracks_to_predict) are never dropped. Filters,
-    in order (spec 1.6): drop non-relevant TYPE_UNSET/TYPE_OTHER tracks (they have no slot in
-    the policy; deliberate deviation); (a) never valid in history; (b, training) < 20 valid
+    in order (docs/model.md §1.6): drop non-relevant TYPE_UNSET/TYPE_OTHER tracks (they have no slot
+    in the policy; deliberate deviation); (a) never valid in history; (b, training) < 20 valid
     steps; then, while more than ``cfg.max_agents`` remain: (c) still and far from relevant
     agents and from the map; (d) parked vehicles; (e, training) heading glitches; (f) distance
     pruning from 120 m, halving. Filter d uses the vehicle's own first/last positions for its
@@ -83,7 +86,7 @@ def select_agents(
         scenario: the scenario.
         cfg: ``max_agents`` and ``training``.
         pieces: the kept map pieces (for filters c and d); None or empty means no map, in
-            which case the first valid agents after the relevant ones are kept (spec 1.6).
+            which case the first valid agents after the relevant ones are kept (docs/model.md §1.6).
 
     Returns:
         [n] int64 track indices, n <= cfg.max_agents.
@@ -108,7 +111,7 @@ def select_agents(
         keep &= relevant | (tracks.valid.sum(axis=1) >= spec.MIN_VALID_STEPS_TRAINING)
 
     if not has_map:
-        # Spec 1.6, scenarios without map: the relevant agents, then the first valid ones.
+        # docs/model.md §1.6, scenarios without map: the relevant agents, then the first valid ones.
         others = np.flatnonzero(keep & ~relevant)[: cfg.max_agents - int(relevant.sum())]
         keep = relevant.copy()
         keep[others] = True
@@ -143,7 +146,7 @@ def _filter_still_and_parked(
     keep: np.ndarray,
     origin: np.ndarray,
 ) -> np.ndarray:
-    """Filters c and d of spec 1.6; returns the new keep mask."""
+    """Filters c and d of docs/model.md §1.6; returns the new keep mask."""
     tracks = scenario.tracks
     shift = np.array([origin[0], origin[1], 0.0])
     first, last = _first_last(valid, tracks.xyz.astype(np.float64) - shift)

@@ -1,8 +1,8 @@
-"""Thresholds of the TrafficBots V1.5 preprocessing (spec sections 1.6 and 1.7), in one place.
+"""Thresholds of the TrafficBots V1.5 preprocessing (docs/model.md §1.6 and §1.7), in one place.
 
 These are the numbers of the reference implementation, not tunable limits: the token *limits*
 (how many pieces, traffic lights and agents are kept) are configuration and live in
-``tbsim_env.config.TokenConfig``. Units: metres, seconds, radians.
+``tbsim_env.core.config.TokenConfig``. Units: metres, seconds, radians.
 """
 
 from __future__ import annotations

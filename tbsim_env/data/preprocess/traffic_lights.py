@@ -1,4 +1,7 @@
-"""Traffic-light tokens: one per kept piece of each controlled lane (spec 1.3, lane mode)."""
+"""Traffic-light tokens: one per kept piece of each controlled lane.
+
+docs/model.md §1.3, lane mode.
+"""
 
 from __future__ import annotations
 
@@ -6,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.config import TokenConfig
-from tbsim_env.constants import SIGNAL_TO_TL_STATE
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.constants import SIGNAL_TO_TL_STATE
 from tbsim_env.data.preprocess.map_filter import min_distance
 from tbsim_env.data.preprocess.map_pieces import LANE_CLASSES, MapPieces
 from tbsim_env.data.scenario import TrafficSignals
@@ -62,7 +65,7 @@ def attach_traffic_lights(
     """One TL token per (signal, kept lane piece of its controlled lane).
 
     Tokens are ordered by signal row, then piece row. Signals whose lane has no kept piece
-    give no token (spec 1.3: such steps are invalidated). When more than
+    give no token (docs/model.md §1.3: such steps are invalidated). When more than
     ``cfg.max_traffic_lights`` tokens exist, the ones whose piece (node 0) is nearest to the
     relevant positions are kept, in their original order (the reference asserts instead:
     deliberate deviation).

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from tbsim_env.errors import TbsimError
+from tbsim_env.core.errors import TbsimError
 
 
 class WosacConfigError(TbsimError, ValueError):

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import torch
 
-from tbsim_env.constants import DT
+from tbsim_env.core.boxes import box_corners
+from tbsim_env.core.constants import DT
 from tbsim_env.metrics.wosac.config import (
     BOX_ROUNDING_FACTOR,
     NO_PARTNER_DISTANCE,
@@ -26,30 +27,13 @@ from tbsim_env.metrics.wosac.trajectories import ObjectTrajectories
 _PAIRS_PER_CHUNK = 1 << 19
 """Rollouts are processed so that one chunk holds about this many (e, o, t) pairs."""
 
-# Corner signs of a box in its own frame, counter-clockwise: (+l,+w), (-l,+w), (-l,-w), (+l,-w).
-_CORNER_SIGNS = ((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))
 
-
-def box_corners_2d(
-    center: torch.Tensor, heading: torch.Tensor, half_length: torch.Tensor, half_width: torch.Tensor
-) -> torch.Tensor:
-    """Corners of oriented rectangles, counter-clockwise.
-
-    Args:
-        center: [..., 2] centre (m).
-        heading: [...] yaw (rad).
-        half_length, half_width: [...] half sizes (m), broadcastable to ``heading``.
-
-    Returns:
-        [..., 4, 2] corners (m).
-    """
-    signs = torch.tensor(_CORNER_SIGNS, dtype=center.dtype, device=center.device)
-    c, s = torch.cos(heading), torch.sin(heading)
-    lon = signs[:, 0] * half_length.unsqueeze(-1)  # [..., 4]
-    lat = signs[:, 1] * half_width.unsqueeze(-1)
-    cx = lon * c.unsqueeze(-1) - lat * s.unsqueeze(-1)
-    cy = lon * s.unsqueeze(-1) + lat * c.unsqueeze(-1)
-    return center.unsqueeze(-2) + torch.stack([cx, cy], dim=-1)
+def _corners(center: torch.Tensor, heading: torch.Tensor, half: torch.Tensor) -> torch.Tensor:
+    """[..., 4, 2] corners (m) of boxes at ``center`` [..., 2] m, ``heading`` [...] rad, with
+    half sizes ``half`` [..., 2] m (length, width)."""
+    center, heading = torch.broadcast_tensors(center, heading.unsqueeze(-1))
+    pose = torch.cat([center, heading[..., :1]], -1)
+    return box_corners(pose, 2.0 * half[..., 0], 2.0 * half[..., 1])
 
 
 def _point_segment_distance(p: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -102,8 +86,8 @@ def rectangle_signed_distance(
     rad_b = ((axes @ axes_b.transpose(-1, -2)).abs() * half_b.unsqueeze(-2)).sum(-1)
     gap = (d * axes).sum(-1).abs() - rad_a - rad_b
     separation = gap.amax(-1)
-    corners_a = box_corners_2d(center_a, heading_a, half_a[..., 0], half_a[..., 1])
-    corners_b = box_corners_2d(center_b, heading_b, half_b[..., 0], half_b[..., 1])
+    corners_a = _corners(center_a, heading_a, half_a)
+    corners_b = _corners(center_b, heading_b, half_b)
     apart = torch.minimum(_polygon_gap(corners_a, corners_b), _polygon_gap(corners_b, corners_a))
     return torch.where(separation > 0.0, apart, separation)
 

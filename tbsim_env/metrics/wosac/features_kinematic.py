@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.constants import DT
+from tbsim_env.core.constants import DT
 from tbsim_env.sim.geometry import wrap_angle
 
 

@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tbsim_env.constants import LaneType, MapFeatureType, SignalState
+from tbsim_env.core.boxes import box_corners
+from tbsim_env.core.constants import LaneType, MapFeatureType, SignalState
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import (
     CYCLIC_POLYLINE_MAX_GAP_SQ,
     NO_PARTNER_DISTANCE,
@@ -120,17 +121,10 @@ def box_bottom_corners(traj: ObjectTrajectories) -> torch.Tensor:
         [R, E, T, 4, 3] corners in metres.
     """
     e = traj.num_eval
-    c, s = torch.cos(traj.heading[:, :e]), torch.sin(traj.heading[:, :e])
-    hl = (traj.length[:e] / 2.0)[None, :, None, None]
-    hw = (traj.width[:e] / 2.0)[None, :, None, None]
-    sl = torch.tensor([1.0, -1.0, -1.0, 1.0], device=c.device)
-    sw = torch.tensor([1.0, 1.0, -1.0, -1.0], device=c.device)
-    lon, lat = sl * hl, sw * hw  # [1, E, 1, 4]
-    c, s = c.unsqueeze(-1), s.unsqueeze(-1)
-    x = traj.x[:, :e, :, None] + lon * c - lat * s
-    y = traj.y[:, :e, :, None] + lon * s + lat * c
-    z = (traj.z[:, :e] - traj.height[:e, None] / 2.0).unsqueeze(-1).expand_as(x)
-    return torch.stack([x, y, z], dim=-1)
+    pose = torch.stack([traj.x[:, :e], traj.y[:, :e], traj.heading[:, :e]], -1)  # [R, E, T, 3]
+    xy = box_corners(pose, traj.length[None, :e, None], traj.width[None, :e, None])
+    z = (traj.z[:, :e] - traj.height[:e, None] / 2.0)[..., None, None].expand(*xy.shape[:-1], 1)
+    return torch.cat([xy, z], dim=-1)
 
 
 def _group_queries(points: torch.Tensor, steps_per_group: int) -> tuple[torch.Tensor, int]:

@@ -11,9 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tbsim_env.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import NUM_ROLLOUTS
 
 
@@ -82,6 +82,21 @@ class Rollouts:
             heading=self.heading[index],
         )
 
+    def mismatch(self, scenario: Scenario, num_steps: int = NUM_FUTURE) -> str | None:
+        """Why these rollouts cannot be rollouts of ``scenario``, or None: another scenario
+        id, not ``num_steps`` steps, or a sim agent (``Scenario.sim_agent_indices``) missing.
+        The one check of the scorer and the viewer (the submission validator checks the proto
+        the same way, object by object)."""
+        if self.scenario_id != scenario.scenario_id:
+            return f"rollouts are for scenario {self.scenario_id!r}, not {scenario.scenario_id!r}"
+        where = f"scenario {scenario.scenario_id}"
+        if self.num_steps != num_steps:
+            return f"{where}: rollouts have {self.num_steps} steps, expected {num_steps}"
+        have = set(self.object_id.tolist())
+        ids = scenario.tracks.id[scenario.sim_agent_indices()]
+        missing = [int(i) for i in ids if int(i) not in have]
+        return f"{where}: rollouts miss sim agents {missing}" if missing else None
+
     def impossible_value(self) -> str | None:
         """The first value no real rollout holds, described (rollout, object, step, field), or
         None: every value must be finite, positions within ``MAX_ABS_COORDINATE`` and
@@ -111,11 +126,6 @@ class Rollouts:
         )
 
 
-def sim_agent_indices(scenario: Scenario) -> np.ndarray:
-    """[A] int64 track indices of the sim agents: tracks valid at the current step."""
-    return np.flatnonzero(scenario.tracks.valid[:, scenario.current_index]).astype(np.int64)
-
-
 def log_replay_rollouts(
     scenario: Scenario,
     num_rollouts: int = NUM_ROLLOUTS,
@@ -130,7 +140,7 @@ def log_replay_rollouts(
         MissingFutureError: the log does not hold the 80 steps after the current one (e.g. a
             WOSAC test-split scene, history only).
     """
-    idx = sim_agent_indices(scenario)
+    idx = scenario.sim_agent_indices()
     start = scenario.current_index + 1
     stop = start + NUM_FUTURE
     scenario.require_log_until(stop - 1, "log replay")

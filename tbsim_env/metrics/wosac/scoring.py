@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import torch
 
-from tbsim_env.constants import ObjectType
+from tbsim_env.core.constants import ObjectType
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.wosac.config import (
     BUCKETS,
     DEFAULT_VERSION,
@@ -83,7 +83,8 @@ class Scores:
         kinematic_metrics, interactive_metrics, map_based_metrics: bucket scores.
         average_displacement_error: ADE (m), over log-valid steps including history.
         min_average_displacement_error: minADE (m), min over rollouts of the object mean.
-        simulated_collision_rate, simulated_offroad_rate,
+        simulated_collision_rate: fraction of (rollout, object) pairs.
+        simulated_offroad_rate: fraction of (rollout, object) pairs.
         simulated_traffic_light_violation_rate: fraction of (rollout, object) pairs.
     """
 
@@ -248,26 +249,16 @@ def _trajectories(
     """Check the rollouts against the scenario; (objects, log [1, N, T], sim [R, N, T]).
     Without ``require_future`` the log may end at the current step (its future invalid)."""
     device = rollouts.x.device if device is None else torch.device(device)
-    if rollouts.scenario_id != scenario.scenario_id:
-        raise ScoringError(
-            f"rollouts are for scenario {rollouts.scenario_id!r}, not {scenario.scenario_id!r}"
-        )
+    same_scene = rollouts.scenario_id == scenario.scenario_id
+    if require_future and same_scene:
+        scenario.require_log_until(scenario.current_index + rollouts.num_steps, "WOSAC scoring")
+    mismatch = rollouts.mismatch(scenario, scenario.num_steps - scenario.current_index - 1)
+    if mismatch:
+        raise ScoringError(mismatch)
     impossible = rollouts.impossible_value()
     if impossible:
         raise ScoringError(f"scenario {scenario.scenario_id} ({scenario.source}): {impossible}")
-    first = scenario.current_index + 1
-    if require_future:
-        scenario.require_log_until(scenario.current_index + rollouts.num_steps, "WOSAC scoring")
-    if first + rollouts.num_steps != scenario.num_steps:
-        raise ScoringError(
-            f"scenario {scenario.scenario_id}: rollouts have {rollouts.num_steps} steps, "
-            f"expected {scenario.num_steps - first}"
-        )
     objects = select_objects(scenario)
-    have = set(rollouts.object_id.tolist())
-    missing = [int(i) for i in objects.object_id if int(i) not in have]
-    if missing:
-        raise ScoringError(f"scenario {scenario.scenario_id}: rollouts miss sim agents {missing}")
     if objects.num_eval == 0:
         raise ScoringError(f"scenario {scenario.scenario_id}: no evaluated object is a sim agent")
     log = log_trajectories(scenario, objects, device)

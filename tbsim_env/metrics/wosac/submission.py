@@ -19,12 +19,12 @@ import numpy as np
 import torch
 from google.protobuf.message import DecodeError
 
-from tbsim_env.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.constants import MAX_ABS_COORDINATE, MAX_ABS_HEADING, NUM_FUTURE
+from tbsim_env.core.errors import TbsimError
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.errors import TbsimError
 from tbsim_env.metrics.protos import sim_agents_submission_pb2 as pb
 from tbsim_env.metrics.wosac.config import NUM_ROLLOUTS
-from tbsim_env.metrics.wosac.rollouts import Rollouts, sim_agent_indices
+from tbsim_env.metrics.wosac.rollouts import Rollouts
 
 _COORDS = ("center_x", "center_y", "center_z", "heading")
 
@@ -130,7 +130,7 @@ def validate_scenario_rollouts(
     n = len(rollouts.joint_scenes)
     if n != num_rollouts:
         raise SubmissionError(f"{where}: expected {num_rollouts} joint scenes, got {n}")
-    expected = {int(i) for i in scenario.tracks.id[sim_agent_indices(scenario)]}
+    expected = {int(i) for i in scenario.tracks.id[scenario.sim_agent_indices()]}
     for j, scene in enumerate(rollouts.joint_scenes):
         seen: set[int] = set()
         for traj in scene.simulated_trajectories:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from tbsim_env.constants import (
+from tbsim_env.core.constants import (
     CURRENT_INDEX,
     DT,
     NUM_FUTURE,

@@ -44,7 +44,7 @@ class MetricObjects:
 def select_objects(scenario: Scenario) -> MetricObjects:
     """Sim agents (valid at the current step) and evaluated agents (SDC + tracks_to_predict)."""
     tracks = scenario.tracks
-    sim = np.flatnonzero(tracks.valid[:, scenario.current_index])
+    sim = scenario.sim_agent_indices()
     wanted = np.unique(
         np.append(np.asarray(scenario.tracks_to_predict, np.int64), scenario.sdc_index)
     )

@@ -19,7 +19,7 @@ import torch
 
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.rollouts import Rollouts, log_replay_rollouts
-from tbsim_env.rows import take_rows
+from tbsim_env.observation.rows import take_rows
 from tbsim_env.sim import core
 from tbsim_env.sim.build import build_sim_state
 from tbsim_env.sim.horizon import wosac_end_step, wosac_scenario
@@ -30,11 +30,6 @@ from tbsim_env.sim.state import SimState
 def tile_state(state: SimState, n: int) -> SimState:
     """Repeat a batch-of-one state ``n`` times along the batch axis (``take_rows`` of row 0)."""
     return take_rows(state, torch.zeros(n, dtype=torch.int64, device=state.device))
-
-
-def sim_agent_mask(scenario: Scenario) -> np.ndarray:
-    """[A] bool: tracks valid at the current step (WOSAC sim agents)."""
-    return scenario.tracks.valid[:, scenario.current_index].copy()
 
 
 def simulate_rollouts(
@@ -68,7 +63,7 @@ def simulate_rollouts(
     start = scenario.current_index
     grid = wosac_scenario(scenario)
     base = build_sim_state([grid], start_step=start, device=device)
-    sim = torch.from_numpy(sim_agent_mask(scenario)).to(base.device)[None]
+    sim = torch.from_numpy(scenario.sim_agent_mask()).to(base.device)[None]
     agents = base.agents.mask & torch.nn.functional.pad(sim, (0, base.num_agents - sim.shape[1]))
     base = base.replace(
         agents=dataclasses.replace(base.agents, mask=agents),
@@ -120,7 +115,7 @@ def linear_extrapolation_rollouts(
         noise_std: see above.
     """
     t = scenario.current_index
-    idx = np.flatnonzero(sim_agent_mask(scenario))
+    idx = scenario.sim_agent_indices()
     tr = scenario.tracks
     p10 = tr.xyz[idx, t].astype(np.float64)
     prev_ok = tr.valid[idx, t - 1]
@@ -144,7 +139,6 @@ def linear_extrapolation_rollouts(
 
 __all__ = [
     "linear_extrapolation_rollouts",
-    "sim_agent_mask",
     "simulate_rollouts",
     "tile_state",
 ]

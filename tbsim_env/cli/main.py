@@ -19,11 +19,11 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from tbsim_env import cli_configs as cfg
-from tbsim_env import constants as C
-from tbsim_env.cli_configs import COMMANDS
-from tbsim_env.config_cli import add_config_arguments, parse_config, summary
-from tbsim_env.errors import TbsimError
+from tbsim_env.cli import commands as cfg
+from tbsim_env.cli.commands import COMMANDS
+from tbsim_env.core import constants as C
+from tbsim_env.core.config_cli import add_config_arguments, parse_config, summary
+from tbsim_env.core.errors import TbsimError
 
 
 def _cmd_info(args: cfg.Info) -> int:
@@ -53,7 +53,7 @@ def _cmd_info(args: cfg.Info) -> int:
 def _video_config():
     """The env config of ``render`` and ``demo``: a video shows the whole scenario, so the
     SDC's collisions, off-road moments and goal do not end it (the frames mark them)."""
-    from tbsim_env.config import EnvConfig, TerminationConfig
+    from tbsim_env.core.config import EnvConfig, TerminationConfig
 
     return EnvConfig(termination=TerminationConfig(collision=False, offroad=False, goal=False))
 
@@ -341,7 +341,7 @@ def _cmd_view(args: cfg.View) -> int:
 
 
 def _cmd_preprocess(args: cfg.Preprocess) -> int:
-    from tbsim_env.config import TokenConfig
+    from tbsim_env.core.config import TokenConfig
     from tbsim_env.data.cache import build_cache
 
     cfg = TokenConfig(
@@ -373,6 +373,12 @@ def _cmd_average(args: cfg.Average) -> int:
     return 0
 
 
+def _cmd_benchmark(args: cfg.Benchmark) -> int:
+    from tbsim_env.benchmark.command import run_command
+
+    return run_command(args, _sharded(args), _executor(args) if _sharded(args) else None)
+
+
 _HANDLERS = {
     "demo": _cmd_demo,
     "info": _cmd_info,
@@ -383,6 +389,7 @@ _HANDLERS = {
     "view": _cmd_view,
     "preprocess": _cmd_preprocess,
     "average": _cmd_average,
+    "benchmark": _cmd_benchmark,
 }
 
 

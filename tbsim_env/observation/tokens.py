@@ -1,78 +1,53 @@
-"""Pairwise-relative observations (TrafficBots V1.5 spec section 2), batched and pure.
+"""Pairwise-relative observations (TrafficBots V1.5, docs/model.md §2), batched and pure.
 
 Every token is described in its own local frame, and its relation to the observer only by its
 relative pose (dx, dy, dyaw) in the observer's frame. Nothing is expressed in scenario
 coordinates, so observations do not change when a whole scenario is rotated and translated.
 
 The keys of an observer's observation, their shapes, bounds and meaning are declared once in
-``tbsim_env.observation_spec.OBS_KEYS``. Neighbours are the nearest by 2-D distance, within a
+``tbsim_env.observation.spec.OBS_KEYS``. Neighbours are the nearest by 2-D distance, within a
 radius; invalid slots are zero with mask 0.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
-from tbsim_env.config import TokenConfig
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import TokenConfig
+from tbsim_env.core.torch_utils import (
+    cached_arange,
+    cast,
+    const,
+    gather_rows,
+    listed,
+    row_offsets,
+    scalar,
+    valid_first,
+    valid_order,
+)
 from tbsim_env.data.preprocess.map_filter import filter_map_pieces
 from tbsim_env.data.preprocess.map_pieces import build_map_pieces
 from tbsim_env.data.preprocess.selection import relevant_positions
 from tbsim_env.data.preprocess.traffic_lights import attach_traffic_lights
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.map_knn import PieceGrid, build_piece_grid, nearest_pieces
-from tbsim_env.observation_spec import (
+from tbsim_env.observation.map_knn import PieceGrid, build_piece_grid, nearest_pieces, uses_index
+from tbsim_env.observation.spec import (
     ATTRIBUTE_FEATURES,
     HISTORY_FEATURES,
     NODE_FEATURES,
+    ObsConfig,
     observation_shapes,
     observation_space,
 )
 from tbsim_env.sim.collision import agent_distances
-from tbsim_env.sim.geometry import cos_sin, relative_pose, to_local_xy
+from tbsim_env.sim.geometry import cos_sin, relative_pose, rotate_by
 from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
-from tbsim_env.torch_utils import (
-    cached_arange,
-    const,
-    gather_rows,
-    listed,
-    valid_first,
-    valid_order,
-)
-
-
-@dataclass(frozen=True)
-class ObsConfig:
-    """Observation sizes.
-
-    Attributes:
-        history: steps of history per agent (current included).
-        num_agents: nearest other agents observed.
-        num_map: nearest map pieces observed.
-        num_traffic_lights: nearest traffic-light tokens observed.
-        agent_radius: m, agents farther away are masked.
-        map_radius: m, map pieces whose start is farther away are masked.
-        traffic_light_radius: m.
-        tokens: limits of the map / traffic-light preprocessing.
-    """
-
-    history: int = C.NUM_HISTORY
-    num_agents: int = C.DEFAULT_OBS_AGENTS
-    num_map: int = C.DEFAULT_OBS_MAP_PIECES
-    num_traffic_lights: int = C.DEFAULT_OBS_TRAFFIC_LIGHTS
-    agent_radius: float = 100.0
-    map_radius: float = 200.0
-    traffic_light_radius: float = 200.0
-    tokens: TokenConfig = TokenConfig()
-
-    def __post_init__(self) -> None:
-        for f in ("history", "num_agents", "num_map", "num_traffic_lights"):
-            if getattr(self, f) < 1:
-                raise ValueError(f"ObsConfig.{f} must be >= 1")
 
 
 @dataclass(frozen=True)
@@ -98,7 +73,7 @@ class MapContext:
         knn_xy: [B, 1, M + L, 2] float32, derived: the positions the nearest-token searches
             measure to (piece starts, +inf for padding pieces, then light poses).
         grid: derived: the valid pieces' ``PieceGrid`` for the nearest-piece search
-            (``tbsim_env.map_knn``); its tables are shared by the rows of a bank.
+            (``tbsim_env.observation.map_knn``); its tables are shared by the rows of a bank.
     """
 
     pose: torch.Tensor
@@ -258,24 +233,14 @@ def init_history(state: SimState, length: int) -> History:
 
 def _history_row(state: SimState) -> torch.Tensor:
     """[B, N, 1, 5] the state's current step as a ``History.data`` entry."""
-    row = [state.pose, state.speed.unsqueeze(-1), state.valid.unsqueeze(-1).float()]
-    return torch.cat(row, -1).unsqueeze(2)
+    b, n = state.valid.shape
+    valid = cast(state.valid, state.pose.dtype).view(b, n, 1)
+    return torch.cat([state.pose, state.speed.view(b, n, 1), valid], -1).view(b, n, 1, 5)
 
 
 def push_history(history: History, state: SimState) -> History:
     """Drop the oldest step and append the state's current one."""
     return History(data=torch.cat([history.data[:, :, 1:], _history_row(state)], dim=2))
-
-
-def _history_features(
-    x: torch.Tensor, y: torch.Tensor, yaw: torch.Tensor, speed: torch.Tensor, frame: torch.Tensor
-) -> torch.Tensor:
-    """[..., H, 5] history (x, y, yaw, speed [..., H]) in ``frame`` ([..., 3]): x, y, cos, sin,
-    speed."""
-    frame = frame.unsqueeze(-2)
-    lx, ly = to_local_xy(x, y, frame)
-    c, s = cos_sin(yaw - frame[..., 2])
-    return torch.stack([lx, ly, c, s, speed], -1)
 
 
 def agent_static_features(state: SimState) -> torch.Tensor:
@@ -299,7 +264,8 @@ class IndexedObservation:
 
     The same facts as ``observe``'s dense dict, without copying a token for every observer
     that sees it: every token is described once, in its own frame, and each observer holds
-    the indices of the tokens it sees with their relative poses (docs: README, observations).
+    the indices of the tokens it sees with their relative poses (docs/environments.md, "Indexed
+    layout").
     ``densify`` gathers the dense layout from it, so the two never disagree.
 
     Attributes:
@@ -318,6 +284,9 @@ class IndexedObservation:
         mask: [B, Q, Ka + Km + Kt] float32, 1 where a token is seen (0 for padding and tokens
             beyond the radius); ``index`` is 0 where it is 0.
         sizes: (Ka, Km, Kt).
+        grouped: ``agent_tokens`` has a row per observer and neighbour, grouped by observer:
+            observer q's own row ``q (1 + Ka)``, then its Ka neighbours' in order (what
+            ``index`` refers to, masked entries aside), so ``densify`` reads them as views.
     """
 
     agent_tokens: torch.Tensor
@@ -328,6 +297,7 @@ class IndexedObservation:
     pose: torch.Tensor
     mask: torch.Tensor
     sizes: tuple[int, int, int]
+    grouped: bool = False
 
 
 def agent_tokens(
@@ -339,6 +309,9 @@ def agent_tokens(
     """Agent tokens: each agent's history in its own current frame (zero where invalid), the
     history mask, its attributes (static features, speed).
 
+    The current frame and speed are the history's last entry, which is the state's current
+    pose and speed (``push_history`` and ``init_history`` write them there).
+
     Args:
         state: current state.
         history: ``History`` ending at the current step.
@@ -348,13 +321,18 @@ def agent_tokens(
     Returns:
         [B, N or S, H * 5 + H + 7] float32.
     """
-    data, pose, speed_now = history.data, state.pose, state.speed
+    data = history.data
     if slots is not None:
-        data, pose = gather_rows(data, slots), gather_rows(pose, slots)
-        static, speed_now = gather_rows(static, slots), gather_rows(speed_now, slots)
-    x, y, yaw, speed, valid = data.unbind(-1)  # [B, S, H], valid as 0 / 1
-    hist = _history_features(x, y, yaw, speed, pose) * valid.unsqueeze(-1)
-    return torch.cat([hist.flatten(-2), valid, static, speed_now[..., None]], -1)
+        data, static = gather_rows(data, slots), gather_rows(static, slots)
+    b, n, h = data.shape[:3]
+    now = data[:, :, -1:]  # [B, S, 1, 5]
+    yaw = now[..., 2:3]
+    c, s = cos_sin(-yaw)
+    xy = rotate_by(data[..., :2] - now[..., :2], c, s)  # [B, S, H, 2] in its own frame
+    turn = data[..., 2:3] - yaw
+    hist = torch.cat([xy, torch.cos(turn), torch.sin(turn), data[..., 3:4]], -1)
+    hist = (hist * data[..., 4:]).view(b, n, h * HISTORY_FEATURES)
+    return torch.cat([hist, data[..., 4], static, now[:, :, 0, 3:4]], -1)
 
 
 def _seen_tokens(
@@ -365,10 +343,11 @@ def _seen_tokens(
     cfg: ObsConfig,
     rows: torch.Tensor | None = None,
     columns: tuple[torch.Tensor, torch.Tensor] | None = None,
+    tl_invalid: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The tokens observers see, before masking: (index [B, Q, Ka + Km + Kt] int64 (agent
-    slots, map pieces, lights, nearest first), relative poses [B, Q, K, 3], mask [B, Q, K]
-    float32: 1 within the radius).
+    slots, map pieces, lights, nearest first), relative poses [B, Q, K, 3], seen [B, Q, K]
+    bool: within the radius).
 
     Args:
         observers: [B, Q] int64 agent slots; dist: [B, Q, C] their centre distances to every
@@ -378,39 +357,53 @@ def _seen_tokens(
         columns: optional (slot [B, Q or 1, C] int64, usable [B, Q or 1, C] bool): the slot of
             each column of ``dist`` and whether it holds a valid agent (the others are
             padding); the same neighbours as over every slot, ranked by slot.
+        tl_invalid: optional [B', 1, L] ``_lights_at(ctx, state.step)[0]`` (state rows).
     """
     n, ka = state.num_agents, cfg.num_agents
+    b, q = observers.shape
     me = gather_rows(state.pose, observers, rows)  # [B, Q, 3]
     if columns is None:
         valid = state.valid if rows is None else state.valid.index_select(0, rows)
         # Not another valid agent: invalid (valid <= itself is ~valid | itself), or itself.
-        itself = cached_arange(n, state.device) == observers.unsqueeze(-1)
-        a_idx, a_top = k_nearest(dist, valid.unsqueeze(1) <= itself, ka, cfg.agent_radius)
+        itself = cached_arange(n, state.device) == observers.view(b, q, 1)
+        a_idx, a_top = k_nearest(dist, valid.view(-1, 1, n) <= itself, ka, cfg.agent_radius)
     else:
         slot, usable = columns
-        skip = ~usable | (slot == observers.unsqueeze(-1))  # not another valid agent
+        skip = ~usable | (slot == observers.view(b, q, 1))  # not another valid agent
         a_idx, a_top = k_nearest(dist, skip, ka, cfg.agent_radius, ids=(slot.expand_as(dist), n))
-    pieces = ctx.knn_xy[:, :, : ctx.pose.shape[1]]  # [B, 1, M, 2]
-    m_idx, m_top = nearest_pieces(pieces, ctx.grid, me[..., :2], cfg.num_map, cfg.map_radius, rows)
-    light_xy = ctx.knn_xy[:, :, ctx.pose.shape[1] :]  # [B, 1, L, 2]
-    tl_invalid = _lights_at(ctx, state.step)[0]  # [B, 1, L]
+    m = ctx.pose.shape[1]
+    me_xy = me[..., :2]
+    if tl_invalid is None:
+        tl_invalid = _lights_at(ctx, state.step)[0]  # [B, 1, L]
     if rows is not None:
-        light_xy, tl_invalid = light_xy[rows], tl_invalid[rows]
-    tl_dist = planar_distances(light_xy, me)  # [B, Q, L]
+        tl_invalid = tl_invalid[rows]
+    if uses_index(ctx.grid, m, me_xy):
+        m_idx, m_top = nearest_pieces(ctx.knn_xy[:, :, :m], ctx.grid, me_xy, cfg.num_map,
+                                      cfg.map_radius, rows)  # fmt: skip
+        light_xy = ctx.knn_xy[:, :, m:] if rows is None else ctx.knn_xy[rows, :, m:]
+        tl_dist = planar_distances(light_xy, me)  # [B, Q, L]
+    else:  # pieces and lights measured at once
+        targets = ctx.knn_xy if rows is None else ctx.knn_xy.index_select(0, rows)
+        both = planar_distances(targets, me)  # [B, Q, M + L]
+        m_idx, m_top = k_nearest(both[..., :m], None, cfg.num_map, cfg.map_radius)
+        tl_dist = both[..., m:]
     t_idx, t_top = k_nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
-
-    sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
-    radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]
-    radii += (cfg.traffic_light_radius,) * sizes[2]
-    top = torch.cat([a_top, m_top, t_top], -1)  # [B, Q, Ka + Km + Kt]
+    radii = _radii(cfg)
+    seen = torch.cat([a_top, m_top, t_top], -1) <= const(radii, me)  # [B, Q, Ka + Km + Kt]
     poses = [
         gather_rows(state.pose, a_idx, rows),
         gather_rows(ctx.pose, m_idx, rows),
         gather_rows(ctx.tl_pose, t_idx, rows),
     ]
-    rel = relative_pose(me[:, :, None], torch.cat(poses, 2))
-    index = torch.cat([a_idx, m_idx, t_idx], -1)
-    return index, rel, (top <= const(radii, top)).float()
+    rel = relative_pose(me.view(b, q, 1, 3), torch.cat(poses, 2))
+    return torch.cat([a_idx, m_idx, t_idx], -1), rel, seen
+
+
+def _radii(cfg: ObsConfig) -> tuple[float, ...]:
+    """The radius of each of the Ka + Km + Kt token columns, m."""
+    sizes = (cfg.num_agents, cfg.num_map, cfg.num_traffic_lights)
+    radii = (cfg.agent_radius,) * sizes[0] + (cfg.map_radius,) * sizes[1]
+    return radii + (cfg.traffic_light_radius,) * sizes[2]
 
 
 def _seen_by_listed(
@@ -446,10 +439,13 @@ def _seen_by_listed(
 
 
 def _masked(
-    index: torch.Tensor, rel: torch.Tensor, mask: torch.Tensor
+    index: torch.Tensor, rel: torch.Tensor, seen: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``_seen_tokens``' output with index and pose zero where the mask is."""
-    return torch.where(mask > 0, index, torch.zeros_like(index)), rel * mask[..., None], mask
+    """``_seen_tokens``' output with index and pose zero where a token is not ``seen``, and
+    the mask as float32 0 / 1."""
+    mask = cast(seen, torch.float32)
+    index = torch.where(seen, index, scalar(0, index.dtype, index.device))
+    return index, rel * mask.view(*mask.shape, 1), mask
 
 
 def observe_indexed(
@@ -491,7 +487,8 @@ def observe_indexed(
         slots = valid_first(state.valid, observers.shape[1])
         pose = state.pose if slots is None else gather_rows(state.pose, slots)
         dist = (agent_distances(gather_rows(state.pose, observers), pose), slots)
-    q, ka = observers.shape[1], cfg.num_agents
+    (b, q), ka = observers.shape, cfg.num_agents
+    lights = _lights_at(ctx, state.step)
     compact = q * (1 + ka) < state.num_agents
     # Compact tokens follow the observers' rows: those are never listed.
     pairs = None if compact or observer_mask is None else listed(observer_mask)
@@ -503,29 +500,47 @@ def observe_indexed(
         columns = None
         if slots is not None:
             columns = (slots.unsqueeze(1), gather_rows(state.valid, slots).unsqueeze(1))
-        index, rel, mask = _seen_tokens(state, ctx, observers, near, cfg, columns=columns)
+        index, rel, seen = _seen_tokens(state, ctx, observers, near, cfg, None, columns, lights[0])
         if observer_mask is not None:
-            mask = mask * observer_mask.unsqueeze(-1)
+            seen = torch.bitwise_and(seen, observer_mask.view(b, q, 1))
         if compact:
             # Tokens of the seen slots only, each observer's own row and then its neighbours'.
-            slots = torch.cat([observers.unsqueeze(-1), index[..., :ka]], -1).flatten(1)
+            slots = torch.cat([observers.view(b, q, 1), index[..., :ka]], -1).view(b, -1)
             tokens = agent_tokens(state, history, static, slots)  # [B, Q (1 + Ka), F]
-            observers = cached_arange(q, state.device).expand_as(observers) * (1 + ka)
-            a_rows = observers.unsqueeze(-1) + 1 + cached_arange(ka, state.device)
-            index = torch.cat([a_rows, index[..., ka:]], -1)
+            ego, rows = _grouped_rows(q, ka, state.device)
+            observers = ego.expand(b, q)
+            index = torch.cat([rows.expand(b, q, ka), index[..., ka:]], -1)
         else:
             tokens = agent_tokens(state, history, static)
-        index, rel, mask = _masked(index, rel, mask)
+        index, rel, mask = _masked(index, rel, seen)
     return IndexedObservation(
         agent_tokens=tokens,
         map_tokens=ctx.tokens,
-        light_tokens=_lights_at(ctx, state.step)[1],
+        light_tokens=lights[1],
         ego=observers,
         index=index,
         pose=rel,
         mask=mask,
         sizes=(cfg.num_agents, cfg.num_map, cfg.num_traffic_lights),
+        grouped=compact,
     )
+
+
+_GROUPED_ROWS: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+
+
+def _grouped_rows(q: int, ka: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """(ego [Q], neighbours [Q, Ka]) int64 rows of compact agent tokens: observer j's own row
+    ``j (1 + Ka)``, then its Ka neighbours'; cached (built anew under ``torch.compile``)."""
+    key = (q, ka, device)
+    if not torch.compiler.is_compiling() and key in _GROUPED_ROWS:
+        return _GROUPED_ROWS[key]
+    with torch.inference_mode(False):
+        ego = torch.arange(q, device=device) * (1 + ka)
+        out = ego, ego[:, None] + 1 + torch.arange(ka, device=device)
+    if not torch.compiler.is_compiling():
+        _GROUPED_ROWS[key] = out
+    return out
 
 
 def densify(obs: IndexedObservation, piece_segments: int) -> dict[str, torch.Tensor]:
@@ -537,39 +552,75 @@ def densify(obs: IndexedObservation, piece_segments: int) -> dict[str, torch.Ten
 
     Returns:
         dict of float32 tensors [B, Q, ...] (masks as 0/1 float); keys as the module
-        docstring.
+        docstring. They are views of one [B, Q, D] tensor (``densify_flat``).
     """
-    h = (obs.agent_tokens.shape[-1] - ATTRIBUTE_FEATURES) // (HISTORY_FEATURES + 1)
-    widths = [h * HISTORY_FEATURES, h, ATTRIBUTE_FEATURES]
+    return dense_views(densify_flat(obs, piece_segments), obs.sizes, piece_segments)
+
+
+def densify_flat(obs: IndexedObservation, piece_segments: int) -> torch.Tensor:
+    """[B, Q, D] float32: ``densify``'s keys of each observer in one row (``dense_views``
+    reads them from it): its own token, its neighbours' tokens, the map pieces' and the
+    lights' (each zero where masked), the relative poses and the masks."""
+    b, q = obs.ego.shape
+    ka, km, kt = obs.sizes
     a_idx, m_idx, t_idx = obs.index.split_with_sizes(obs.sizes, -1)
-    a_f, m_f, t_f = obs.mask.split_with_sizes(obs.sizes, -1)
-    a_pose, m_pose, t_pose = obs.pose.split_with_sizes(obs.sizes, 2)
-    ego_hist, ego_valid, ego_attrs = gather_rows(obs.agent_tokens, obs.ego).split_with_sizes(
-        widths, -1
-    )
-    nb = gather_rows(obs.agent_tokens, a_idx) * a_f[..., None]
-    nb_hist, nb_valid, nb_attrs = nb.split_with_sizes(widths, -1)
-    p = piece_segments
-    m_nodes, m_nodes_mask, m_class = (
-        gather_rows(obs.map_tokens, m_idx) * m_f[..., None]
-    ).split_with_sizes([p * NODE_FEATURES, p, C.NUM_MAP_CLASSES], -1)
+    a_f, m_f, t_f = obs.mask.view(b, q, -1, 1).split_with_sizes(obs.sizes, 2)
+    if obs.grouped:  # rows of each observer in order: views
+        tokens = obs.agent_tokens.view(b, q, 1 + ka, -1)
+        ego, nb = tokens[:, :, 0], tokens[:, :, 1:] * a_f
+    else:
+        ego = gather_rows(obs.agent_tokens, obs.ego)
+        nb = gather_rows(obs.agent_tokens, a_idx) * a_f
+    parts = [
+        ego,
+        nb.view(b, q, -1),
+        (gather_rows(obs.map_tokens, m_idx) * m_f).view(b, q, -1),
+        (gather_rows(obs.light_tokens, t_idx) * t_f).view(b, q, -1),
+        obs.pose.view(b, q, -1),
+        obs.mask,
+    ]
+    return torch.cat(parts, -1)
+
+
+def dense_views(flat: Any, sizes: tuple[int, int, int], piece_segments: int) -> dict[str, Any]:
+    """``densify``'s dict of views of a ``densify_flat`` row ``flat`` [..., D] (a torch tensor
+    or a numpy array: the same slicing).
+
+    Args:
+        flat: [..., D] rows of ``densify_flat``.
+        sizes: (Ka, Km, Kt).
+        piece_segments: P.
+    """
+    ka, km, kt = sizes
+    k, p, lead = ka + km + kt, piece_segments, tuple(flat.shape[:-1])
+    f_m = p * NODE_FEATURES + p + C.NUM_MAP_CLASSES
+    f_t = C.NUM_TL_STATES
+    f_a = (flat.shape[-1] - km * f_m - kt * f_t - k * 4) // (1 + ka)
+    h = (f_a - ATTRIBUTE_FEATURES) // (HISTORY_FEATURES + 1)
+    hist, ends = h * HISTORY_FEATURES, h * (HISTORY_FEATURES + 1)
+    at = np.cumsum([0, f_a, ka * f_a, km * f_m, kt * f_t, k * 3, k])
+    ego = flat[..., at[0] : at[1]]
+    nb = flat[..., at[1] : at[2]].reshape(*lead, ka, f_a)
+    mp = flat[..., at[2] : at[3]].reshape(*lead, km, f_m)
+    pose = flat[..., at[4] : at[5]].reshape(*lead, k, 3)
+    mask = flat[..., at[5] : at[6]]
     return {
-        "ego_history": ego_hist.unflatten(-1, (h, HISTORY_FEATURES)),
-        "ego_history_mask": ego_valid,
-        "ego_attributes": ego_attrs,
-        "agents": nb_hist.unflatten(-1, (h, HISTORY_FEATURES)),
-        "agents_history_mask": nb_valid,
-        "agents_attributes": nb_attrs,
-        "agents_pose": a_pose,
-        "agents_mask": a_f,
-        "map": m_nodes.unflatten(-1, (p, NODE_FEATURES)),
-        "map_nodes_mask": m_nodes_mask,
-        "map_class": m_class,
-        "map_pose": m_pose,
-        "map_mask": m_f,
-        "traffic_lights": gather_rows(obs.light_tokens, t_idx) * t_f[..., None],
-        "traffic_lights_pose": t_pose,
-        "traffic_lights_mask": t_f,
+        "ego_history": ego[..., :hist].reshape(*lead, h, HISTORY_FEATURES),
+        "ego_history_mask": ego[..., hist:ends],
+        "ego_attributes": ego[..., ends:],
+        "agents": nb[..., :hist].reshape(*lead, ka, h, HISTORY_FEATURES),
+        "agents_history_mask": nb[..., hist:ends],
+        "agents_attributes": nb[..., ends:],
+        "agents_pose": pose[..., :ka, :],
+        "agents_mask": mask[..., :ka],
+        "map": mp[..., : p * NODE_FEATURES].reshape(*lead, km, p, NODE_FEATURES),
+        "map_nodes_mask": mp[..., p * NODE_FEATURES : p * (NODE_FEATURES + 1)],
+        "map_class": mp[..., p * (NODE_FEATURES + 1) :],
+        "map_pose": pose[..., ka : ka + km, :],
+        "map_mask": mask[..., ka : ka + km],
+        "traffic_lights": flat[..., at[3] : at[4]].reshape(*lead, kt, f_t),
+        "traffic_lights_pose": pose[..., ka + km :, :],
+        "traffic_lights_mask": mask[..., ka + km :],
     }
 
 
@@ -596,14 +647,16 @@ def _lights_at(ctx: MapContext, step: torch.Tensor) -> tuple[torch.Tensor, torch
     """The lights at ``step`` [B] (clamped to T - 1): (invalid [B, 1, L], tokens [B, L, F]).
 
     A batch of one on the CPU reads the step as a number (views instead of indexing), except
-    under ``torch.compile``, where reading it would break the graph.
+    under ``torch.compile``, where reading it would break the graph; otherwise one
+    ``index_select`` of each row's step from each step-major table.
     """
-    n_t = ctx.tl_tokens.shape[1]
-    if step.shape[0] == 1 and step.device.type == "cpu" and not torch.compiler.is_compiling():
-        t = min(int(step.item()), n_t - 1)
+    b, n_t = step.shape[0], ctx.tl_tokens.shape[1]
+    if b == 1 and step.device.type == "cpu" and not torch.compiler.is_compiling():
+        t = min(int(step), n_t - 1)
         return ctx.tl_invalid[:, t], ctx.tl_tokens[:, t]
-    at = (cached_arange(step.shape[0], step.device), step.clamp(max=n_t - 1))
-    return ctx.tl_invalid[at], ctx.tl_tokens[at]
+    at = step.clamp(max=n_t - 1) + row_offsets(b, n_t, 1, step.device)
+    invalid = ctx.tl_invalid.view(b * n_t, *ctx.tl_invalid.shape[2:]).index_select(0, at)
+    return invalid, ctx.tl_tokens.view(b * n_t, *ctx.tl_tokens.shape[2:]).index_select(0, at)
 
 
 _MAP_EYE = torch.eye(C.NUM_MAP_CLASSES)

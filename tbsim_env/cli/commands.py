@@ -1,5 +1,5 @@
 """The ``tbsim`` commands as typed configs: each class is one subcommand, its fields the
-options, its docstring the help (``tbsim_env.config_cli`` builds the parser from them).
+options, its docstring the help (``tbsim_env.core.config_cli`` builds the parser from them).
 
 Shared option groups are base classes: ``DataOptions`` (which scenarios), ``RolloutOptions``
 (which policy, how many rollouts) and ``ShardOptions`` (resumable shards, Ray).
@@ -9,8 +9,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from tbsim_env import constants as C
-from tbsim_env.config_cli import option
+from tbsim_env.core import constants as C
+from tbsim_env.core.config_cli import option
 
 
 def _all_policies() -> tuple[str, ...]:
@@ -249,6 +249,37 @@ class Average:
     out: str
 
 
+@dataclass(frozen=True, kw_only=True)
+class Benchmark(DataOptions, ShardOptions):
+    """Score a planner driving the SDC on real scenes against log-replayed, IDM and TrafficBots
+    traffic: nuPlan's closed-loop score and a PDM score (docs/benchmark.md).
+
+    Attributes:
+        planner: a built-in planner (expert, constant_velocity, idm) or PACKAGE.MODULE:NAME (a
+            planner, a factory of one, or a function of one PlannerInput).
+        traffic: comma-separated NPC policies, one run of every scene each.
+        controlled: which agents the planner drives.
+        seed: seed of the NPC sampling (the same seed gives the same JSON).
+        npc_checkpoint: weights of trafficbots traffic (default: shipped).
+        json: write the summary and every per-episode field to this JSON.
+        plot: PNG of the score distributions per traffic mode.
+        html: folder for viewer pages of the worst episodes, infractions marked.
+        worst: how many worst episodes get a page.
+        shard_size: scenarios per shard (default: one shard per input file).
+    """
+
+    planner: str
+    traffic: str = "log_replay,idm,trafficbots"
+    controlled: str = field(default="sdc", metadata=option(choices=("sdc", "tracks_to_predict")))
+    seed: int = 0
+    npc_checkpoint: str | None = None
+    json: str | None = None
+    plot: str | None = None
+    html: str | None = None
+    worst: int = 5
+    shard_size: int | None = None
+
+
 COMMANDS: dict[str, type] = {
     "demo": Demo,
     "info": Info,
@@ -259,5 +290,6 @@ COMMANDS: dict[str, type] = {
     "view": View,
     "preprocess": Preprocess,
     "average": Average,
+    "benchmark": Benchmark,
 }
 """Subcommand name -> its config (``train`` parses its own ``TrainConfig``)."""

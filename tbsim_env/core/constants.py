@@ -35,7 +35,7 @@ NUM_OBJECT_TYPES = 5
 
 # Unicycle limits per object type, indexed by ``ObjectType`` value.
 # Vehicle 5 m/s^2 and 1.5 rad/s, cyclist 6 and 3, pedestrian 7 and 7 (TrafficBots V1.5,
-# spec section 4). UNSET and OTHER get the vehicle limits (the spec has no slot for them).
+# docs/model.md §4). UNSET and OTHER get the vehicle limits (the spec has no slot for them).
 MAX_ACCEL = (5.0, 5.0, 7.0, 6.0, 5.0)
 """Maximum |acceleration| in m/s^2 per ``ObjectType``."""
 MAX_YAW_RATE = (1.5, 1.5, 7.0, 3.0, 1.5)
@@ -138,7 +138,7 @@ class SignalState(enum.IntEnum):
 
 # --------------------------------------------------------------------------- tokens
 class MapClass(enum.IntEnum):
-    """The 11 map-piece classes of TrafficBots V1.5 (spec section 1.2)."""
+    """The 11 map-piece classes of TrafficBots V1.5 (docs/model.md §1.2)."""
 
     FREEWAY = 0
     SURFACE_STREET = 1
@@ -157,7 +157,7 @@ NUM_MAP_CLASSES = 11
 
 
 class TLState(enum.IntEnum):
-    """The 5 traffic-light classes of TrafficBots V1.5 (spec section 1.3)."""
+    """The 5 traffic-light classes of TrafficBots V1.5 (docs/model.md §1.3)."""
 
     UNKNOWN = 0
     STOP = 1
@@ -176,7 +176,7 @@ MAP_PIECE_SEGMENTS = 20
 MAP_RESAMPLE_STRIDE = 2
 """Keep every 2nd WOMD polyline point (~0.5 m apart) to get ~1 m spacing."""
 
-# Default token limits (configuration, see ``tbsim_env.config``).
+# Default token limits (configuration, see ``tbsim_env.core.config``).
 DEFAULT_MAX_MAP_PIECES = 1024
 DEFAULT_MAX_TRAFFIC_LIGHTS = 128
 DEFAULT_MAX_AGENTS = 64
@@ -203,8 +203,8 @@ ratio): bucket edges fall between round distances (a lane width of 3.5 m, a node
 which generated maps have exactly and rounding would put on either side of an edge."""
 
 MAP_KNN_CLUSTER_SIZE = 16
-"""Map pieces per cluster at most (``tbsim_env.map_knn``: TrafficBots' agents search nearby
-clusters)."""
+"""Map pieces per cluster at most (``tbsim_env.observation.map_knn``: TrafficBots' agents
+search nearby clusters)."""
 MAP_KNN_CLUSTERS = 16
 """Clusters searched per observer for its nearest map pieces (256 candidates at most)."""
 MAP_KNN_MARGIN = 0.05
@@ -236,15 +236,19 @@ CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
 BANK_METRICS_CHUNK = 256
 """Scenarios per chunk when an episode bank computes its first metrics (their agent
 distances are [S, Q, N])."""
+DENSE_DYNAMICS_MAX_SLOTS = 4096
+"""``sim.core.step`` integrates every slot of a batch up to this many slots (B N): a few
+operations on [B, N] cost less than gathering the moving agents; beyond, with the movers known
+(the external agents when the NPCs replay the log), only those integrate."""
 VALID_FIRST_MIN_QUERIES = 8
 """Query agents per row from which their agent pairs are measured over each row's valid slots
 (``torch_utils.valid_first``) instead of every slot."""
 MALLOC_MMAP_THRESHOLD = 32 << 20
 """Bytes: glibc serves blocks up to this from the heap instead of fresh mmaps
-(``tbsim_env.malloc``; glibc's largest allowed value on 64-bit systems)."""
+(``tbsim_env.core.malloc``; glibc's largest allowed value on 64-bit systems)."""
 MALLOC_TRIM_THRESHOLD = 256 << 20
 """Bytes of free memory at the top of the heap that glibc keeps instead of returning it to
-the operating system (``tbsim_env.malloc``)."""
+the operating system (``tbsim_env.core.malloc``)."""
 
 # Off-road check of the environment (tbsim_env.sim.edge_grid).
 EDGE_GRID_CELL = 2.0

@@ -19,7 +19,7 @@ import ctypes
 import os
 import platform
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 _M_TRIM_THRESHOLD = -1
 _M_MMAP_THRESHOLD = -3

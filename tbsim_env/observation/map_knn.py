@@ -31,11 +31,17 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from tbsim_env import constants as C
-from tbsim_env.sim.edge_grid import cell_of, cell_slack, scene_edge_grid, stack_cell_lists
+from tbsim_env.core import constants as C
+from tbsim_env.core.torch_utils import gather_columns, gather_rows
+from tbsim_env.sim.edge_grid import (
+    cell_index,
+    cell_rows,
+    scene_edge_grid,
+    slack_at,
+    stack_cell_lists,
+)
 from tbsim_env.sim.knn import k_nearest, planar_distances, planar_distances_xy
 from tbsim_env.sim.state import CellLists, Shared
-from tbsim_env.torch_utils import gather_columns, gather_rows
 
 
 @dataclass(frozen=True)
@@ -89,7 +95,7 @@ def build_piece_grid(
         xy: [B, M, 2] float32 piece anchor points (as the search measures them).
         valid: [B, M] bool.
         cell, count, margin: cell size (m), pieces listed per cell, extent beyond the pieces
-            (m); constants in ``tbsim_env.constants``.
+            (m); constants in ``tbsim_env.core.constants``.
     """
     xy_np, valid_np = xy.detach().cpu().float().numpy(), valid.detach().cpu().numpy()
     b, m = valid_np.shape
@@ -120,15 +126,14 @@ def grid_candidates(
         rows: optional [B] int64: observer row b is in the map of grid row ``rows[b]``.
 
     Returns:
-        (candidates [B, Q, Cc] int64 piece indices (``M`` for the sentinel), their distances
+        (candidates [B, Q, Cc] int32 piece indices (``M`` for the sentinel), their distances
         [B, Q, Cc] m (+inf: the sentinel, invalid pieces), bound [B, Q] m: no piece left out
         is nearer; +inf when none is left).
     """
-    cell = cell_of(grid, me_xy, rows)  # [B, Q]
-    table = grid.row if rows is None else grid.row[rows]
-    cand = gather_rows(grid.cells.value, cell, table)  # [B, Q, Cc] int32
-    x, y = gather_columns(grid.xy.value, cand, table)
-    return cand.long(), planar_distances_xy(x, y, me_xy), cell_slack(grid, me_xy, cell, table)
+    flat = cell_index(grid, me_xy, rows)  # [B, Q]
+    cand = cell_rows(grid.cells, flat)  # [B, Q, Cc] int32
+    x, y = gather_columns(grid.xy.value, cand, grid.row if rows is None else grid.row[rows])
+    return cand, planar_distances_xy(x, y, me_xy), slack_at(grid, me_xy, flat)
 
 
 def _kd_leaves(xy: np.ndarray, ids: np.ndarray, size: int) -> list[np.ndarray]:
@@ -281,9 +286,7 @@ def nearest_pieces(
         rows: optional [B] int64 map row of each observer row (default: row b itself).
     """
     m = points.shape[2]
-    eager_cpu = points.device.type == "cpu" and not torch.compiler.is_compiling()
-    observers = me_xy.shape[0] * me_xy.shape[1]
-    if not eager_cpu or not _index_pays(index, m, observers, points.shape[0]):
+    if not uses_index(index, m, me_xy):
         return _all_pieces(points if rows is None else points[rows], me_xy, k, within)
     if isinstance(index, PieceGrid):
         cand, dist, bound = grid_candidates(index, me_xy, rows)
@@ -295,9 +298,17 @@ def nearest_pieces(
     if len(fail_rows):  # the few observers it does not hold for: every piece
         scene = fail_rows if rows is None else rows[fail_rows]
         full_idx, full_top = _all_pieces(points[scene], me_xy[fail_rows, cols, None], k, within)
-        idx = idx.index_put((fail_rows, cols), full_idx[:, 0])
+        idx = idx.long().index_put((fail_rows, cols), full_idx[:, 0])
         top = top.index_put((fail_rows, cols), full_top[:, 0])
     return idx, top
+
+
+def uses_index(index: PieceGrid | PieceClusters | None, m: int, me_xy: torch.Tensor) -> bool:
+    """Whether ``nearest_pieces`` of the observers ``me_xy`` [B, Q, 2] among ``m`` pieces
+    searches through ``index`` (else it measures every piece)."""
+    eager_cpu = me_xy.device.type == "cpu" and not torch.compiler.is_compiling()
+    observers = me_xy.shape[0] * me_xy.shape[1]
+    return eager_cpu and _index_pays(index, m, observers, me_xy.shape[0])
 
 
 def _index_pays(index: PieceGrid | PieceClusters | None, m: int, observers: int, maps: int) -> bool:
@@ -341,4 +352,5 @@ __all__ = [
     "nearest_pieces",
     "scene_clusters",
     "search_holds",
+    "uses_index",
 ]

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tbsim_env.constants import ObjectType
+from tbsim_env.core.constants import ObjectType
 from tbsim_env.data.loader import load_scenarios
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.metrics.wosac.config import (

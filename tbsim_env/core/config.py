@@ -1,16 +1,16 @@
-"""Frozen configuration dataclasses. Defaults come from ``tbsim_env.constants``."""
+"""Frozen configuration dataclasses. Defaults come from ``tbsim_env.core.constants``."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 
 @dataclass(frozen=True)
 class TokenConfig:
-    """Limits and options of the preprocessing into tokens (spec section 1).
+    """Limits and options of the preprocessing into tokens (docs/model.md §1).
 
     Attributes:
         max_map_pieces: map pieces kept per scenario (TrafficBots: 1024).
@@ -19,7 +19,7 @@ class TokenConfig:
             objects_of_interest are never dropped; if they alone exceed the limit, an error says so.
         piece_segments: maximum segments per map piece (20).
         resample_stride: keep every n-th raw polyline point (2, giving ~1 m spacing).
-        training: use the training-split agent filters (spec 1.6 b and e) and full-episode
+        training: use the training-split agent filters (docs/model.md §1.6 b and e) and full-episode
             relevant positions; False for validation/test behaviour (history only).
     """
 

@@ -2,7 +2,8 @@
 
 ``OBS_KEYS`` is the single declaration; the observation space (``observation_space``), the
 shapes (``observation_shapes``), the dense observation's keys (``observation.densify`` is
-tested against it) and the README's table (``observation_table``) are all built from it.
+tested against it) and the table of docs/environments.md (``observation_table``) are all built
+from it.
 
 Shapes use symbols that ``ObsConfig`` sets: H (history steps, the current one included), Ka,
 Km, Kt (nearest agents, map pieces and traffic lights observed) and P (nodes per map piece).
@@ -12,15 +13,43 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import gymnasium as gym
 import numpy as np
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
+from tbsim_env.core.config import TokenConfig
 
-if TYPE_CHECKING:
-    from tbsim_env.observation import ObsConfig
+
+@dataclass(frozen=True)
+class ObsConfig:
+    """Observation sizes.
+
+    Attributes:
+        history: steps of history per agent (current included).
+        num_agents: nearest other agents observed.
+        num_map: nearest map pieces observed.
+        num_traffic_lights: nearest traffic-light tokens observed.
+        agent_radius: m, agents farther away are masked.
+        map_radius: m, map pieces whose start is farther away are masked.
+        traffic_light_radius: m.
+        tokens: limits of the map / traffic-light preprocessing.
+    """
+
+    history: int = C.NUM_HISTORY
+    num_agents: int = C.DEFAULT_OBS_AGENTS
+    num_map: int = C.DEFAULT_OBS_MAP_PIECES
+    num_traffic_lights: int = C.DEFAULT_OBS_TRAFFIC_LIGHTS
+    agent_radius: float = 100.0
+    map_radius: float = 200.0
+    traffic_light_radius: float = 200.0
+    tokens: TokenConfig = TokenConfig()
+
+    def __post_init__(self) -> None:
+        for f in ("history", "num_agents", "num_map", "num_traffic_lights"):
+            if getattr(self, f) < 1:
+                raise ValueError(f"ObsConfig.{f} must be >= 1")
+
 
 NUM_TYPE_FEATURES = 4
 """Type one-hot over (vehicle, pedestrian, cyclist, other)."""
@@ -107,7 +136,7 @@ def observation_space(cfg: ObsConfig) -> gym.spaces.Dict:
 
 
 def observation_table() -> str:
-    """A Markdown table of ``OBS_KEYS`` (the README's)."""
+    """A Markdown table of ``OBS_KEYS`` (the one in docs/environments.md)."""
     rows = ["| key | shape | range | holds |", "|---|---|---|---|"]
     for k in OBS_KEYS:
         shape = ", ".join(str(d) for d in k.dims)

@@ -6,7 +6,7 @@ import contextlib
 
 import torch
 
-from tbsim_env import constants as C
+from tbsim_env.core import constants as C
 
 
 @contextlib.contextmanager
@@ -80,10 +80,34 @@ def const(value: float | tuple[float, ...], like: torch.Tensor) -> torch.Tensor 
     return out
 
 
+_SCALARS: dict[tuple, torch.Tensor] = {}
+
+
+def scalar(value: int | float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """A cached 0-dim tensor of ``value`` (any dtype, integers included; ``const`` keeps to
+    floats): an in-place operation with it records one ATen operation where a Python number
+    is first wrapped into a tensor (several). Never modify it. Under ``torch.compile`` a new
+    tensor (a graph holds its constants)."""
+    if torch.compiler.is_compiling():
+        return torch.tensor(value, dtype=dtype, device=device)
+    key = (value, dtype, torch.device(device))
+    out = _SCALARS.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _SCALARS[key] = torch.tensor(value, dtype=dtype, device=device)
+    return out
+
+
+def cast(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    """``x.to(dtype)`` (a new tensor, the same values; floats to integers truncate) as an
+    empty tensor and a ``copy_``: two ATen operations where ``to`` records four."""
+    return torch.empty(x.shape, dtype=dtype, device=x.device).copy_(x)
+
+
 _ROW_OFFSETS: dict[tuple[int, int, int, torch.device], torch.Tensor] = {}
 
 
-def _row_offsets(b: int, n: int, dim: int, device: torch.device) -> torch.Tensor:
+def row_offsets(b: int, n: int, dim: int, device: torch.device) -> torch.Tensor:
     """``arange(b) * n`` shaped [b, 1, ...] (``dim`` dims) to add to a row index, cached like
     ``cached_arange`` (and, like it, built anew under ``torch.compile``)."""
     shape = (b,) + (1,) * (dim - 1)
@@ -123,18 +147,27 @@ def gather_rows(
 
     The same values as the advanced indexing ``x[arange(B)[:, None, ...], index]``, by one
     ``index_select`` on the flattened rows: on the CPU a third of its cost (5 vs 15 us for
-    64 rows), which matters in a per-step path of a few hundred small operations.
+    64 rows), which matters in a per-step path of a few hundred small operations. Flattening
+    is a ``view`` where the layout allows it (one ATen operation; ``flatten`` and ``reshape``
+    record two).
     """
     b, n = x.shape[:2]
-    flat_x = x.flatten(0, 1)
+    flat_x = _flat(x, b * n)
     if rows is not None:
         offsets = (rows * n).view(-1, *([1] * (index.dim() - 1)))
-        flat = (index + offsets).reshape(-1)
+        flat = _flat(index + offsets, -1)
     elif b == 1:
-        flat = index.reshape(-1)
+        flat = _flat(index, -1)
     else:
-        flat = (index + _row_offsets(b, n, index.dim(), x.device)).reshape(-1)
+        flat = _flat(index + row_offsets(b, n, index.dim(), x.device), -1)
     return flat_x.index_select(0, flat).view(*index.shape, *x.shape[2:])
+
+
+def _flat(x: torch.Tensor, rows: int) -> torch.Tensor:
+    """``x`` as [rows, trailing dims after the first two] (``rows`` -1: ``x`` flattened to
+    one dim): a view where ``x`` is contiguous, else a copy (``reshape``)."""
+    shape = (rows,) if rows == -1 else (rows, *x.shape[2:])
+    return x.view(shape) if x.is_contiguous() else x.reshape(shape)
 
 
 def valid_order(valid: torch.Tensor) -> torch.Tensor:
@@ -171,3 +204,16 @@ def listed(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     if mask.device.type != "cpu" or torch.compiler.is_compiling() or bool(mask.all()):
         return None
     return mask.nonzero(as_tuple=True)
+
+
+def aten_op_count(fn, calls: int = 1) -> float:
+    """ATen operations per call of ``fn()`` over ``calls`` calls, as the torch profiler records
+    them (every ``aten::`` event, nested ones included: a view, a copy inside ``.to``). The
+    count of a step does not depend on the machine, while its time per operation does; a
+    step of many small operations costs about its count times one tiny operation."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        for _ in range(calls):
+            fn()
+    return sum(e.name.startswith("aten::") for e in prof.events()) / calls

@@ -1,0 +1,308 @@
+"""Leaders along the route (torch, per step): for every agent, the most constraining agent
+whose box reaches into the corridor ahead of it, of any controller (external, learned,
+log-replayed, IDM), crossing agents included.
+
+The route ahead (``IDMConfig.horizon`` metres from the agent's progress) is cut into
+``CHORDS`` straight pieces; the corridor is the agent's width plus ``lateral_margin`` on each
+side of them. Agent j is in agent i's corridor when j's centre lies along a chord (0 to its
+length) and j's box reaches within the corridor across it (its half extent across the chord,
+from its length, width and heading, counts). The gap is the bumper gap along the route, the
+leader's speed its velocity along the chord (0 for oncoming agents).
+
+Cost: the pairs are first narrowed to the agents within a disc around the route's midpoint
+ahead (which holds every point of the corridor), over each row's valid slots only; the chord
+test then runs on the surviving pairs alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from policies.idm.params import (
+    CHORDS,
+    CROSSING_SIN,
+    GHOST_TIMES,
+    MOVING_SPEED,
+    YIELD_SLACK,
+    IDMConfig,
+)
+from policies.idm.tracking import points_at
+from tbsim_env.core.torch_utils import valid_order
+from tbsim_env.sim.idm import IDMTerms, crowding
+
+
+@dataclass(frozen=True)
+class Corridor:
+    """The route ahead of each of L agents as ``CHORDS`` straight pieces.
+
+    Attributes:
+        origin: [L, M, 2] m, chord starts.
+        direction: [L, M, 2] unit chord directions.
+        length: [L, M] m.
+        offset: [L, M] m, arc length from the agent's progress to each chord's start.
+    """
+
+    origin: torch.Tensor
+    direction: torch.Tensor
+    length: torch.Tensor
+    offset: torch.Tensor
+
+
+def corridor(
+    route: torch.Tensor, agent: torch.Tensor, progress: torch.Tensor, horizon: torch.Tensor
+) -> Corridor:
+    """The chords of the next ``horizon`` metres of the agents' routes.
+
+    Args:
+        route: [B, N, P, 2] m; agent: [L] int64 flat slot indices; progress: [L] m;
+        horizon: [L] m.
+    """
+    steps = horizon.unsqueeze(-1) * torch.linspace(0.0, 1.0, CHORDS + 1, device=route.device)
+    pts = points_at(route, agent, progress.unsqueeze(-1) + steps)  # [L, M + 1, 2]
+    vec = pts[:, 1:] - pts[:, :-1]
+    length = torch.hypot(vec[..., 0], vec[..., 1])
+    direction = vec / length.clamp_min(1e-6).unsqueeze(-1)
+    return Corridor(pts[:, :-1], direction, length, steps[:, :-1])
+
+
+def candidate_pairs(
+    xy: torch.Tensor,
+    valid: torch.Tensor,
+    query: torch.Tensor,
+    disc: torch.Tensor,
+    reach: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Pairs (query agent i, valid agent j != i) with j's centre within i's disc widened by
+    j's reach.
+
+    Args:
+        xy: [B, N, 2] m; valid: [B, N] bool; query: [B, N] bool (a subset of ``valid``).
+        disc: [B, N, 3] (centre x, centre y, radius) m of each query agent.
+        reach: [B, N] m, how far each agent's tested boxes lie from its centre.
+
+    Returns:
+        (row, i, j), three [Q] int64 tensors of batch rows and agent slots.
+    """
+    if valid.device.type == "cpu":  # each row's valid (asking) slots first
+        cols, asks = valid_order(valid), valid_order(query)
+    else:  # every slot (a GPU: no host sync for the counts)
+        cols = torch.arange(valid.shape[1], device=valid.device).expand_as(valid)
+        asks = cols
+    take = lambda x, c: x.gather(1, c)  # noqa: E731  [B, C]
+    x, y, ok, reach = (take(v, cols) for v in (xy[..., 0], xy[..., 1], valid, reach))
+    q = take(query, asks)
+    cx, cy, r = (take(disc[..., k], asks) for k in range(3))
+    dx = x.unsqueeze(1) - cx.unsqueeze(2)  # [B, Ci, Cj]
+    dy = y.unsqueeze(1) - cy.unsqueeze(2)
+    r = r.unsqueeze(2) + reach.unsqueeze(1)
+    near = (dx * dx + dy * dy < r * r) & ok.unsqueeze(1) & q.unsqueeze(2)
+    row, qi, cj = near.nonzero(as_tuple=True)
+    i, j = asks[row, qi], cols[row, cj]
+    keep = i != j
+    return row[keep], i[keep], j[keep]
+
+
+@dataclass(frozen=True)
+class Agents:
+    """What the corridor test reads of every agent slot.
+
+    Attributes:
+        pose: [B, N, 3] (x m, y m, yaw rad).
+        speed: [B, N] m/s.
+        size: [B, N, 2] (length, width) m.
+    """
+
+    pose: torch.Tensor
+    speed: torch.Tensor
+    size: torch.Tensor
+
+
+def _others(agents: Agents, fj: torch.Tensor) -> torch.Tensor:
+    """[Q, 7] (x, y, cos yaw, sin yaw, speed, length, width) of the slots ``fj`` [Q]."""
+    yaw = agents.pose[..., 2]
+    cols = [*agents.pose[..., :2].unbind(-1), yaw.cos(), yaw.sin(), agents.speed]
+    return torch.stack([*cols, *agents.size.unbind(-1)], -1).flatten(0, 1)[fj]
+
+
+def _near_corridor(chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor) -> torch.Tensor:
+    """[Q] bool: j's path over the last ghost time comes near i's corridor: within one of
+    the discs around the corridor's quarters (chords 2k, 2k + 1 lie within their length of
+    the start of chord 2k + 1) widened by the corridor's and j's half sizes.
+
+    Args:
+        chords: [Q, M, 6] i's chords (origin x, y, direction x, y, length, offset).
+        other: [Q, 7] j (``_others``).
+        mine: [Q, 3] i's (length, half corridor width, speed).
+    """
+    centre = chords[:, 1::2, :2]  # [Q, M / 2, 2]
+    radius = chords[:, 0::2, 4] + mine[:, 1:2]
+    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))
+    travel = vj * GHOST_TIMES[-1]  # j's centre moves along (cj, sj) by this
+    rx, ry = centre[..., 0] - xj, centre[..., 1] - yj
+    t = (rx * cj + ry * sj).clamp(min=torch.zeros_like(travel), max=travel.clamp_min(0.0))
+    dx, dy = rx - t * cj, ry - t * sj
+    reach = radius + 0.5 * torch.sqrt(lj * lj + wj * wj)
+    return (dx * dx + dy * dy < reach * reach).any(-1)
+
+
+def _chord_gaps(
+    chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor, ghosts: tuple[float, ...]
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The corridor test of j's box now and at the ``ghosts`` times ahead (see ``pair_gaps``).
+
+    Args:
+        chords, other, mine: as ``_near_corridor`` ([Q, M, 6], [Q, 7], [Q, 3]).
+        ghosts: s, the times ahead tested (may be empty).
+
+    Returns:
+        (gap now [Q] m, lead speed [Q] m/s, gap to the crossing yielded to [Q] m).
+    """
+    ox, oy, ux, uy, length, offset = (c.unsqueeze(1) for c in chords.unbind(-1))  # [Q, 1, M]
+    xj, yj, cj, sj, vj, lj, wj = (c.view(-1, 1, 1) for c in other.unbind(-1))
+    mine = mine.unsqueeze(-1)  # [Q, 3, 1]
+    tau = torch.tensor((0.0, *ghosts), device=xj.device).view(1, -1, 1)  # [1, G, 1]
+    dx = xj + (vj * cj) * tau - ox  # [Q, G, M]
+    dy = yj + (vj * sj) * tau - oy
+    along, across = dx * ux + dy * uy, dy * ux - dx * uy
+    cos_rel, sin_rel = (cj * ux + sj * uy), (sj * ux - cj * uy)  # [Q, 1, M]
+    half_along = 0.5 * (lj * cos_rel.abs() + wj * sin_rel.abs())
+    half_across = 0.5 * (lj * sin_rel.abs() + wj * cos_rel.abs())
+    inside = (along >= 0) & (along < length) & (across.abs() < mine[:, 1:2] + half_across)
+    gap = torch.where(inside, offset + along - half_along - 0.5 * mine[:, 0:1], float("inf"))
+    now, m = gap[:, 0].min(-1)
+    lead = (vj[:, 0, 0] * cos_rel[:, 0].gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
+    if not ghosts:
+        return now, lead, torch.full_like(now, float("inf"))
+    crossing = sin_rel.abs() > CROSSING_SIN
+    late = gap[:, 1:] >= mine[:, 2:3].clamp_min(1.0) * (tau[:, 1:] - YIELD_SLACK)
+    ghost = torch.where(crossing & late, gap[:, 1:], float("inf")).flatten(1).amin(-1)
+    return now, lead, ghost
+
+
+def pair_gaps(
+    pairs: tuple[torch.Tensor, torch.Tensor],
+    agents: Agents,
+    lanes: Corridor,
+    own: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bumper gap along i's route to j and j's speed along it, and the gap to where j will
+    cross i's route, of every pair.
+
+    Besides j's box now, its boxes ``GHOST_TIMES`` ahead (constant velocity) are tested when
+    j moves and crosses i's route (more than 30 deg off the route's direction,
+    ``CROSSING_SIN``): such a box in the corridor is a standing obstacle for i unless i would
+    be past it well before j (``YIELD_SLACK``), so that i yields to crossing traffic instead
+    of meeting it. Pairs whose j comes nowhere near the corridor are left out first.
+
+    Args:
+        pairs: (i [Q] row of the L agents, j [Q] flat slot index b * N + n).
+        agents: every slot's pose, speed and size.
+        lanes: the L agents' corridors.
+        own: [L, 3] (length m, half the corridor's width m, speed m/s) of the L agents.
+
+    Returns:
+        (gap [Q] m, +inf where j is not in i's corridor; lead speed [Q] m/s, >= 0; gap [Q] m
+        to j's crossing, +inf where none is yielded to).
+    """
+    li, fj = pairs
+    other = _others(agents, fj)  # [Q, 7]
+    table = torch.cat(
+        [lanes.origin, lanes.direction, lanes.length.unsqueeze(-1), lanes.offset.unsqueeze(-1)], -1
+    )
+    chords, mine = table[li], own[li]  # [Q, M, 6], [Q, 3]
+    gap = torch.full_like(other[:, 0], float("inf"))
+    lead, ghost = torch.zeros_like(gap), gap.clone()
+    near = _near_corridor(chords, other, mine)
+    moving = other[:, 4].abs() > MOVING_SPEED
+    for part, times in ((near & ~moving, ()), (near & moving, GHOST_TIMES)):
+        k = part.nonzero()[:, 0]
+        if k.numel():
+            out = _chord_gaps(chords[k], other[k], mine[k], times)
+            for dst, src in zip((gap, lead, ghost), out):
+                dst[k] = src
+    return gap, lead, ghost
+
+
+@dataclass(frozen=True)
+class Leader:
+    """The most constraining leader of each of L followers.
+
+    Attributes:
+        gap: [L] m bumper gap along the route to the leader (+inf: none).
+        speed: [L] m/s, the leader's speed along the route.
+        crossing: [L] m to where a crossing agent will be that the follower yields to
+            (+inf: none).
+    """
+
+    gap: torch.Tensor
+    speed: torch.Tensor
+    crossing: torch.Tensor
+
+
+def find_leaders(
+    agents: Agents,
+    followers: tuple[torch.Tensor, torch.Tensor],
+    lanes: Corridor,
+    terms: IDMTerms,
+    cfg: IDMConfig,
+) -> Leader:
+    """Each follower's most constraining leader: of the agents in its corridor, the one whose
+    IDM ``crowding`` (s* / s)^2 is largest; and the nearest crossing it yields to.
+
+    Args:
+        agents: every slot's pose, speed and size (leaders: the slots with ``valid``).
+        followers: (valid [B, N] bool: the slots that can lead; agent [L] int64 flat slot
+            indices of the agents that look for leaders, valid ones).
+        lanes: the L followers' corridors (``corridor``).
+        terms: the L followers' IDM parameters ([L] tensors or floats).
+        cfg: the corridor's margin and the smallest gap.
+    """
+    valid, agent = followers
+    b, n = valid.shape
+    flat_size = agents.size.flatten(0, 1)
+    half_width = 0.5 * flat_size[agent, 1] + cfg.lateral_margin
+    # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead; j's
+    # boxes (now and ahead in time) within its half diagonal plus its travel of its centre.
+    horizon = lanes.offset[:, -1] * CHORDS / (CHORDS - 1)
+    radius = 0.5 * horizon + half_width + 0.5
+    disc = torch.zeros(b * n, 3, device=valid.device, dtype=agents.speed.dtype)
+    disc[agent] = torch.cat([lanes.origin[:, CHORDS // 2], radius.unsqueeze(-1)], -1)
+    asks = torch.zeros(b * n, dtype=torch.bool, device=valid.device)
+    asks[agent] = True
+    size = agents.size
+    reach = 0.5 * torch.linalg.vector_norm(size, dim=-1) + agents.speed.abs() * GHOST_TIMES[-1]
+    discs = (asks.view(b, n), disc.view(b, n, 3), reach)
+    row, i, j = candidate_pairs(agents.pose[..., :2], valid, *discs)
+    index = torch.full((b * n,), -1, dtype=torch.long, device=valid.device)
+    index[agent] = torch.arange(agent.shape[0], device=valid.device)
+    li = index[row * n + i]
+    speed = agents.speed.flatten()[agent]
+    own = torch.stack([flat_size[agent, 0], half_width, speed], -1)
+    gap, lead, ghost = pair_gaps((li, row * n + j), agents, lanes, own)
+    pick = lambda x: x[li] if isinstance(x, torch.Tensor) else x  # noqa: E731
+    pair_terms = IDMTerms(*(pick(getattr(terms, f)) for f in _TERM_FIELDS))
+    ratio = crowding(speed[li], gap, lead, pair_terms, cfg.min_gap)
+    worst = torch.full_like(speed, -1.0).scatter_reduce(0, li, ratio, "amax")
+    top = (ratio >= worst[li]) & torch.isfinite(gap)
+    inf = torch.full_like(speed, float("inf"))
+    return Leader(
+        gap=inf.index_put((li[top],), gap[top]),
+        speed=torch.zeros_like(speed).index_put((li[top],), lead[top]),
+        crossing=inf.scatter_reduce(0, li, ghost, "amin"),
+    )
+
+
+_TERM_FIELDS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "exponent")
+
+
+__all__ = [
+    "Agents",
+    "Corridor",
+    "Leader",
+    "candidate_pairs",
+    "corridor",
+    "find_leaders",
+    "pair_gaps",
+]

@@ -1,0 +1,346 @@
+"""``IDMPolicy``: rule-based reactive traffic as a ``Policy`` (see ``policies/idm/__init__``).
+
+Every step, each agent with a route (all agent slots at once, no loop over agents or steps):
+
+1. finds its progress along its route (``tracking.advance_progress``);
+2. takes the IDM acceleration (``tbsim_env.sim.idm``) toward its desired speed, capped in
+   bends, against the most constraining of: the leader in its corridor (``leaders``), the
+   stop line of a red or yellow signal, of a stop sign before its full stop and a clear
+   junction, of a crosswalk with a pedestrian on it (``yielding``), and the end of a route
+   that cannot go on;
+3. steers with pure pursuit (``tracking.pursuit_curvature``): yaw rate = curvature x speed.
+
+Actions are the unicycle's (acceleration m/s^2, yaw rate rad/s); the simulator clips them to
+the type's limits, so every agent obeys one dynamics.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from policies.idm.lanes import LaneGraph, lane_graph
+from policies.idm.leaders import Agents, Leader, corridor, find_leaders
+from policies.idm.params import (
+    CROSSWALK_VERTICES,
+    HORIZON_BASE,
+    HORIZON_TIME,
+    LEADER_PERIOD,
+    ROUTE_SPACING,
+    SCENE_CROSSWALKS,
+    IDMConfig,
+)
+from policies.idm.plan import PARAM_FIELDS, ScenePlan, scene_plan
+from policies.idm.tracking import advance_progress, pursuit_curvature
+from policies.idm.yielding import (
+    crosswalk_distance,
+    crosswalks_occupied,
+    junction_clear,
+    line_points,
+    sign_distance,
+    sign_progress,
+    signal_distance,
+)
+from tbsim_env.core.constants import DT, ObjectType
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.sim.idm import MIN_DESIRED_SPEED, IDMTerms, acceleration, crowding
+from tbsim_env.sim.state import SimState
+
+_TERMS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "exponent")
+BRANCH_VARIANTS = 4
+"""Route variants per scene: a rollout draws one (its random fork branches), so that a scene's
+routes are built at most this many times however many rollouts start from it."""
+CACHE_SCENES = 256
+"""Scene plans kept (least recently used dropped first)."""
+
+
+@dataclass(frozen=True)
+class IDMState:
+    """Per-rollout memory of ``IDMPolicy``: B rows, N agent slots, in the state's frame.
+
+    Attributes:
+        route: [B, N, P, 2] float32 route points, m, ``ROUTE_SPACING`` apart.
+        speed_cap: [B, N, P] float32 m/s the route's bends allow.
+        end: [B, N] float32 arc length (m) where the agent stops (+inf: open route).
+        progress: [B, N] float32 m, the agent's arc length along its route.
+        desired_speed: [B, N] float32 m/s (drawn per rollout).
+        params: [B, N, F] float32, the ``plan.PARAM_FIELDS`` of each agent (time headway
+            drawn per rollout).
+        obeys: [B, N] bool, the agent stops for signals, stop signs and crosswalks.
+        signal_arc: [B, N, Ks] float32 m (+inf padding); signal_row: [B, N, Ks] int64 row of
+            ``SimState.signals`` (-1 padding).
+        sign_arc: [B, N, Kt] float32 m (+inf padding).
+        sign_stopped: [B, N, Kt] bool, the full stop at that line is made.
+        sign_cleared: [B, N, Kt] bool, and the junction was clear after it: the agent goes.
+        lead_gap: [B, N] float32 m, bumper gap to the leader of the last search, carried on
+            since (+inf: none); lead_speed: [B, N] float32 m/s, that leader's speed.
+        yield_gap: [B, N] float32 m to the crossing yielded to (+inf: none), likewise.
+        lead_known: [B, N] bool, the agent has searched for leaders since the start.
+        crosswalk_arc: [B, N, Kc] float32 m (+inf padding); crosswalk_row: [B, N, Kc] int64
+            row of ``crosswalks`` (-1 padding).
+        crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
+        valid: [B, N] bool, the slot has a route (agents that never appear have none).
+    """
+
+    route: torch.Tensor
+    speed_cap: torch.Tensor
+    end: torch.Tensor
+    progress: torch.Tensor
+    desired_speed: torch.Tensor
+    params: torch.Tensor
+    obeys: torch.Tensor
+    signal_arc: torch.Tensor
+    signal_row: torch.Tensor
+    sign_arc: torch.Tensor
+    sign_stopped: torch.Tensor
+    sign_cleared: torch.Tensor
+    lead_gap: torch.Tensor
+    lead_speed: torch.Tensor
+    yield_gap: torch.Tensor
+    lead_known: torch.Tensor
+    crosswalk_arc: torch.Tensor
+    crosswalk_row: torch.Tensor
+    crosswalks: torch.Tensor
+    valid: torch.Tensor
+
+
+def _pad(x: np.ndarray, n: int, value: float = 0.0) -> np.ndarray:
+    """``x`` [A, ...] padded with ``value`` to [n, ...]."""
+    return np.concatenate([x, np.full((n - len(x), *x.shape[1:]), value, x.dtype)])
+
+
+def _row(plan: ScenePlan, origin: np.ndarray, n: int) -> dict[str, np.ndarray]:
+    """One batch row's fields (numpy, state frame, N slots) of a scene plan."""
+    r, e = plan.routes, plan.events
+    cw = np.zeros((SCENE_CROSSWALKS, CROSSWALK_VERTICES, 2))
+    cw[: len(plan.crosswalks)] = plan.crosswalks - origin
+    return {
+        "route": _pad(r.points - origin, n).astype(np.float32),
+        "speed_cap": _pad(plan.speed_cap, n).astype(np.float32),
+        "end": _pad(r.end, n, np.inf).astype(np.float32),
+        "desired_speed": _pad(plan.desired_speed, n).astype(np.float32),
+        "params": _pad(plan.params, n, 1.0).astype(np.float32),
+        "obeys": _pad(plan.obeys, n, False),
+        "signal_arc": _pad(e.signal_arc, n, np.inf).astype(np.float32),
+        "signal_row": _pad(e.signal_row, n, -1),
+        "sign_arc": _pad(e.sign_arc, n, np.inf).astype(np.float32),
+        "crosswalk_arc": _pad(e.crosswalk_arc, n, np.inf).astype(np.float32),
+        "crosswalk_row": _pad(e.crosswalk_row, n, -1),
+        "crosswalks": cw.astype(np.float32),
+        "valid": _pad(r.valid, n, False),
+    }
+
+
+class IDMPolicy:
+    """Rule-based reactive traffic: IDM along a route, pure-pursuit steering (see the module
+    docstring and ``policies/idm/__init__``).
+
+    Args:
+        route: ``"log"`` or ``"lanes"`` (overrides ``config.route`` when given).
+        config: the settings (``IDMConfig``); keyword arguments replace its fields, e.g.
+            ``IDMPolicy(route="lanes", vehicle={"time_headway": 1.5})``.
+
+    Raises:
+        ValueError: a parameter out of range (named in the message).
+    """
+
+    name = "idm"
+    exact_replay = False
+
+    def __init__(self, route: str | None = None, config: IDMConfig | None = None, **fields):
+        cfg = config or IDMConfig()
+        if route is not None:
+            fields["route"] = route
+        unknown = set(fields) - {f.name for f in dataclasses.fields(IDMConfig)}
+        if unknown:
+            raise ValueError(f"unknown IDM setting(s) {sorted(unknown)}")
+        self.config = dataclasses.replace(cfg, **fields) if fields else cfg
+        self._graphs: OrderedDict[int, tuple[Scenario, LaneGraph]] = OrderedDict()
+        self._plans: OrderedDict[tuple, tuple[Scenario, ScenePlan]] = OrderedDict()
+
+    # ------------------------------------------------------------------ planning
+    def lane_graph(self, scenario: Scenario) -> LaneGraph:
+        """The scenario's lane graph (built once per scenario object)."""
+        key = id(scenario)
+        hit = self._graphs.get(key)
+        if hit is None or hit[0] is not scenario:
+            hit = self._graphs[key] = (scenario, lane_graph(scenario.road_map))
+        self._graphs.move_to_end(key)
+        while len(self._graphs) > CACHE_SCENES:
+            self._graphs.popitem(last=False)
+        return hit[1]
+
+    def plan(self, scenario: Scenario, start: int, variant: int = 0) -> ScenePlan:
+        """The scene plan from step ``start`` with branch variant ``variant`` (cached)."""
+        key = (id(scenario), int(start), int(variant))
+        hit = self._plans.get(key)
+        if hit is None or hit[0] is not scenario:
+            rng = np.random.default_rng([int(variant), int(start)])
+            built = scene_plan(scenario, self.lane_graph(scenario), start, self.config, rng)
+            hit = self._plans[key] = (scenario, built)
+        self._plans.move_to_end(key)
+        while len(self._plans) > CACHE_SCENES:
+            self._plans.popitem(last=False)
+        return hit[1]
+
+    def initial_state(
+        self, state: SimState, scenarios: Sequence[Scenario], generator: torch.Generator
+    ) -> IDMState:
+        """Routes and per-agent parameters of every row (desired speed and time headway drawn
+        from ``generator``)."""
+        b, n = state.batch_size, state.num_agents
+        variant = torch.randint(BRANCH_VARIANTS, (b,), generator=generator).tolist()
+        steps = state.step.tolist()
+        origins = state.origin.cpu().numpy()
+        rows = [
+            _row(self.plan(sc, steps[k], variant[k]), origins[k], n)
+            for k, sc in enumerate(scenarios)
+        ]
+        dev = state.device
+        f = {k: torch.from_numpy(np.stack([r[k] for r in rows])).to(dev) for k in rows[0]}
+        u = torch.rand(2, b, n, generator=generator).to(dev) * 2.0 - 1.0
+        cfg = self.config
+        f["desired_speed"] = f["desired_speed"] * (1.0 + cfg.speed_spread * u[0])
+        headway = PARAM_FIELDS.index("time_headway")
+        f["params"][..., headway] *= 1.0 + cfg.headway_spread * u[1]
+        stops = f["sign_arc"].shape
+        inf = torch.full((b, n), float("inf"), device=dev)
+        return IDMState(
+            progress=torch.zeros(b, n, device=dev),
+            sign_stopped=torch.zeros(stops, dtype=torch.bool, device=dev),
+            sign_cleared=torch.zeros(stops, dtype=torch.bool, device=dev),
+            lead_gap=inf,
+            lead_speed=torch.zeros(b, n, device=dev),
+            yield_gap=inf.clone(),
+            lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
+            **f,
+        )
+
+    # ------------------------------------------------------------------ acting
+    def act(
+        self, state: SimState, policy_state: IDMState, generator: torch.Generator
+    ) -> tuple[torch.Tensor, IDMState]:
+        """Actions [B, N, 2] (acceleration m/s^2, yaw rate rad/s) of every slot (zero where the
+        slot has no route or is absent) and the next policy state."""
+        del generator  # everything random was drawn in ``initial_state``
+        ps, cfg = policy_state, self.config
+        b, n = state.batch_size, state.num_agents
+        agent = (state.valid & ps.valid).flatten().nonzero()[:, 0]  # [L] the present agents
+        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
+        progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])
+        a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
+        terms = IDMTerms(a, decel, headway, s0, delta)
+        stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
+        crowd = crowding(speed, stand + s0, torch.zeros_like(speed), terms, cfg.min_gap)
+        desired = take(ps.desired_speed)
+        follow = desired >= MIN_DESIRED_SPEED  # held agents need no leader
+        leader, known = self._leaders(state, ps, agent, (progress, follow), terms)
+        zero = torch.zeros_like(speed)
+        crowd = torch.maximum(crowd, crowding(speed, leader.gap, leader.speed, terms, cfg.min_gap))
+        crowd = torch.maximum(crowd, crowding(speed, leader.crossing, zero, terms, cfg.min_gap))
+        cap_index = (progress / ROUTE_SPACING).round().long().clamp(0, ps.speed_cap.shape[-1] - 1)
+        cap = ps.speed_cap.view(-1).index_select(0, agent * ps.speed_cap.shape[-1] + cap_index)
+        acc = acceleration(speed, torch.minimum(desired, cap), crowd, terms)
+        acc = torch.where(follow, acc, -speed / DT)
+        acc = torch.maximum(torch.minimum(acc, a), -max_decel)
+        acc = torch.maximum(acc, -speed / DT)  # brake to a stop, never into reverse
+        lookahead = look0 + look_t * speed.clamp_min(0.0)
+        curvature = pursuit_curvature(ps.route, agent, progress, pose, lookahead)
+        yaw_rate = curvature * (speed + 0.5 * DT * acc).clamp_min(0.0)
+        action = torch.zeros(b * n, 2, dtype=pose.dtype, device=pose.device)
+        action = action.index_copy(0, agent, torch.stack([acc, yaw_rate], -1)).view(b, n, 2)
+        put = lambda x, v: x.flatten(0, 1).index_copy(0, agent, v).view_as(x)  # noqa: E731
+        nxt = dataclasses.replace(
+            ps,
+            progress=put(ps.progress, progress),
+            sign_stopped=put(ps.sign_stopped, stopped),
+            sign_cleared=put(ps.sign_cleared, cleared),
+            lead_gap=put(ps.lead_gap, leader.gap),
+            lead_speed=put(ps.lead_speed, leader.speed),
+            yield_gap=put(ps.yield_gap, leader.crossing),
+            lead_known=put(ps.lead_known, known),
+        )
+        return action, nxt
+
+    def _leaders(
+        self,
+        state: SimState,
+        ps: IDMState,
+        agent: torch.Tensor,
+        now: tuple[torch.Tensor, torch.Tensor],
+        terms: IDMTerms,
+    ) -> tuple[Leader, torch.Tensor]:
+        """The L agents' leaders: searched anew (``leaders.find_leaders``) for the following
+        agents whose turn it is (``LEADER_PERIOD``) or that never searched, carried on from
+        the last search for the others. Returns (leaders, ``lead_known`` [L])."""
+        progress, follow = now
+        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        speed, n = take(state.speed), state.num_agents
+        gap = take(ps.lead_gap) - (speed - take(ps.lead_speed)) * DT
+        lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
+        known = take(ps.lead_known)
+        turn = (agent % n + state.step.index_select(0, agent // n)) % LEADER_PERIOD == 0
+        search = (follow & (turn | ~known)).nonzero()[:, 0]
+        if search.numel() == 0:
+            return lead, known
+        speed_now = speed.index_select(0, search).clamp_min(0.0)
+        horizon = (HORIZON_BASE + HORIZON_TIME * speed_now).clamp_max(self.config.horizon)
+        ask = agent.index_select(0, search)
+        lanes = corridor(ps.route, ask, progress.index_select(0, search), horizon)
+        agents = Agents(state.pose, state.speed, state.agents.size[..., :2])
+        sub = IDMTerms(*(getattr(terms, f).index_select(0, search) for f in _TERMS))
+        found = find_leaders(agents, (state.valid, ask), lanes, sub, self.config)
+        lead = Leader(
+            gap=lead.gap.index_copy(0, search, found.gap),
+            speed=lead.speed.index_copy(0, search, found.speed),
+            crossing=lead.crossing.index_copy(0, search, found.crossing),
+        )
+        return lead, known.index_fill(0, search, True)
+
+    def _stand_distance(
+        self,
+        state: SimState,
+        ps: IDMState,
+        agent: torch.Tensor,
+        where: tuple[torch.Tensor, torch.Tensor],
+    ) -> tuple[torch.Tensor, ...]:
+        """(distance to stand [L] m: the nearest of the stop lines that hold the agent and the
+        end of its route; stop-sign flags ``sign_stopped``, ``sign_cleared`` [L, Kt]) of the L
+        agents ``agent`` at progress [L] with sizes [L, 3]."""
+        cfg = self.config
+        progress, size = where
+        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        speed = take(state.speed)
+        row = agent // state.num_agents
+        front = (progress + 0.5 * size[:, 0]).unsqueeze(-1)
+        comfort = take(ps.params)[:, PARAM_FIELDS.index("comfort_decel")]
+        signal = (take(ps.signal_arc) - front, (row, take(ps.signal_row)))
+        d_signal = signal_distance(*signal, state.tl_state_now(), speed, comfort)
+        sign_arc = take(ps.sign_arc)
+        sign_gap = sign_arc - front
+        cleared_before = take(ps.sign_cleared)
+        stopped = sign_progress(sign_gap, take(ps.sign_stopped), cleared_before, speed)
+        waiting = stopped & ~cleared_before & torch.isfinite(sign_arc)
+        line = line_points(ps.route, agent, sign_arc)
+        others = (state.pose[..., :2], state.speed, state.valid)
+        clear = junction_clear(waiting, line, agent, others, cfg.junction_radius)
+        cleared = cleared_before | (waiting & clear)
+        d_sign = sign_distance(sign_gap, cleared)
+        walker = state.valid & (state.agents.object_type == int(ObjectType.PEDESTRIAN))
+        used = max(int(ps.crosswalk_row.max()) + 1, 1)  # the polygons some route crosses
+        polygons = ps.crosswalks[:, :used]
+        occupied = crosswalks_occupied(polygons, walker.nonzero(as_tuple=True), others[0])
+        cross = (take(ps.crosswalk_arc) - front, (row, take(ps.crosswalk_row)))
+        d_cross = crosswalk_distance(*cross, occupied)
+        lines = torch.minimum(torch.minimum(d_signal, d_sign), d_cross) - cfg.stop_gap
+        lines = torch.where(take(ps.obeys), lines, float("inf"))
+        return torch.minimum(lines, take(ps.end) - progress), stopped, cleared
+
+
+__all__ = ["BRANCH_VARIANTS", "IDMPolicy", "IDMState"]

@@ -1,0 +1,237 @@
+"""The planner interface of the benchmark, its adapters and the built-in planners.
+
+A planner drives one externally controlled agent. Each step it gets a ``PlannerInput`` (what
+that agent sees: its pairwise-relative observation, the upcoming points of its logged route,
+its goal, the time) and returns a physical action ``(acceleration m/s^2, yaw rate rad/s)``.
+Anything with ``act(PlannerInput) -> action`` (and optionally ``reset``) is a planner; thin
+adapters fit a plain function (``FunctionPlanner``), a torch module (``TorchPlanner``) and a
+Stable-Baselines3 model (``SB3Planner``). ``load_planner("package.module:factory")`` builds
+one from a command line.
+
+Built in: ``expert`` (follows its log through the env's inverse dynamics: the benchmark's
+ceiling), ``constant_velocity`` (holds speed and heading), ``idm`` (the rule-based ``idm``
+controller on a lane route; ``idm_log`` on its logged path).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import inspect
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from tbsim_env.data.scenario import Scenario
+from tbsim_env.sim.state import SimState
+
+
+@dataclass(frozen=True)
+class PlannerInput:
+    """What a controlled agent sees at one step.
+
+    Attributes:
+        scenario_id: the scene.
+        agent: the env's name of the agent (``track_<id>``).
+        step: the simulation step (the episode starts at the WOMD current step, 10).
+        time_s: s since the episode started.
+        observation: the agent's pairwise-relative observation (``TrafficEnv`` keys).
+        route: [R, 2] float32, the next R points of its logged route in its own frame (x
+            forward, y left, m), 2 m apart, ending at the goal.
+        goal: [2] float32, the last logged position in its own frame, m.
+        speed: m/s, its signed speed.
+        expert_action: [2] float32, the action that follows its log (privileged: for the
+            ``expert`` baseline; a planner under test should not read it).
+        slot: the agent's slot in ``sim`` (its track row in the scenario).
+        sim: the whole simulator state as an NPC policy sees it (privileged: for rule-based
+            baselines such as ``idm``; a planner under test should read ``observation``).
+    """
+
+    scenario_id: str
+    agent: str
+    step: int
+    time_s: float
+    observation: dict[str, np.ndarray]
+    route: np.ndarray
+    goal: np.ndarray
+    speed: float
+    expert_action: np.ndarray
+    slot: int = -1
+    sim: SimState | None = None
+
+
+@runtime_checkable
+class Planner(Protocol):
+    """A planner: ``act`` each step; ``reset`` (optional) at the start of each episode."""
+
+    def act(self, x: PlannerInput) -> Any:
+        """(acceleration m/s^2, yaw rate rad/s) as anything ``np.asarray`` takes."""
+        ...
+
+
+def reset_planner(planner: Any, scenario: Scenario, agent: str, seed: int) -> None:
+    """Call ``planner.reset(scenario, agent, seed)`` when the planner has one."""
+    reset = getattr(planner, "reset", None)
+    if callable(reset):
+        reset(scenario, agent, seed)
+
+
+@dataclass
+class FunctionPlanner:
+    """A plain function ``fn(PlannerInput) -> action`` as a planner."""
+
+    fn: Callable[[PlannerInput], Any]
+    name: str = "function"
+
+    def act(self, x: PlannerInput) -> Any:
+        return self.fn(x)
+
+
+def _batched(observation: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """The observation as float32 tensors with a batch dimension of one."""
+    return {k: torch.as_tensor(np.asarray(v, np.float32))[None] for k, v in observation.items()}
+
+
+@dataclass
+class TorchPlanner:
+    """A torch module as a planner: ``module(obs, route)`` -> [1, 2] action.
+
+    ``obs`` is the observation dict as float32 tensors [1, ...] and ``route`` the route points
+    [1, R, 2]; the module runs under ``torch.no_grad``.
+    """
+
+    module: torch.nn.Module
+    name: str = "torch"
+
+    def act(self, x: PlannerInput) -> Any:
+        route = torch.as_tensor(x.route, dtype=torch.float32)[None]
+        with torch.no_grad():
+            out = self.module(_batched(x.observation), route)
+        return out.reshape(-1)[:2].cpu().numpy()
+
+
+@dataclass
+class SB3Planner:
+    """A Stable-Baselines3 model as a planner: ``model.predict(features(x))``.
+
+    Args:
+        model: anything with SB3's ``predict(observation, deterministic=True)``.
+        features: ``PlannerInput`` -> the observation the model was trained on (default: the
+            observation dict with the route under ``"route"``, as a dict-observation policy
+            of ``TrafficEnv`` with route points takes it).
+        scale: multiplies the predicted action (models trained on normalised actions).
+    """
+
+    model: Any
+    features: Callable[[PlannerInput], Any] | None = None
+    scale: tuple[float, float] = (1.0, 1.0)
+    name: str = "sb3"
+
+    def act(self, x: PlannerInput) -> Any:
+        obs = self.features(x) if self.features else {**x.observation, "route": x.route}
+        action, _ = self.model.predict(obs, deterministic=True)
+        return np.asarray(action, np.float32).reshape(-1)[:2] * np.asarray(self.scale)
+
+
+class ExpertPlanner:
+    """Follows its log: the env's inverse-dynamics action towards the next logged state."""
+
+    name = "expert"
+
+    def act(self, x: PlannerInput) -> Any:
+        return x.expert_action
+
+
+class ConstantVelocityPlanner:
+    """Holds its speed and heading: zero acceleration and yaw rate."""
+
+    name = "constant_velocity"
+
+    def act(self, x: PlannerInput) -> Any:
+        return np.zeros(2, np.float32)
+
+
+class IDMPlanner:
+    """The ``idm`` NPC controller driving the agent (``policies.idm``): IDM along a lane-graph
+    route (or its logged path), keeping its gap, stopping for signals, stop signs and
+    crossing agents. It reads the simulator state (``PlannerInput.sim``), as an NPC does."""
+
+    def __init__(self, route: str = "lanes") -> None:
+        from policies.idm import IDMPolicy
+
+        self.policy = IDMPolicy(route=route)
+        self.name = "idm" if route == "lanes" else f"idm_{route}"
+        self._scenario: Scenario | None = None
+        self._plan: Any = None
+        self._generator = torch.Generator()
+
+    def reset(self, scenario: Scenario, agent: str, seed: int) -> None:
+        self._scenario, self._plan = scenario, None
+        self._generator.manual_seed(int(seed))
+
+    def act(self, x: PlannerInput) -> Any:
+        if x.sim is None or self._scenario is None:
+            raise ValueError("the idm planner needs PlannerInput.sim and a reset() first")
+        if self._plan is None:  # the routes of every agent, the actions of this one alone
+            plan = self.policy.initial_state(x.sim, [self._scenario], self._generator)
+            mine = torch.zeros_like(plan.valid)
+            mine[0, x.slot] = True
+            self._plan = dataclasses.replace(plan, valid=plan.valid & mine)
+        action, self._plan = self.policy.act(x.sim, self._plan, self._generator)
+        return action[0, x.slot].numpy()
+
+
+BUILTIN_PLANNERS: dict[str, Callable[[], Any]] = {
+    "expert": ExpertPlanner,
+    "constant_velocity": ConstantVelocityPlanner,
+    "idm": IDMPlanner,
+    "idm_log": lambda: IDMPlanner(route="log"),
+}
+"""Planners named without a module path."""
+
+
+def load_planner(spec: str) -> Any:
+    """A planner from a name of ``BUILTIN_PLANNERS`` or ``"package.module:NAME"``, where NAME is
+    a planner object, a factory called without arguments, or a plain function of one argument
+    (``PlannerInput`` -> action, wrapped in ``FunctionPlanner``).
+
+    Raises:
+        ValueError: a malformed spec, or what it names is no planner.
+        ImportError / AttributeError: the module or the name does not exist.
+    """
+    if spec in BUILTIN_PLANNERS:
+        return BUILTIN_PLANNERS[spec]()
+    module_name, sep, attr = spec.partition(":")
+    if not sep or not module_name or not attr:
+        raise ValueError(
+            f"planner {spec!r}: use one of {sorted(BUILTIN_PLANNERS)} or PACKAGE.MODULE:NAME"
+        )
+    obj = getattr(importlib.import_module(module_name), attr)
+    if not isinstance(obj, type) and isinstance(obj, Planner):
+        return obj
+    if not callable(obj):
+        raise ValueError(f"planner {spec!r}: {type(obj).__name__} is no planner")
+    if not isinstance(obj, type) and _required_arguments(obj) == 1:
+        return FunctionPlanner(obj, name=attr)
+    planner = obj()
+    if not isinstance(planner, Planner):
+        raise ValueError(f"planner {spec!r}: {attr}() gave {type(planner).__name__}, no planner")
+    return planner
+
+
+def _required_arguments(fn: Callable) -> int:
+    """Positional parameters of ``fn`` without a default."""
+    kinds = (inspect.Parameter.POSITIONAL_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):
+        return 0
+    return sum(p.kind in kinds and p.default is inspect.Parameter.empty for p in params)
+
+
+def planner_name(planner: Any) -> str:
+    """A planner's display name (its ``name`` or its class name)."""
+    return str(getattr(planner, "name", type(planner).__name__))
