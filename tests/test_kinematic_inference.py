@@ -21,7 +21,7 @@ from tbsim_env.core.config import TokenConfig
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.generator.recording import TRACKER
 from tbsim_env.data.preprocess import preprocess_scenario
-from tbsim_env.metrics.wosac.rollouts import log_replay_rollouts, sim_agent_indices
+from tbsim_env.metrics.wosac.rollouts import log_replay_rollouts
 from tbsim_env.sim.geometry import wrap_angle
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -107,7 +107,7 @@ def test_recording_jitters_moving_tracks_only(scenario):
     assert not torch.equal(rec.x, other.x)
     assert torch.equal(rec.z, exact.z) and torch.equal(rec.object_id, exact.object_id)
     tr, t0 = scenario.tracks, scenario.current_index
-    sim = sim_agent_indices(scenario)
+    sim = scenario.sim_agent_indices()
     types = tr.object_type[sim]
     dx = torch.hypot(rec.x - exact.x, rec.y - exact.y)  # [R, A, F]
     dyaw = wrap_angle(rec.heading - exact.heading).abs()

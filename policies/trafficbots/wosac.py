@@ -25,7 +25,7 @@ from tbsim_env.data.generator.recording import Recording, jitter
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
-from tbsim_env.metrics.wosac.rollouts import Rollouts, sim_agent_indices
+from tbsim_env.metrics.wosac.rollouts import Rollouts
 from tbsim_env.metrics.wosac.scoring import simulated_road_departure
 from tbsim_env.sim.horizon import wosac_scenario
 
@@ -98,7 +98,7 @@ def record_rollouts(
 
     Args:
         scenario: the scenario on WOSAC's grid (its current step starts the futures).
-        rollouts: R futures of its sim agents, in ``sim_agent_indices`` order.
+        rollouts: R futures of its sim agents, in ``Scenario.sim_agent_indices`` order.
         recording: the noise levels (``RECORDED``: fitted on the real training scenes).
         seed: the rollouts' seed (the recording draws from a stream of its own).
 
@@ -106,7 +106,7 @@ def record_rollouts(
         ``Rollouts`` of the same shape; standing vehicles and cyclists unchanged.
     """
     tr, t0 = scenario.tracks, scenario.current_index
-    sim = sim_agent_indices(scenario)
+    sim = scenario.sim_agent_indices()
     if not np.array_equal(rollouts.object_id.cpu().numpy(), tr.id[sim]):
         raise ValueError("record_rollouts needs the rollouts of every sim agent in track order")
     x, y, heading = (
