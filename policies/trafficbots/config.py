@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from tbsim_env.core import constants as C
+from tbsim_env.data.generator.recording import Recording
 from tbsim_env.data.preprocess import spec as prep_spec
 
 
@@ -306,6 +307,18 @@ class InferenceConfig:
             (``GapKeeping``; shipped); None for the network's accelerations.
         road_keeping: steer (or brake) vehicles that would leave the road (``RoadKeeping``;
             not shipped: see there); None for the network's actions.
+        yaw_rate_smoothing: weight in [0, 1) of the last step's yaw rate mixed into the
+            network's (``rules.smooth_yaw_rate``: damps the step-to-step zigzag of moving
+            vehicles); 0 for the network's yaw rates.
+        latent_temperature: the prior's personality z is scaled by it (1: the spec's N(0, I);
+            0: every agent gets the prior mean).
+        action_sigma: standard deviation of Gaussian noise added to the action head's
+            unbounded mean before the squashing (0: the spec's mean actions; the spec's
+            unused head sigma starts at exp(-2) = 0.135). Drawn in ``TrafficBots.prepare``.
+        recording: the tracker's jitter (``tbsim_env.data.generator.recording``) added to the
+            kept WOSAC rollouts (``wosac.trafficbots_rollouts``) after the selection, as the
+            logs they are scored against were recorded; None for the exact simulated states.
+            The simulation itself (and the environment) never sees it.
         road_edge_weight: choosing which sampled rollouts to keep (WOSAC sampling,
             ``wosac.trafficbots_rollouts``), each evaluated agent that leaves the road counts
             this much beside each collided relevant agent (docs/model.md §7.3's ``w_road_edge``: 0).
@@ -323,6 +336,10 @@ class InferenceConfig:
     clip_history_motion: bool = False
     gap_keeping: GapKeeping | None = dataclasses.field(default_factory=GapKeeping)
     road_keeping: RoadKeeping | None = None
+    yaw_rate_smoothing: float = 0.0
+    latent_temperature: float = 1.0
+    action_sigma: float = 0.0
+    recording: Recording | None = None
     road_edge_weight: float = 1.0
 
     def __post_init__(self) -> None:
@@ -333,6 +350,11 @@ class InferenceConfig:
             raise ValueError("InferenceConfig.vehicle_max_curvature must be > 0 or None")
         if not self.dest_temperature > 0.0:
             raise ValueError("InferenceConfig.dest_temperature must be > 0")
+        if not 0.0 <= self.yaw_rate_smoothing < 1.0:
+            raise ValueError("InferenceConfig.yaw_rate_smoothing must be in [0, 1)")
+        for name in ("latent_temperature", "action_sigma"):
+            if not (math.isfinite(getattr(self, name)) and getattr(self, name) >= 0.0):
+                raise ValueError(f"InferenceConfig.{name} must be finite and >= 0")
         check_road_edge_weight(self.road_edge_weight)
 
     def with_rule_flags(self, gap: str | None = None, road: str | None = None) -> InferenceConfig:
@@ -356,5 +378,9 @@ class InferenceConfig:
             clip_history_motion=False,
             gap_keeping=None,
             road_keeping=None,
+            yaw_rate_smoothing=0.0,
+            latent_temperature=1.0,
+            action_sigma=0.0,
+            recording=None,
             road_edge_weight=0.0,
         )

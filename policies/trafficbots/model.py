@@ -35,6 +35,7 @@ from policies.trafficbots.rules import (
     keep_gap,
     limit_vehicle_curvature,
     parked_vehicles,
+    smooth_yaw_rate,
 )
 from policies.trafficbots.tl_encoder import TLContext, TLEncoder, TLStateHead, tl_context
 from tbsim_env.core import constants as C
@@ -139,6 +140,9 @@ class RolloutContext:
         post_log_std: [B, N, Z] or None.
         post_valid: [B, N] bool or None.
         hold: [B', N] bool agents held at rest (``InferenceConfig.hold_parked``), or None.
+        action_eps: [B', N, S, 2] standard normal draws of the action noise
+            (``InferenceConfig.action_sigma``; S = ``n_steps``, step t uses row t mod S), or
+            None for mean actions.
     """
 
     scene: SceneEncoding
@@ -153,6 +157,7 @@ class RolloutContext:
     post_log_std: torch.Tensor | None = None
     post_valid: torch.Tensor | None = None
     hold: torch.Tensor | None = None
+    action_eps: torch.Tensor | None = None
 
     @property
     def mp(self) -> MapTokens:
@@ -315,6 +320,7 @@ class TrafficBots(nn.Module):
             post_log_std=post_log_std,
             post_valid=post_valid,
             hold=self._hold_mask(batch, n),
+            action_eps=self._action_noise(batch, n, generator),
         )
 
     def encode_scene(
@@ -377,6 +383,8 @@ class TrafficBots(nn.Module):
         shape = (n_sc * n, batch.draw_sizes[0], self.cfg.latent_dim)
         if latent == "prior":
             z = randn(shape, generator, batch.device)[:, :n_ag]
+            if not self.training and self.inference.latent_temperature != 1.0:
+                z = z * self.inference.latent_temperature
             return z, h_valid.any(-1).repeat_interleave(n, 0)
         post_mean, post_log_std, post_valid = posterior
         z = post_mean.repeat_interleave(n, 0)
@@ -413,6 +421,18 @@ class TrafficBots(nn.Module):
         u = u.clamp(1e-12, 1.0 - 1e-7)
         return (logits - torch.log(-torch.log(u))).argmax(-1)
 
+    def _action_noise(
+        self, batch: TokenBatch, n: int, generator: torch.Generator | None
+    ) -> torch.Tensor | None:
+        """[B * n, N, n_steps, 2] standard normal draws of the action noise in eval mode with
+        ``InferenceConfig.action_sigma`` > 0 (drawn after z and the destinations, so those
+        are the same with or without it), else None."""
+        if self.training or self.inference.action_sigma <= 0.0:
+            return None
+        n_sc, n_ag = batch.ag_type.shape
+        shape = (n_sc * n, batch.draw_sizes[0], self.cfg.n_steps, 2)
+        return randn(shape, generator, batch.device)[:, :n_ag]
+
     def _hold_mask(self, batch: TokenBatch, n: int) -> torch.Tensor | None:
         """[B * n, N] agents held at rest in eval mode (``rules.parked_vehicles``), or None."""
         rules, h = self.inference, self.cfg.n_history
@@ -435,11 +455,18 @@ class TrafficBots(nn.Module):
         action: torch.Tensor,
         speed: torch.Tensor,
         now: tuple[torch.Tensor, torch.Tensor],
+        state: RolloutState,
     ) -> torch.Tensor:
         """Eval-mode rules of ``InferenceConfig`` on physical actions [B', N, 2]; ``now`` =
-        (pose [B', N, 3], valid [B', N]) of the agents at this step."""
+        (pose [B', N, 3], valid [B', N]) of the agents at this step, ``state`` the history
+        windows with this step appended."""
         rules = self.inference
         size = ctx.ag_attr[..., :2]  # (length, width)
+        if rules.yaw_rate_smoothing > 0.0:
+            last_ok = state.hist_valid[..., -1] & state.hist_valid[..., -2]
+            action = smooth_yaw_rate(
+                action, state.hist_motion[..., -1, 2], last_ok, rules.yaw_rate_smoothing
+            )
         if rules.gap_keeping is not None:
             action = keep_gap(action, speed, now, (ctx.ag_type, size), rules.gap_keeping)
         if rules.road_keeping is not None:
@@ -587,9 +614,13 @@ class TrafficBots(nn.Module):
         x = self.add_navi(feat, self.dest_encoder(tok_pose, ctx.dest, ctx.mp), navi_valid)
         x = self.add_latent(x, ctx.z, ctx.z_valid & tok_valid)
         raw = self.action_head(x, ctx.ag_type)
-        action = squash_action(raw, ctx.ag_type)
+        sample = raw
+        if not self.training and ctx.action_eps is not None:
+            eps = ctx.action_eps[:, :, (state.step - 1) % ctx.action_eps.shape[2]]
+            sample = raw + self.inference.action_sigma * eps
+        action = squash_action(sample, ctx.ag_type)
         if not self.training:
-            action = self._apply_rules(ctx, action, ag_speed, (ag_pose, ag_valid))
+            action = self._apply_rules(ctx, action, ag_speed, (ag_pose, ag_valid), state)
         action = action * vmask
         known = torch.ones_like(state.tl_known)
         nxt = state.replace(dest_reached=reached, tl_feat=tl_feat.detach(), tl_known=known)

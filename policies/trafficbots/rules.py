@@ -257,6 +257,30 @@ def keep_gap(
     return torch.stack([torch.where(vehicle, capped, action[..., 0]), action[..., 1]], dim=-1)
 
 
+def smooth_yaw_rate(
+    action: torch.Tensor, last_yaw_rate: torch.Tensor, last_ok: torch.Tensor, weight: float
+) -> torch.Tensor:
+    """Yaw rates mixed with the last step's: (1 - weight) * action's + weight * last.
+
+    The shipped network, driving in closed loop, answers its own last yaw rate with one of the
+    opposite sign: moving vehicles zigzag step to step (docs/model_card/kinematics.md).
+    Mixing in the last step's yaw rate (a first-order low-pass of the applied yaw rate) damps
+    that period-2 mode and leaves a steady turn as it is.
+
+    Args:
+        action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s).
+        last_yaw_rate: [B, N] rad/s, the yaw rate of the step that led to the current state.
+        last_ok: [B, N] bool, that step exists (the agent was valid before and now).
+        weight: in [0, 1).
+
+    Returns:
+        [B, N, 2]; the acceleration unchanged, the yaw rate unchanged where not ``last_ok``.
+    """
+    mixed = (1.0 - weight) * action[..., 1] + weight * last_yaw_rate.to(action.dtype)
+    yaw = torch.where(last_ok, mixed, action[..., 1])
+    return torch.stack([action[..., 0], yaw], dim=-1)
+
+
 def clip_history_motion(motion: torch.Tensor, ag_type: torch.Tensor) -> torch.Tensor:
     """History (speed, acceleration, yaw rate) with the last two inside the type's action limits.
 

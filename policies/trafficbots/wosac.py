@@ -19,7 +19,9 @@ from policies.trafficbots.checkpoint import load_checkpoint
 from policies.trafficbots.config import InferenceConfig, check_road_edge_weight
 from policies.trafficbots.inference import sample_rollouts
 from policies.trafficbots.model import TrafficBots
+from tbsim_env.core import constants as C
 from tbsim_env.core.config import TokenConfig
+from tbsim_env.data.generator.recording import Recording, jitter
 from tbsim_env.data.preprocess import preprocess_scenario
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
@@ -73,12 +75,66 @@ def trafficbots_rollouts(
     k = n if road_edge_weight > 0 else num_rollouts
     samples = sample_rollouts(model, tokens, n=n, k=k, generator=gen)
     rollouts = _to_rollouts(grid, tokens, samples.pose[0], samples.valid[0])
-    if road_edge_weight == 0:
+    if road_edge_weight > 0:
+        departed = simulated_road_departure(grid, rollouts).sum(-1)  # [n]
+        score = samples.score[0].to(departed.device) + road_edge_weight * departed
+        keep = torch.sort(score, stable=True).indices[:num_rollouts]
+        rollouts = rollouts.select(keep)
+    if model.inference.recording is None:
         return rollouts
-    departed = simulated_road_departure(grid, rollouts).sum(-1)  # [n]
-    score = samples.score[0].to(departed.device) + road_edge_weight * departed
-    keep = torch.sort(score, stable=True).indices[:num_rollouts]
-    return rollouts.select(keep)
+    return record_rollouts(grid, rollouts, model.inference.recording, seed)
+
+
+RECORDING_STREAM = 0x7265636F
+"""Second seed word of the recording's random stream (independent of the rollouts')."""
+
+
+def record_rollouts(
+    scenario: Scenario, rollouts: Rollouts, recording: Recording, seed: int
+) -> Rollouts:
+    """The rollouts as the tracker would have logged them: ``recording.jitter`` (white noise on
+    box centres and headings, scaled per track and, for vehicles and cyclists, by the speed)
+    added at every future step of every sim agent.
+
+    Args:
+        scenario: the scenario on WOSAC's grid (its current step starts the futures).
+        rollouts: R futures of its sim agents, in ``Scenario.sim_agent_indices`` order.
+        recording: the noise levels (``RECORDED``: fitted on the real training scenes).
+        seed: the rollouts' seed (the recording draws from a stream of its own).
+
+    Returns:
+        ``Rollouts`` of the same shape; standing vehicles and cyclists unchanged.
+    """
+    tr, t0 = scenario.tracks, scenario.current_index
+    sim = scenario.sim_agent_indices()
+    if not np.array_equal(rollouts.object_id.cpu().numpy(), tr.id[sim]):
+        raise ValueError("record_rollouts needs the rollouts of every sim agent in track order")
+    x, y, heading = (
+        v.cpu().numpy().astype(np.float64) for v in (rollouts.x, rollouts.y, rollouts.heading)
+    )
+    r, a, f = x.shape
+    x0 = np.broadcast_to(tr.xyz[sim, t0, 0][None, :, None], (r, a, 1))
+    y0 = np.broadcast_to(tr.xyz[sim, t0, 1][None, :, None], (r, a, 1))
+    speed = np.hypot(np.diff(x, prepend=x0, axis=-1), np.diff(y, prepend=y0, axis=-1)) / C.DT
+    types = np.broadcast_to(tr.object_type[sim][None], (r, a)).reshape(-1)
+    rng = np.random.default_rng((int(seed), RECORDING_STREAM))
+    offset, dyaw, _ = jitter(
+        heading.reshape(r * a, f), speed.reshape(r * a, f), types, recording, rng
+    )
+    offset = offset.reshape(r, a, f, 2)
+    dev = rollouts.x.device
+
+    def out(v: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(v, dtype=torch.float32, device=dev)
+
+    return Rollouts(
+        scenario_id=rollouts.scenario_id,
+        object_id=rollouts.object_id,
+        x=out(x + offset[..., 0]),
+        y=out(y + offset[..., 1]),
+        z=rollouts.z,
+        heading=out(heading + dyaw.reshape(r, a, f)),
+    )
 
 
 def _to_rollouts(

@@ -126,6 +126,30 @@ RECORDED = Recording(
 # END RECORDED
 """The recording fitted to the real training scenes (use with ``behaviour.CALIBRATED``)."""
 
+TRACKER = Recording(
+    parked_occupancy=0.0,
+    jitter_along=0.0115,
+    jitter_lateral=0.0044,
+    jitter_heading=0.00137,
+    ped_jitter=0.0063,
+    ped_jitter_heading=0.045,
+    ped_walking_jitter_heading=0.005,
+    speed_jitter=0.19,
+    ped_speed_jitter=0.125,
+)
+"""The tracker's white jitter on the real train tracks, no parked vehicles: per track the robust
+standard deviation (1.4826 x median absolute deviation) of the second differences of its box
+centre (along and across the heading) and heading over 0.1 s steps, divided by sqrt(6) (what
+white noise gives), then the median over tracks: vehicles moving at 3 m/s or more (1,481
+tracks), pedestrians walking at 1 m/s or more (392: their positions, heading) and standing
+below 0.2 m/s (82: heading); standing vehicles measure exactly 0
+(``scripts/diagnose_kinematics.py tracker``). The vehicles' values agree with the 1 s
+quadratic-fit residuals the generator's fit starts from; a standing pedestrian's heading
+scatters by 0.27 rad about its mean (``RECORDED``) but changes by only this much from step to
+step. What a simulated trajectory lacks to look like a WOMD log
+(``policies.trafficbots.wosac.record_rollouts``, docs/model_card/kinematics.md); the velocity
+jitter is ``RECORDED``'s (the WOSAC features do not read it)."""
+
 
 def _car_sizes(rng: np.random.Generator, n: int) -> np.ndarray:
     """[n, 3] (length, width, height) of parked cars and vans, m (the driver's car and van
