@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
 from policies.trafficbots.config import InferenceConfig, RoadKeeping
@@ -298,14 +299,16 @@ def exact_rollouts(
     """The shipped model's WOSAC rollouts under ``inference`` (no recording), read from
     ``args.cache`` when a run with the same settings stored them there."""
     tag = f"{sc.scenario_id}|{inference!r}|{args.samples}|{args.keep}|{seed}"
-    path = Path(args.cache, hashlib.sha1(tag.encode()).hexdigest() + ".pt") if args.cache else None
+    name = hashlib.sha1(tag.encode()).hexdigest() + ".safetensors"
+    path = Path(args.cache, name) if args.cache else None
     if path is not None and path.exists():
-        return Rollouts(**torch.load(path))
+        return Rollouts(scenario_id=sc.scenario_id, **load_file(path))
     model.inference = inference
     r = trafficbots_rollouts(model, sc, num_rollouts=args.keep, num_samples=args.samples, seed=seed)
     if path is not None:
         path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({f.name: getattr(r, f.name) for f in dataclasses.fields(r)}, path)
+        fields = (f.name for f in dataclasses.fields(r) if f.name != "scenario_id")
+        save_file({k: getattr(r, k).contiguous() for k in fields}, path)
     return r
 
 
