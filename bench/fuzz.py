@@ -24,6 +24,9 @@ from tqdm import tqdm
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "bench"))
+
+from machine import measure  # noqa: E402
 
 from tests.pipeline_support import run_pipeline  # noqa: E402
 from tests.test_bad_input import time_guard  # noqa: E402
@@ -60,7 +63,7 @@ def main() -> None:
     wall = time.perf_counter() - t0
     tally = ", ".join(f"{k} {len(v)}" for k, v in sorted(outcomes.items()))
     print(f"{args.cases} cases (seed {args.seed}) in {wall:.0f} s: {tally}")
-    print(f"torch {torch.__version__}, {os.cpu_count()} CPUs, 1 torch thread")
+    print(measure().line())
     for line in failures[:50]:
         print(line)
     raise SystemExit(1 if failures else 0)

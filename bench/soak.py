@@ -23,9 +23,12 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from tbsim_env.data import load_scenarios
-from tbsim_env.data.generator import default_scenarios
-from tbsim_env.env import BatchedTrafficEnv
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import measure  # noqa: E402
+
+from tbsim_env.data import load_scenarios  # noqa: E402
+from tbsim_env.data.generator import default_scenarios  # noqa: E402
+from tbsim_env.env import BatchedTrafficEnv  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -91,7 +94,7 @@ def main() -> None:
           f"non-finite steps {bad}")  # fmt: skip
     print(f"resident memory after warm-up {mem0:.0f} MB, at the end {mem1:.0f} MB, "
           f"growth {mem1 - mem0:+.1f} MB over {done_eps - warm} episodes")  # fmt: skip
-    print(f"torch {torch.__version__}, numpy {np.__version__}, {os.cpu_count()} CPUs, 1 thread")
+    print(measure().line())
     sys.exit(1 if bad or mem1 - mem0 > 50 else 0)
 
 
