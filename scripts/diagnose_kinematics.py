@@ -494,7 +494,7 @@ def steps_table(runs: dict[str, dict[str, dict]], variant: str) -> None:
     groups = sorted({g for r in recs.values() for g in r["steps"]})
     keys = list(next(r["steps"][g]["sim"] for r in recs.values() for g in r["steps"]))
     print(f"\n### One 0.1 s step against the WOSAC features ({variant} / log; means)\n")
-    print("| group | " + " | ".join(keys) + " |")
+    print("| group | " + " | ".join(k.replace("|", "\\|") for k in keys) + " |")
     print("|---" * (len(keys) + 1) + "|")
     for g in groups:
         cells = []

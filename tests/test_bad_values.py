@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env.cli.main import main
+from tbsim_env.cli import main
 from tbsim_env.core.constants import MAX_SCENE_EXTENT, MAX_SPEED
 from tbsim_env.core.errors import (
     PolicyError,

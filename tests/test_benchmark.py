@@ -22,7 +22,7 @@ from tbsim_env.benchmark.config import BenchmarkConfig
 from tbsim_env.benchmark.episode import EpisodeSpec, log_record, run_episode
 from tbsim_env.benchmark.metrics import CollisionKind, LaneIndex
 from tbsim_env.benchmark.score import MULTIPLIERS, ScenarioResult, score_record
-from tbsim_env.cli.main import main
+from tbsim_env.cli import main
 from tbsim_env.core.constants import MapFeatureType
 from tbsim_env.data.generator import generate_scenario
 from tbsim_env.data.loader import load_scenarios

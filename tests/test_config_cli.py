@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 
 import pytest
 
+from tbsim_env.cli.app import build_parser
 from tbsim_env.cli.commands import COMMANDS
-from tbsim_env.cli.main import build_parser
 from tbsim_env.core.config_cli import attribute_help, config_parser, option, parse_config
 
 
@@ -81,7 +81,7 @@ def test_every_tbsim_option_is_documented(name):
 
 
 def test_view_refuses_a_submission_and_a_policy(capsys):
-    from tbsim_env.cli.main import main
+    from tbsim_env.cli import main
 
     code = main(["view", "x.tfrecord", "--submission", "s", "--policy", "log_replay", "--out", "v"])
     assert code == 2 and "not both" in capsys.readouterr().err

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from tbsim_env import distributed as D
-from tbsim_env.cli.main import main
+from tbsim_env.cli import main
 from tbsim_env.data import load_scenarios
 from tbsim_env.evaluation import evaluate_policy, export_submission
 

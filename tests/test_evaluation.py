@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from policies import make_policy
-from tbsim_env.cli.main import main
+from tbsim_env.cli import main
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.cache import (
     CacheError,

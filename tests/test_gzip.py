@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tbsim_env.cli.main import main
+from tbsim_env.cli import main
 from tbsim_env.core.errors import ScenarioFormatError
 from tbsim_env.data.compressed import is_gzip, read_all
 from tbsim_env.data.loader import ScenarioFileFormat, detect_format, iter_scenarios, load_scenarios

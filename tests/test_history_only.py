@@ -14,7 +14,7 @@ import torch
 
 from policies import make_policy
 from policies.trafficbots.wosac import load_default_model, trafficbots_rollouts
-from tbsim_env.cli.main import main
+from tbsim_env.cli import main
 from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.core.constants import DT
 from tbsim_env.core.errors import MissingFutureError, ScenarioFormatError

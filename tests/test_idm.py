@@ -15,7 +15,7 @@ import torch
 from policies import make_policy, make_rollout_fn
 from policies.idm import IDMConfig, IDMPolicy
 from policies.idm.lanes import infer_successors, lane_graph
-from tbsim_env.cli import main as cli
+from tbsim_env.cli import app as cli
 from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.core.constants import DT, MapFeatureType, ObjectType, SignalState
 from tbsim_env.data.generator import generate_scenario

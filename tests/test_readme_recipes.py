@@ -96,7 +96,7 @@ def _entry_point(code: str) -> tuple[str, str, str]:
 def test_the_entry_point_makes_the_command_line_offer_the_policy(
     workdir, monkeypatch, one_scenario_path
 ):
-    from tbsim_env.cli import main as cli
+    from tbsim_env.cli import app as cli
 
     code = recipes()
     group, name, target = _entry_point(code["policy-entry-point"])

@@ -83,7 +83,7 @@ def test_a_refused_pickle_in_a_folder(tmp_path: Path) -> None:
 def test_tbsim_info_reads_the_new_formats(womd_dir: Path) -> None:
     files = [str(womd_dir / n) for n in ONE_OF_EACH if "gpudrive/" not in n]
     out = subprocess.run(
-        [sys.executable, "-m", "tbsim_env.cli.main", "info", *files],
+        [sys.executable, "-m", "tbsim_env.cli", "info", *files],
         capture_output=True,
         text=True,
         check=True,

@@ -8,7 +8,7 @@ import torch
 
 from policies import make_policy, make_rollout_fn, policy_names, register_policy
 from policies.registry import _REGISTRY
-from tbsim_env.cli import main as cli
+from tbsim_env.cli import app as cli
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import BatchedTrafficEnv, TrafficEnv
 from tbsim_env.evaluation import evaluate_policy

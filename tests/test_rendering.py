@@ -559,7 +559,7 @@ def test_render_command_shows_the_whole_scenario_with_trafficbots(
 ) -> None:
     """On this scene a TrafficBots NPC runs into the log-following SDC within 3 s; the video
     still covers all 8 s after the current step (81 frames), the collision drawn, not an end."""
-    from tbsim_env.cli.main import main
+    from tbsim_env.cli import main
 
     out = tmp_path / "r.gif"
     rc = main(["render", str(one_scenario_path), "--npc-policy", "trafficbots", "--out", str(out)])
@@ -571,7 +571,7 @@ def test_demo_command_writes_one_video_per_embedded_scene(tmp_path, capsys) -> N
     """The README's first command (``tbsim demo``), short: each video starts on its own scene."""
     import imageio.v2 as iio2
 
-    from tbsim_env.cli.main import main
+    from tbsim_env.cli import main
 
     out = tmp_path / "demo.gif"
     assert main(["demo", "--out", str(out), "--scenarios", "2", "--steps", "4"]) == 0

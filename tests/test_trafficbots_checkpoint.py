@@ -112,7 +112,7 @@ def test_average_of_checkpoints_is_the_elementwise_mean(saved, tmp_path) -> None
     for key in a:
         torch.testing.assert_close(m[key], (a[key] + b[key]) / 2, rtol=0, atol=1e-7)
     # The CLI writes the same file.
-    from tbsim_env.cli.main import main
+    from tbsim_env.cli import main
 
     argv = ["average", str(base), str(tmp_path / "other"), "--out", str(tmp_path / "cli")]
     assert main(argv) == 0

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from tbsim_env.cli.main import main
+from tbsim_env.cli import main
 from tbsim_env.core.constants import NUM_FUTURE, SIGNAL_TO_TL_STATE, MapFeatureType, ObjectType
 from tbsim_env.data import load_scenarios
 from tbsim_env.evaluation import make_rollout_fn
