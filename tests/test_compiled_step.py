@@ -15,11 +15,13 @@ import pytest
 import torch
 
 from tbsim_env.core import constants as C
+from tbsim_env.core.config import EnvConfig
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
 from tbsim_env.env.compiled import StepFunction
 from tbsim_env.env.episode import StepConfig, step
+from tbsim_env.observation import ObsConfig
 from tbsim_env.sim.edge_grid import build_edge_grid
 
 if not (shutil.which("c++") or shutil.which("g++")):
@@ -127,7 +129,7 @@ def test_compiled_batched_env_equals_eager_through_restarts(scenes):
 
     kw = dict(controlled="all", npc_policy="constant_velocity", seed=3, obs_layout="indexed")
     eager = BatchedTrafficEnv(scenes, 3, **kw)
-    compiled = BatchedTrafficEnv(scenes, 3, compile=True, **kw)
+    compiled = BatchedTrafficEnv(scenes, 3, compile="always", **kw)
     obs_e, _ = eager.reset()
     obs_c, _ = compiled.reset()
     rng = np.random.default_rng(0)
@@ -148,3 +150,21 @@ def test_compiled_batched_env_equals_eager_through_restarts(scenes):
                 torch.testing.assert_close(obs_c[key], want, atol=1e-4, rtol=0, msg=key)
         restarts += int(info_e["done"].sum())
     assert restarts >= 3
+
+
+def test_compile_takes_the_graph_only_where_it_pays_on_the_cpu():
+    """``compile=True`` on the CPU: the graph for a batch of one, eager (with a warning that says
+    so) beyond ``COMPILE_CPU_MAX_BATCH``; ``"always"`` forces the graph; other values refused.
+    Building a StepFunction compiles nothing (that happens on the first call)."""
+    config = StepConfig(EnvConfig(), ObsConfig(), dense=True)
+    assert StepFunction(config, compile=True, batch_size=1).compiled
+    with pytest.warns(UserWarning, match="steps eagerly"):
+        big = StepFunction(config, compile=True, batch_size=C.COMPILE_CPU_MAX_BATCH + 1)
+    assert not big.compiled
+    with pytest.warns(UserWarning, match="steps eagerly"):
+        crowded = StepFunction(config, True, 2, observers=C.COMPILE_CPU_MAX_OBSERVERS + 1)
+    assert not crowded.compiled
+    assert StepFunction(config, compile="always", batch_size=64).compiled
+    assert not StepFunction(config, compile=False, batch_size=1).compiled
+    with pytest.raises(ValueError, match="compile must be"):
+        StepFunction(config, compile="fast")
