@@ -27,6 +27,7 @@ from tbsim_env.core.torch_utils import (
     listed,
     row_offsets,
     scalar,
+    select_rows,
     valid_first,
     valid_order,
 )
@@ -330,9 +331,13 @@ def agent_tokens(
     c, s = cos_sin(-yaw)
     xy = rotate_by(data[..., :2] - now[..., :2], c, s)  # [B, S, H, 2] in its own frame
     turn = data[..., 2:3] - yaw
-    hist = torch.cat([xy, torch.cos(turn), torch.sin(turn), data[..., 3:4]], -1)
+    # Contiguous pieces: a concatenation of contiguous floats is one operation, while one
+    # strided piece makes it copy piece by piece (three operations each).
+    speed = data[..., 3:4].contiguous()
+    hist = torch.cat([xy, torch.cos(turn), torch.sin(turn), speed], -1)
     hist = (hist * data[..., 4:]).view(b, n, h * HISTORY_FEATURES)
-    return torch.cat([hist, data[..., 4], static, now[:, :, 0, 3:4]], -1)
+    valid, speed_now = data[..., 4].contiguous(), now[:, :, 0, 3:4].contiguous()
+    return torch.cat([hist, valid, static, speed_now], -1)
 
 
 def _seen_tokens(
@@ -390,13 +395,32 @@ def _seen_tokens(
     t_idx, t_top = k_nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
     radii = _radii(cfg)
     seen = torch.cat([a_top, m_top, t_top], -1) <= const(radii, me)  # [B, Q, Ka + Km + Kt]
-    poses = [
-        gather_rows(state.pose, a_idx, rows),
-        gather_rows(ctx.pose, m_idx, rows),
-        gather_rows(ctx.tl_pose, t_idx, rows),
-    ]
-    rel = relative_pose(me.view(b, q, 1, 3), torch.cat(poses, 2))
-    return torch.cat([a_idx, m_idx, t_idx], -1), rel, seen
+    index = torch.cat([a_idx, m_idx, t_idx], -1)
+    # The poses of every kind from one table (agents, pieces, lights): one gather.
+    table = torch.cat([state.pose, ctx.pose, ctx.tl_pose], 1)  # [B', N + M + L, 3]
+    at = index + _token_offsets((ka, cfg.num_map, cfg.num_traffic_lights), n, m, me.device)
+    rel = relative_pose(me.view(b, q, 1, 3), gather_rows(table, at, rows))
+    return index, rel, seen
+
+
+_TOKEN_OFFSETS: dict[tuple, torch.Tensor] = {}
+
+
+def _token_offsets(
+    sizes: tuple[int, int, int], n: int, m: int, device: torch.device
+) -> torch.Tensor:
+    """[Ka + Km + Kt] int64: each token column's first row in the pose table of
+    ``_seen_tokens`` (0 for agents, N for pieces, N + M for lights); cached (built anew under
+    ``torch.compile``)."""
+    key = (sizes, n, m, device)
+    if not torch.compiler.is_compiling() and key in _TOKEN_OFFSETS:
+        return _TOKEN_OFFSETS[key]
+    with torch.inference_mode(False):
+        starts = torch.tensor([0, n, n + m], device=device)
+        out = starts.repeat_interleave(torch.tensor(sizes, device=device))
+    if not torch.compiler.is_compiling():
+        _TOKEN_OFFSETS[key] = out
+    return out
 
 
 def _radii(cfg: ObsConfig) -> tuple[float, ...]:
@@ -507,9 +531,9 @@ def observe_indexed(
             # Tokens of the seen slots only, each observer's own row and then its neighbours'.
             slots = torch.cat([observers.view(b, q, 1), index[..., :ka]], -1).view(b, -1)
             tokens = agent_tokens(state, history, static, slots)  # [B, Q (1 + Ka), F]
-            ego, rows = _grouped_rows(q, ka, state.device)
+            ego, rows, of_agent = _grouped_rows(q, ka, state.device, index.shape[-1])
             observers = ego.expand(b, q)
-            index = torch.cat([rows.expand(b, q, ka), index[..., ka:]], -1)
+            index = torch.where(of_agent, rows, index)  # the agent columns name the rows
         else:
             tokens = agent_tokens(state, history, static)
         index, rel, mask = _masked(index, rel, seen)
@@ -526,18 +550,24 @@ def observe_indexed(
     )
 
 
-_GROUPED_ROWS: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+_GROUPED_ROWS: dict[tuple, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
 
-def _grouped_rows(q: int, ka: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """(ego [Q], neighbours [Q, Ka]) int64 rows of compact agent tokens: observer j's own row
-    ``j (1 + Ka)``, then its Ka neighbours'; cached (built anew under ``torch.compile``)."""
-    key = (q, ka, device)
+def _grouped_rows(
+    q: int, ka: int, device: torch.device, k: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rows of compact agent tokens: (ego [Q] int64, observer j's own row ``j (1 + Ka)``;
+    neighbours [Q, K] int64, its Ka neighbours' rows in the first Ka of K token columns, 0 in
+    the others; of_agent [K] bool, the first Ka columns); cached (built anew under
+    ``torch.compile``)."""
+    key = (q, ka, device, k)
     if not torch.compiler.is_compiling() and key in _GROUPED_ROWS:
         return _GROUPED_ROWS[key]
     with torch.inference_mode(False):
         ego = torch.arange(q, device=device) * (1 + ka)
-        out = ego, ego[:, None] + 1 + torch.arange(ka, device=device)
+        rows = torch.zeros((q, k), dtype=torch.int64, device=device)
+        rows[:, :ka] = ego[:, None] + 1 + torch.arange(ka, device=device)
+        out = ego, rows, torch.arange(k, device=device) < ka
     if not torch.compiler.is_compiling():
         _GROUPED_ROWS[key] = out
     return out
@@ -655,8 +685,8 @@ def _lights_at(ctx: MapContext, step: torch.Tensor) -> tuple[torch.Tensor, torch
         t = min(int(step), n_t - 1)
         return ctx.tl_invalid[:, t], ctx.tl_tokens[:, t]
     at = step.clamp(max=n_t - 1) + row_offsets(b, n_t, 1, step.device)
-    invalid = ctx.tl_invalid.view(b * n_t, *ctx.tl_invalid.shape[2:]).index_select(0, at)
-    return invalid, ctx.tl_tokens.view(b * n_t, *ctx.tl_tokens.shape[2:]).index_select(0, at)
+    invalid = select_rows(ctx.tl_invalid, at).view(b, *ctx.tl_invalid.shape[2:])
+    return invalid, select_rows(ctx.tl_tokens, at).view(b, *ctx.tl_tokens.shape[2:])
 
 
 _MAP_EYE = torch.eye(C.NUM_MAP_CLASSES)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from tbsim_env.core import constants as C
-from tbsim_env.core.torch_utils import cast, const, gather_rows, scalar
+from tbsim_env.core.torch_utils import cast, const, gather_rows, scalar, select_rows
 from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
 
@@ -266,8 +266,7 @@ def cell_rows(table: Shared, flat: torch.Tensor) -> torch.Tensor:
     """The rows ``flat`` [B, K] (``cell_index``) of a per-cell table [K', G, ...]:
     [B, K, ...]."""
     value = table.value
-    rows = value.view(-1, *value.shape[2:]).index_select(0, flat.view(-1))
-    return rows.view(*flat.shape, *value.shape[2:])
+    return select_rows(value, flat.view(-1)).view(*flat.shape, *value.shape[2:])
 
 
 def cell_slack(

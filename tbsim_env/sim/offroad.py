@@ -144,7 +144,7 @@ def box_offroad_distance(
         ([B, K] m, unresolved [B, K] bool: see ``grid_exact_signed_distance``).
     """
     b, k = corners[0].shape[:2]
-    points = torch.stack(corners, -1).reshape(b, k * 4, 2)
+    points = torch.stack(corners, -1).view(b, k * 4, 2)
     dist, stale = grid_exact_signed_distance(points, edges, rows)
     if torch.compiler.is_compiling():
         stale = stale.view(b, k, 4).any(-1)
