@@ -152,7 +152,6 @@ def gather_rows(
     record two).
     """
     b, n = x.shape[:2]
-    flat_x = _flat(x, b * n)
     if rows is not None:
         offsets = (rows * n).view(-1, *([1] * (index.dim() - 1)))
         flat = _flat(index + offsets, -1)
@@ -160,7 +159,24 @@ def gather_rows(
         flat = _flat(index, -1)
     else:
         flat = _flat(index + row_offsets(b, n, index.dim(), x.device), -1)
-    return flat_x.index_select(0, flat).view(*index.shape, *x.shape[2:])
+    return select_rows(x, flat).view(*index.shape, *x.shape[2:])
+
+
+def select_rows(x: torch.Tensor, flat: torch.Tensor) -> torch.Tensor:
+    """``x.flatten(0, 1)[flat]``: the rows ``flat`` [R] (int64 in [0, B N)) of ``x`` [B, N, ...]
+    with its first two dims merged, as [R] for a 2-d ``x``, else [1, R, ...] (view it).
+
+    A table of more than two dims is read along dim 1 of a [1, B N, ...] view: CPU
+    ``index_select`` along dim 0 of such a table records several operations more (the
+    profiler counts them) than along dim 1.
+    """
+    b, n = x.shape[:2]
+    if x.dim() == 2:
+        return _flat(x, b * n).index_select(0, flat)
+    if b > 1:
+        shape = (1, b * n, *x.shape[2:])
+        x = x.view(shape) if x.is_contiguous() else x.reshape(shape)
+    return x.index_select(1, flat)
 
 
 def _flat(x: torch.Tensor, rows: int) -> torch.Tensor:
@@ -201,7 +217,10 @@ def listed(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     as those still driving. On a GPU they cost idle lanes rather than time, while listing the
     others costs a host sync; a compiled graph cannot size tensors by data.
     """
-    if mask.device.type != "cpu" or torch.compiler.is_compiling() or bool(mask.all()):
+    if mask.device.type != "cpu" or torch.compiler.is_compiling():
+        return None
+    # One entry (a single agent): its value is the test (fewer operations than ``all``).
+    if bool(mask) if mask.numel() == 1 else bool(mask.all()):
         return None
     return mask.nonzero(as_tuple=True)
 

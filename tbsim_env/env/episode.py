@@ -355,8 +355,13 @@ def slot_actions(
     ``npc_action`` [B, N, 2] (or None) at the NPC slots, zero elsewhere (values elsewhere in
     either input, NaN included, are never read)."""
     setup = state.setup
-    ext = gather_rows(actions, setup.slot_query)
-    on = torch.bitwise_and(setup.external, gather_rows(state.alive, setup.slot_query))
+    b, n = setup.slot_query.shape
+    if actions.shape[1] == 1:  # one query column: every slot reads it (views, no gather)
+        ext, alive = actions.expand(b, n, 2), state.alive.expand(b, n)
+    else:
+        ext = gather_rows(actions, setup.slot_query)
+        alive = gather_rows(state.alive, setup.slot_query)
+    on = torch.bitwise_and(setup.external, alive)
     if npc_action is None:
         return torch.where(on.unsqueeze(-1), ext, const(0.0, ext))
     return core.merge_actions((setup.npc, npc_action), (on, ext))
@@ -392,7 +397,7 @@ def step(
     active = state.alive
     terminated = torch.bitwise_and(outcome.terminated, active)
     # Eagerly, skip the removal when nobody leaves; a compiled graph cannot branch on data.
-    if env.remove_terminated and (torch.compiler.is_compiling() or bool(terminated.any())):
+    if env.remove_terminated and (torch.compiler.is_compiling() or _any(terminated)):
         sim = remove_agents(sim, setup.query, terminated)
     history = push_history(state.history, sim)
     # Removals leave every pose as step_metrics saw it: its agent distances serve.
@@ -414,8 +419,9 @@ def step(
     reward = torch.where(active, outcome.reward, const(0.0, outcome.reward))
     last = sim.step.view(-1, 1) >= scalar(env.last_step, sim.step.dtype, sim.device)
     # Truncated: active, at the last step and not terminated (terminated implies active).
-    truncated = torch.bitwise_and(torch.bitwise_and(active, last), ~terminated)
-    alive = torch.bitwise_and(active, ~torch.bitwise_or(terminated, truncated))
+    # (For flags, ``x > y`` is ``x & ~y``: one operation.)
+    truncated = torch.gt(torch.bitwise_and(active, last), terminated)
+    alive = torch.gt(active, torch.bitwise_or(terminated, truncated))
     nxt = dataclasses.replace(
         state,
         sim=sim,
@@ -434,10 +440,15 @@ def step(
         truncated=truncated,
         active=active,
         metrics=metrics,
-        done=~alive.any(-1),
+        done=~(alive.view(-1) if alive.shape[1] == 1 else alive.any(-1)),
         stale=stale,
     )
     return nxt, out
+
+
+def _any(flags: torch.Tensor) -> bool:
+    """Whether any of ``flags`` is set (a single flag read directly: fewer operations)."""
+    return bool(flags) if flags.numel() == 1 else bool(flags.any())
 
 
 def remove_agents(sim: SimState, query: torch.Tensor, remove: torch.Tensor) -> SimState:

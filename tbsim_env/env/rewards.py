@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from tbsim_env.core.config import RewardConfig, TerminationConfig
-from tbsim_env.core.torch_utils import const
+from tbsim_env.core.torch_utils import cast, const
 from tbsim_env.env.agent_metrics import StepMetrics
 
 
@@ -161,7 +161,10 @@ def reward_and_termination(
     for name, weight in reward_weights(reward_config).items():
         value = _TERMS[name](inputs)
         terms[name] = value
-        # A cached float32 constant: the bits of the Python float, without a new tensor.
+        # A cached float32 constant: the bits of the Python float, without a new tensor; a
+        # flag as float 0 / 1 first (two operations where the product's promotion records five).
+        if value.dtype == torch.bool and best.dtype == torch.float32:
+            value = cast(value, best.dtype)
         weighted = const(weight, best) * value
         reward = weighted if reward is None else reward + weighted
     # "+ 0.0" makes an all -0 sum +0, as a sum over the zero-weight terms would.

@@ -27,6 +27,7 @@ from tbsim_env.core.torch_utils import (
     listed,
     row_offsets,
     scalar,
+    select_rows,
     valid_first,
     valid_order,
 )
@@ -45,7 +46,7 @@ from tbsim_env.observation.spec import (
     observation_space,
 )
 from tbsim_env.sim.collision import agent_distances
-from tbsim_env.sim.geometry import cos_sin, relative_pose, rotate_by
+from tbsim_env.sim.geometry import cos_sin, relative_pose
 from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
 
@@ -321,18 +322,75 @@ def agent_tokens(
     Returns:
         [B, N or S, H * 5 + H + 7] float32.
     """
-    data = history.data
+    b, n, h, f = history.data.shape
+    # One table row per slot (its history, then its static features): one gather of both.
+    table = torch.cat([history.data.view(b, n, h * f), static], -1)  # [B, N, H F + 6]
     if slots is not None:
-        data, static = gather_rows(data, slots), gather_rows(static, slots)
-    b, n, h = data.shape[:3]
+        table = gather_rows(table, slots)
+    k = _TokenColumns.of(h, table.device)
+    n = table.shape[1]
+    data = table[..., : h * f].view(b, n, h, f)  # (x, y, yaw, speed, valid) per step
     now = data[:, :, -1:]  # [B, S, 1, 5]
-    yaw = now[..., 2:3]
-    c, s = cos_sin(-yaw)
-    xy = rotate_by(data[..., :2] - now[..., :2], c, s)  # [B, S, H, 2] in its own frame
-    turn = data[..., 2:3] - yaw
-    hist = torch.cat([xy, torch.cos(turn), torch.sin(turn), data[..., 3:4]], -1)
-    hist = (hist * data[..., 4:]).view(b, n, h * HISTORY_FEATURES)
-    return torch.cat([hist, data[..., 4], static, now[:, :, 0, 3:4]], -1)
+    c, s = cos_sin(-now[..., 2:3])
+    # Every feature on the 5 columns at once: z = (dx, dy, turn, speed, valid) from the
+    # current entry, p = (dy, dx, turn, turn, speed); the rotation (``rotate_by``'s
+    # arithmetic) on the first two columns, cos / sin of the turn on the next two.
+    z = data - torch.where(k.relative, now, const(0.0, now))
+    p = z.gather(-1, k.shuffle.expand(z.shape))  # (a gather: fewer operations than a select)
+    rotated = z * c + p * (s * k.signs)
+    hist = torch.where(k.rotated, rotated, torch.where(k.cos, torch.cos(p), torch.sin(p)))
+    hist = torch.where(k.speed, p, hist) * data[..., 4:]
+    # The per-step validity, the static features and the current speed: one selection.
+    tail = table.gather(-1, k.tail.expand(b, n, -1))
+    return torch.cat([hist.view(b, n, h * f), tail], -1)
+
+
+@dataclass(frozen=True)
+class _TokenColumns:
+    """Cached column constants of ``agent_tokens`` for H history steps (built anew under
+    ``torch.compile``).
+
+    Attributes:
+        relative: [5] bool, the columns measured from the current entry (x, y, yaw).
+        shuffle: [5] int64, ``p``'s columns of ``z`` (dy, dx, turn, turn, speed).
+        signs: [5] float32, (-1, 1, 0, 0, 0): the rotation's sign of each swapped column.
+        rotated / cos / speed: [5] bool, the columns (x, y) / the cosine one / the speed one.
+        tail: [H + 7] int64, the table columns after the history: each step's validity, the
+            static features, the current speed.
+    """
+
+    relative: torch.Tensor
+    shuffle: torch.Tensor
+    signs: torch.Tensor
+    rotated: torch.Tensor
+    cos: torch.Tensor
+    speed: torch.Tensor
+    tail: torch.Tensor
+
+    @staticmethod
+    def of(h: int, device: torch.device) -> _TokenColumns:
+        key = (h, device)
+        if not torch.compiler.is_compiling() and key in _TOKEN_COLUMNS:
+            return _TOKEN_COLUMNS[key]
+        f = HISTORY_FEATURES
+        with torch.inference_mode(False):
+            col = torch.arange(f, device=device)
+            tail = [t * f + 4 for t in range(h)] + list(range(h * f, h * f + 6))
+            out = _TokenColumns(
+                relative=col < 3,
+                shuffle=torch.tensor([1, 0, 2, 2, 3], device=device),
+                signs=torch.tensor([-1.0, 1.0, 0.0, 0.0, 0.0], device=device),
+                rotated=col < 2,
+                cos=col == 2,
+                speed=col == 4,
+                tail=torch.tensor(tail + [(h - 1) * f + 3], device=device),
+            )
+        if not torch.compiler.is_compiling():
+            _TOKEN_COLUMNS[key] = out
+        return out
+
+
+_TOKEN_COLUMNS: dict[tuple, _TokenColumns] = {}
 
 
 def _seen_tokens(
@@ -390,13 +448,32 @@ def _seen_tokens(
     t_idx, t_top = k_nearest(tl_dist, tl_invalid, cfg.num_traffic_lights, cfg.traffic_light_radius)
     radii = _radii(cfg)
     seen = torch.cat([a_top, m_top, t_top], -1) <= const(radii, me)  # [B, Q, Ka + Km + Kt]
-    poses = [
-        gather_rows(state.pose, a_idx, rows),
-        gather_rows(ctx.pose, m_idx, rows),
-        gather_rows(ctx.tl_pose, t_idx, rows),
-    ]
-    rel = relative_pose(me.view(b, q, 1, 3), torch.cat(poses, 2))
-    return torch.cat([a_idx, m_idx, t_idx], -1), rel, seen
+    index = torch.cat([a_idx, m_idx, t_idx], -1)
+    # The poses of every kind from one table (agents, pieces, lights): one gather.
+    table = torch.cat([state.pose, ctx.pose, ctx.tl_pose], 1)  # [B', N + M + L, 3]
+    at = index + _token_offsets((ka, cfg.num_map, cfg.num_traffic_lights), n, m, me.device)
+    rel = relative_pose(me.view(b, q, 1, 3), gather_rows(table, at, rows))
+    return index, rel, seen
+
+
+_TOKEN_OFFSETS: dict[tuple, torch.Tensor] = {}
+
+
+def _token_offsets(
+    sizes: tuple[int, int, int], n: int, m: int, device: torch.device
+) -> torch.Tensor:
+    """[Ka + Km + Kt] int64: each token column's first row in the pose table of
+    ``_seen_tokens`` (0 for agents, N for pieces, N + M for lights); cached (built anew under
+    ``torch.compile``)."""
+    key = (sizes, n, m, device)
+    if not torch.compiler.is_compiling() and key in _TOKEN_OFFSETS:
+        return _TOKEN_OFFSETS[key]
+    with torch.inference_mode(False):
+        starts = torch.tensor([0, n, n + m], device=device)
+        out = starts.repeat_interleave(torch.tensor(sizes, device=device))
+    if not torch.compiler.is_compiling():
+        _TOKEN_OFFSETS[key] = out
+    return out
 
 
 def _radii(cfg: ObsConfig) -> tuple[float, ...]:
@@ -507,9 +584,9 @@ def observe_indexed(
             # Tokens of the seen slots only, each observer's own row and then its neighbours'.
             slots = torch.cat([observers.view(b, q, 1), index[..., :ka]], -1).view(b, -1)
             tokens = agent_tokens(state, history, static, slots)  # [B, Q (1 + Ka), F]
-            ego, rows = _grouped_rows(q, ka, state.device)
+            ego, rows, of_agent = _grouped_rows(q, ka, state.device, index.shape[-1])
             observers = ego.expand(b, q)
-            index = torch.cat([rows.expand(b, q, ka), index[..., ka:]], -1)
+            index = torch.where(of_agent, rows, index)  # the agent columns name the rows
         else:
             tokens = agent_tokens(state, history, static)
         index, rel, mask = _masked(index, rel, seen)
@@ -526,18 +603,24 @@ def observe_indexed(
     )
 
 
-_GROUPED_ROWS: dict[tuple, tuple[torch.Tensor, torch.Tensor]] = {}
+_GROUPED_ROWS: dict[tuple, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
 
 
-def _grouped_rows(q: int, ka: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """(ego [Q], neighbours [Q, Ka]) int64 rows of compact agent tokens: observer j's own row
-    ``j (1 + Ka)``, then its Ka neighbours'; cached (built anew under ``torch.compile``)."""
-    key = (q, ka, device)
+def _grouped_rows(
+    q: int, ka: int, device: torch.device, k: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rows of compact agent tokens: (ego [Q] int64, observer j's own row ``j (1 + Ka)``;
+    neighbours [Q, K] int64, its Ka neighbours' rows in the first Ka of K token columns, 0 in
+    the others; of_agent [K] bool, the first Ka columns); cached (built anew under
+    ``torch.compile``)."""
+    key = (q, ka, device, k)
     if not torch.compiler.is_compiling() and key in _GROUPED_ROWS:
         return _GROUPED_ROWS[key]
     with torch.inference_mode(False):
         ego = torch.arange(q, device=device) * (1 + ka)
-        out = ego, ego[:, None] + 1 + torch.arange(ka, device=device)
+        rows = torch.zeros((q, k), dtype=torch.int64, device=device)
+        rows[:, :ka] = ego[:, None] + 1 + torch.arange(ka, device=device)
+        out = ego, rows, torch.arange(k, device=device) < ka
     if not torch.compiler.is_compiling():
         _GROUPED_ROWS[key] = out
     return out
@@ -655,8 +738,8 @@ def _lights_at(ctx: MapContext, step: torch.Tensor) -> tuple[torch.Tensor, torch
         t = min(int(step), n_t - 1)
         return ctx.tl_invalid[:, t], ctx.tl_tokens[:, t]
     at = step.clamp(max=n_t - 1) + row_offsets(b, n_t, 1, step.device)
-    invalid = ctx.tl_invalid.view(b * n_t, *ctx.tl_invalid.shape[2:]).index_select(0, at)
-    return invalid, ctx.tl_tokens.view(b * n_t, *ctx.tl_tokens.shape[2:]).index_select(0, at)
+    invalid = select_rows(ctx.tl_invalid, at).view(b, *ctx.tl_invalid.shape[2:])
+    return invalid, select_rows(ctx.tl_tokens, at).view(b, *ctx.tl_tokens.shape[2:])
 
 
 _MAP_EYE = torch.eye(C.NUM_MAP_CLASSES)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import torch
 
 from tbsim_env.core import constants as C
-from tbsim_env.core.torch_utils import const, gather_rows, row_offsets, scalar
+from tbsim_env.core.torch_utils import const, gather_rows, row_offsets, scalar, select_rows
 from tbsim_env.sim.dynamics import unicycle_step
 from tbsim_env.sim.state import SimState
 
@@ -113,4 +113,4 @@ def _log_at(state: SimState, t: torch.Tensor) -> torch.Tensor:
     log = state.log
     b, n_t = state.batch_size, log.by_step.shape[1]
     rows = t + row_offsets(b, n_t, 1, state.device)
-    return log.by_step.view(b * n_t, *log.by_step.shape[2:]).index_select(0, rows)
+    return select_rows(log.by_step, rows).view(b, *log.by_step.shape[2:])

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from tbsim_env.core import constants as C
-from tbsim_env.core.torch_utils import const, gather_rows, scalar
+from tbsim_env.core.torch_utils import cast, const, gather_rows, scalar, select_rows
 from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
 
@@ -252,7 +252,7 @@ def cell_index(grid: CellLists, xy: torch.Tensor, rows: torch.Tensor | None) -> 
         stride, base = stride[rows], base[rows]
     # Cell indices stay far below 2**24: exact in float32 (and the same as in int64).
     ij = torch.floor((xy - corner) / cell).clamp(min=scalar(0.0, xy.dtype, xy.device), max=last)
-    return (ij * stride).sum(-1).to(torch.int64) + base
+    return cast((ij * stride).sum(-1), torch.int64) + base
 
 
 def cell_of(grid: CellLists, xy: torch.Tensor, rows: torch.Tensor | None) -> torch.Tensor:
@@ -266,8 +266,7 @@ def cell_rows(table: Shared, flat: torch.Tensor) -> torch.Tensor:
     """The rows ``flat`` [B, K] (``cell_index``) of a per-cell table [K', G, ...]:
     [B, K, ...]."""
     value = table.value
-    rows = value.view(-1, *value.shape[2:]).index_select(0, flat.view(-1))
-    return rows.view(*flat.shape, *value.shape[2:])
+    return select_rows(value, flat.view(-1)).view(*flat.shape, *value.shape[2:])
 
 
 def cell_slack(
@@ -307,7 +306,8 @@ def grid_signed_distance(
         may be wrong there).
     """
     flat = cell_index(grid, points, rows)  # [B, K]
-    cand = cell_rows(grid.cells, flat)  # [B, K, Cc] int32
+    # int64 once (the table keeps int32): no index arithmetic below mixes integer types.
+    cand = cast(cell_rows(grid.cells, flat), torch.int64)  # [B, K, Cc]
     if grid.joints is None:
         out, d = signed_over(points, edges, cand, rows)
     else:
@@ -319,25 +319,26 @@ def _signed_by_joints(
     points: torch.Tensor, grid: EdgeGrid, cand: torch.Tensor, rows: torch.Tensor | None
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``signed_over`` of a grid with its joint table: (signed, unsigned distance) [B, K] m
-    of points [B, K, 2] to the nearest of their candidates ``cand`` [B, K, C] int32."""
+    of points [B, K, 2] to the nearest of their candidates ``cand`` [B, K, C] int64."""
     ax, ay, bx, by, len2 = _segment_columns(grid, cand, rows)  # [B, K, C] each
     qx, qy = points[..., :1], points[..., 1:]
     t = ((qx - ax) * bx + (qy - ay) * by) / len2  # 0 for a zero-length segment (b = 0)
-    inside = t.clamp(0.0, 1.0)
-    dist, local = torch.hypot(qx - (ax + inside * bx), qy - (ay + inside * by)).min(-1)
-    at = local.unsqueeze(-1)
-    t_best, best = t.gather(-1, at).squeeze(-1), cand.gather(-1, at).squeeze(-1)
+    inside = t.clamp(const(0.0, t), const(1.0, t))
+    far = torch.hypot(qx - (ax + inside * bx), qy - (ay + inside * by))
+    at = far.argmin(-1, keepdim=True)  # [B, K, 1]: the first nearest, as ``min``'s index
+    dist, t_best, best = far.gather(-1, at), t.gather(-1, at), cand.gather(-1, at)
     base = grid.row_joints if rows is None else grid.row_joints[rows]
     case = torch.bucketize(t_best, const(_JOINT_CASES, t_best), right=True)
-    key = torch.add(case, best, alpha=3) + base
-    joint = cell_rows(grid.joints, key)  # [B, K, 9]
-    seg = joint[..., :8].view(*key.shape, 2, 2, 2)  # (this, other) x (start, vector) x 2
+    key = torch.add(case, best, alpha=3) + base.view(-1, 1, 1)
+    b, k = points.shape[:2]
+    joint = cell_rows(grid.joints, key).view(b, k, 9)
+    seg = joint[..., :8].view(b, k, 2, 2, 2)  # (this, other) x (start, vector) x 2
     lever = (points.unsqueeze(-2) - seg[..., 0, :]) * seg[..., 1, :]  # [B, K, 2, 2]
     side = torch.sign(lever[..., 0] - lever[..., 1])  # [B, K, 2]: cross(p - a, vector)
     turn = joint[..., 8:]  # +1: the max of the two sides, -1: the min
-    sign = (side * turn).amax(-1) * turn.squeeze(-1)
+    signed = ((side * turn).amax(-1, keepdim=True) * turn * dist).view(b, k)
     has_edge = grid.has_edge if rows is None else grid.has_edge[rows]
-    return torch.where(has_edge, sign * dist, const(C.NO_EDGE_DISTANCE, dist)), dist
+    return torch.where(has_edge, signed, const(C.NO_EDGE_DISTANCE, dist)), dist.view(b, k)
 
 
 _JOINT_CASES = (0.0, float(np.nextafter(np.float32(1.0), np.float32(2.0))))
@@ -400,7 +401,7 @@ def _segment_columns(
         c, e = table.shape[1:]
         base = grid.row_columns if rows is None else grid.row_columns[rows]
         base = base.view(-1, *([1] * (seg.dim() - 1)))
-        flat = (seg + base).unsqueeze(0) + _column_offsets(c, e, seg.dim(), seg.device)
+        flat = (seg + base).view(1, *seg.shape) + _column_offsets(c, e, seg.dim(), seg.device)
         cols = table.view(-1).index_select(0, flat.view(-1)).view(c, *seg.shape).unbind(0)
         return cols if isinstance(edges, EdgeGrid) else cols[:4]
     sa = gather_rows(edges.start, seg, rows)

@@ -89,9 +89,10 @@ def grid_exact_signed_distance(
         return out, torch.zeros(out.shape, dtype=torch.bool, device=out.device)
     out, stale = grid_signed_distance(points, edges, edges.grid, rows)
     if not torch.compiler.is_compiling():
-        if bool(stale.any()):
-            bi, ki = stale.nonzero(as_tuple=True)
-            out = out.index_put((bi, ki), _recompute(points, edges, bi, ki, rows))
+        if not bool(stale.any()):
+            return out, stale  # all False
+        bi, ki = stale.nonzero(as_tuple=True)
+        out = out.index_put((bi, ki), _recompute(points, edges, bi, ki, rows))
         return out, torch.zeros_like(stale)
     k = points.shape[1]
     flat = stale.reshape(-1)
@@ -143,6 +144,10 @@ def box_offroad_distance(
         ([B, K] m, unresolved [B, K] bool: see ``grid_exact_signed_distance``).
     """
     b, k = corners[0].shape[:2]
-    points = torch.stack(corners, -1).reshape(b, k * 4, 2)
+    points = torch.stack(corners, -1).view(b, k * 4, 2)
     dist, stale = grid_exact_signed_distance(points, edges, rows)
-    return dist.view(b, k, 4).amax(-1), stale.view(b, k, 4).any(-1)
+    if torch.compiler.is_compiling():
+        stale = stale.view(b, k, 4).any(-1)
+    else:  # eagerly never stale
+        stale = torch.zeros((b, k), dtype=torch.bool, device=dist.device)
+    return dist.view(b, k, 4).amax(-1), stale
