@@ -65,8 +65,9 @@ def scene_edge_grid(
     near = torch.empty(len(center), k, dtype=torch.int64)
     kth = torch.empty(len(center))
     # A tile's cells can only list segments within (k-th distance from its centre + 2 radii)
-    # of the tile centre (triangle inequality): each tile measures those alone.
-    radius = float(np.hypot(*(0.5 * _TILE_CELLS * cell,) * 2))
+    # of the tile centre (triangle inequality; the radius reaches the farthest cell centre):
+    # each tile measures those alone.
+    radius = float(np.hypot(*(0.5 * (_TILE_CELLS - 1) * cell,) * 2))
     for cells_of_tile in tiles:
         pts = q[cells_of_tile]
         hub = pts.mean(0, keepdim=True)
