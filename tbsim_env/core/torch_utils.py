@@ -217,10 +217,7 @@ def listed(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     as those still driving. On a GPU they cost idle lanes rather than time, while listing the
     others costs a host sync; a compiled graph cannot size tensors by data.
     """
-    if mask.device.type != "cpu" or torch.compiler.is_compiling():
-        return None
-    # One entry (a single agent): its value is the test (fewer operations than ``all``).
-    if bool(mask) if mask.numel() == 1 else bool(mask.all()):
+    if mask.device.type != "cpu" or torch.compiler.is_compiling() or bool(mask.all()):
         return None
     return mask.nonzero(as_tuple=True)
 

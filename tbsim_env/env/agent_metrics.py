@@ -205,15 +205,12 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
     }
 
 
-def progress_along(
-    route: Route, xy: torch.Tensor, columns: tuple[torch.Tensor, torch.Tensor] | None = None
-) -> torch.Tensor:
-    """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m.
-    ``columns``: optional (x, y) [B, Q, 1] of ``xy`` (views the caller holds)."""
+def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
+    """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
     # x and y apart, each a contiguous row: no sums over a dim of 2, no strided reads.
     ax, ay, bx, by = route.segment_columns
     b, q = xy.shape[:2]
-    qx, qy = xy.view(b, q, 2, 1).unbind(-2) if columns is None else columns  # [B, Q, 1]
+    qx, qy = xy.view(b, q, 2, 1).unbind(-2)  # [B, Q, 1] each
     u = ((qx - ax) * bx + (qy - ay) * by) / route.segment_length2
     t = u.clamp_(const(0.0, u), const(1.0, u))
     d = torch.hypot(qx - (ax + t * bx), qy - (ay + t * by))
@@ -262,7 +259,7 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
         collision=torch.bitwise_and(coll, present),
         offroad=torch.bitwise_and(off_d > const(0.0, off_d), present),
         offroad_distance=off_d,
-        progress=progress_along(route, xy, (x0, y0)),
+        progress=progress_along(route, xy),
         goal_distance=torch.linalg.vector_norm(xy - route.goal, dim=-1),
         log_divergence=log_gap,
         log_valid=log_valid,

@@ -397,7 +397,7 @@ def step(
     active = state.alive
     terminated = torch.bitwise_and(outcome.terminated, active)
     # Eagerly, skip the removal when nobody leaves; a compiled graph cannot branch on data.
-    if env.remove_terminated and (torch.compiler.is_compiling() or _any(terminated)):
+    if env.remove_terminated and (torch.compiler.is_compiling() or bool(terminated.any())):
         sim = remove_agents(sim, setup.query, terminated)
     history = push_history(state.history, sim)
     # Removals leave every pose as step_metrics saw it: its agent distances serve.
@@ -440,15 +440,10 @@ def step(
         truncated=truncated,
         active=active,
         metrics=metrics,
-        done=~(alive.view(-1) if alive.shape[1] == 1 else alive.any(-1)),
+        done=~alive.any(-1),
         stale=stale,
     )
     return nxt, out
-
-
-def _any(flags: torch.Tensor) -> bool:
-    """Whether any of ``flags`` is set (a single flag read directly: fewer operations)."""
-    return bool(flags) if flags.numel() == 1 else bool(flags.any())
 
 
 def remove_agents(sim: SimState, query: torch.Tensor, remove: torch.Tensor) -> SimState:

@@ -46,7 +46,7 @@ from tbsim_env.observation.spec import (
     observation_space,
 )
 from tbsim_env.sim.collision import agent_distances
-from tbsim_env.sim.geometry import cos_sin, relative_pose
+from tbsim_env.sim.geometry import cos_sin, relative_pose, rotate_by
 from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
 
@@ -322,75 +322,22 @@ def agent_tokens(
     Returns:
         [B, N or S, H * 5 + H + 7] float32.
     """
-    b, n, h, f = history.data.shape
-    # One table row per slot (its history, then its static features): one gather of both.
-    table = torch.cat([history.data.view(b, n, h * f), static], -1)  # [B, N, H F + 6]
+    data = history.data
     if slots is not None:
-        table = gather_rows(table, slots)
-    k = _TokenColumns.of(h, table.device)
-    n = table.shape[1]
-    data = table[..., : h * f].view(b, n, h, f)  # (x, y, yaw, speed, valid) per step
+        data, static = gather_rows(data, slots), gather_rows(static, slots)
+    b, n, h = data.shape[:3]
     now = data[:, :, -1:]  # [B, S, 1, 5]
-    c, s = cos_sin(-now[..., 2:3])
-    # Every feature on the 5 columns at once: z = (dx, dy, turn, speed, valid) from the
-    # current entry, p = (dy, dx, turn, turn, speed); the rotation (``rotate_by``'s
-    # arithmetic) on the first two columns, cos / sin of the turn on the next two.
-    z = data - torch.where(k.relative, now, const(0.0, now))
-    p = z.gather(-1, k.shuffle.expand(z.shape))  # (a gather: fewer operations than a select)
-    rotated = z * c + p * (s * k.signs)
-    hist = torch.where(k.rotated, rotated, torch.where(k.cos, torch.cos(p), torch.sin(p)))
-    hist = torch.where(k.speed, p, hist) * data[..., 4:]
-    # The per-step validity, the static features and the current speed: one selection.
-    tail = table.gather(-1, k.tail.expand(b, n, -1))
-    return torch.cat([hist.view(b, n, h * f), tail], -1)
-
-
-@dataclass(frozen=True)
-class _TokenColumns:
-    """Cached column constants of ``agent_tokens`` for H history steps (built anew under
-    ``torch.compile``).
-
-    Attributes:
-        relative: [5] bool, the columns measured from the current entry (x, y, yaw).
-        shuffle: [5] int64, ``p``'s columns of ``z`` (dy, dx, turn, turn, speed).
-        signs: [5] float32, (-1, 1, 0, 0, 0): the rotation's sign of each swapped column.
-        rotated / cos / speed: [5] bool, the columns (x, y) / the cosine one / the speed one.
-        tail: [H + 7] int64, the table columns after the history: each step's validity, the
-            static features, the current speed.
-    """
-
-    relative: torch.Tensor
-    shuffle: torch.Tensor
-    signs: torch.Tensor
-    rotated: torch.Tensor
-    cos: torch.Tensor
-    speed: torch.Tensor
-    tail: torch.Tensor
-
-    @staticmethod
-    def of(h: int, device: torch.device) -> _TokenColumns:
-        key = (h, device)
-        if not torch.compiler.is_compiling() and key in _TOKEN_COLUMNS:
-            return _TOKEN_COLUMNS[key]
-        f = HISTORY_FEATURES
-        with torch.inference_mode(False):
-            col = torch.arange(f, device=device)
-            tail = [t * f + 4 for t in range(h)] + list(range(h * f, h * f + 6))
-            out = _TokenColumns(
-                relative=col < 3,
-                shuffle=torch.tensor([1, 0, 2, 2, 3], device=device),
-                signs=torch.tensor([-1.0, 1.0, 0.0, 0.0, 0.0], device=device),
-                rotated=col < 2,
-                cos=col == 2,
-                speed=col == 4,
-                tail=torch.tensor(tail + [(h - 1) * f + 3], device=device),
-            )
-        if not torch.compiler.is_compiling():
-            _TOKEN_COLUMNS[key] = out
-        return out
-
-
-_TOKEN_COLUMNS: dict[tuple, _TokenColumns] = {}
+    yaw = now[..., 2:3]
+    c, s = cos_sin(-yaw)
+    xy = rotate_by(data[..., :2] - now[..., :2], c, s)  # [B, S, H, 2] in its own frame
+    turn = data[..., 2:3] - yaw
+    # Contiguous pieces: a concatenation of contiguous floats is one operation, while one
+    # strided piece makes it copy piece by piece (three operations each).
+    speed = data[..., 3:4].contiguous()
+    hist = torch.cat([xy, torch.cos(turn), torch.sin(turn), speed], -1)
+    hist = (hist * data[..., 4:]).view(b, n, h * HISTORY_FEATURES)
+    valid, speed_now = data[..., 4].contiguous(), now[:, :, 0, 3:4].contiguous()
+    return torch.cat([hist, valid, static, speed_now], -1)
 
 
 def _seen_tokens(

@@ -178,9 +178,9 @@ def dense_overlap(
     c, s = torch.cos(axes), torch.sin(axes)
     dx, dy = offsets[0].view(b, k, n, 1), offsets[1].view(b, k, n, 1)
     sep = (dx * c + dy * s).abs_() > own_l + other_l * cd + other_w * sd
-    sep.bitwise_or_(((-dx) * s + dy * c).abs_() > own_w + other_l * sd + other_w * cd)
-    # A pair overlaps where it is near and no axis separates it (``x > y`` is ``x & ~y``).
-    return torch.gt(near, sep.any(-1)).any(-1)
+    sep |= ((-dx) * s + dy * c).abs_() > own_w + other_l * sd + other_w * cd
+    # A pair overlaps where it is near and no axis separates it (two bools read as one int16).
+    return torch.gt(near, sep.view(torch.int16).view(b, k, n)).any(-1)
 
 
 def collided_with_others(
@@ -215,7 +215,7 @@ def collided_with_others(
     """
     if gap is None:
         gap = agent_distances(pose_q, pose)
-    near = torch.bitwise_and(gap <= near_limit, valid.view(valid.shape[0], 1, -1))  # [B, K, N]
+    near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
     if dense is not None:
         return dense_overlap(near, dense[0], pose_q, pose, dense[1])
     if not torch.compiler.is_compiling():
