@@ -14,15 +14,12 @@ from dataclasses import dataclass, field
 
 import torch
 
-from tbsim_env.core import constants as C
 from tbsim_env.core.boxes import corner_offsets, corners_from_offsets
 from tbsim_env.core.torch_utils import cached_arange, const, gather_rows, listed, valid_first
 from tbsim_env.sim.collision import (
     agent_distances,
-    agent_offsets,
     collided_with_others,
     near_limits,
-    pair_halves,
 )
 from tbsim_env.sim.geometry import cos_sin
 from tbsim_env.sim.offroad import box_offroad_distance
@@ -47,8 +44,6 @@ class Route:
         segment_length: [B, Q, T - 1] derived: segment lengths m.
         segment_start: [B, Q, 2, T - 1] derived: ``points[..., :-1, :]``, x and y apart.
         segment_arc: [B, Q, T - 1] derived: ``arc[..., :-1]``.
-        segment_columns: derived: (start x, start y, vector x, vector y) [B, Q, T - 1] each,
-            the rows of ``segment_start`` and ``segments``.
         size: [B, Q, 2] (length, width) m of the agent.
         radius: [B, Q] m, half diagonal (bounding-circle radius) of its box.
         near_limit: [B, Q, N] m, ``collision.near_limits`` of the agent against every slot
@@ -57,9 +52,6 @@ class Route:
         corner_across: [B, Q, 4] m, across the heading.
         log_xy: [B, Q, T, 2] logged positions (not filled), m.
         log_valid: [B, Q, T] bool, the log has the agent.
-        pair_halves: ``collision.pair_halves`` of the agent against every slot, for fewer than
-            ``VALID_FIRST_MIN_QUERIES`` query agents (None for more): the collision test of
-            every pair at once (``collision.dense_overlap``).
     """
 
     points: torch.Tensor
@@ -71,7 +63,6 @@ class Route:
     segment_length: torch.Tensor | None = field(default=None)
     segment_start: torch.Tensor | None = field(default=None)
     segment_arc: torch.Tensor | None = field(default=None)
-    segment_columns: tuple[torch.Tensor, ...] | None = field(default=None)
     size: torch.Tensor | None = field(default=None)
     radius: torch.Tensor | None = field(default=None)
     near_limit: torch.Tensor | None = field(default=None)
@@ -79,7 +70,6 @@ class Route:
     corner_across: torch.Tensor | None = field(default=None)
     log_xy: torch.Tensor | None = field(default=None)
     log_valid: torch.Tensor | None = field(default=None)
-    pair_halves: tuple[torch.Tensor, ...] | None = field(default=None)
 
     def __post_init__(self) -> None:
         if self.segments is None:
@@ -92,9 +82,6 @@ class Route:
             start = self.points[..., :-1, :].transpose(-1, -2).contiguous()
             object.__setattr__(self, "segment_start", start)
             object.__setattr__(self, "segment_arc", self.arc[..., :-1])
-        if self.segment_columns is None:
-            columns = (*self.segment_start.unbind(-2), *self.segments.unbind(-2))
-            object.__setattr__(self, "segment_columns", columns)
 
 
 @dataclass(frozen=True)
@@ -197,26 +184,19 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
         "corner_across": across,
         "log_xy": state.log.pose[b_idx, query, :, :2],
         "log_valid": state.log.valid[b_idx, query],
-        "pair_halves": (
-            pair_halves(size, state.agents.size[..., :2])
-            if query.shape[1] < C.VALID_FIRST_MIN_QUERIES
-            else None
-        ),
     }
 
 
 def progress_along(route: Route, xy: torch.Tensor) -> torch.Tensor:
     """Arc length of the projection of ``xy`` [B, Q, 2] on the route polyline, [B, Q] m."""
     # x and y apart, each a contiguous row: no sums over a dim of 2, no strided reads.
-    ax, ay, bx, by = route.segment_columns
-    b, q = xy.shape[:2]
-    qx, qy = xy.view(b, q, 2, 1).unbind(-2)  # [B, Q, 1] each
-    u = ((qx - ax) * bx + (qy - ay) * by) / route.segment_length2
-    t = u.clamp_(const(0.0, u), const(1.0, u))
+    (ax, ay), (bx, by) = route.segment_start.unbind(-2), route.segments.unbind(-2)
+    qx, qy = xy[..., 0:1], xy[..., 1:2]
+    t = (((qx - ax) * bx + (qy - ay) * by) / route.segment_length2).clamp(0.0, 1.0)
     d = torch.hypot(qx - (ax + t * bx), qy - (ay + t * by))
     best = d.argmin(-1, keepdim=True)
     along = t.gather(-1, best) * route.segment_length.gather(-1, best)
-    return (route.segment_arc.gather(-1, best) + along).view(b, q)
+    return (route.segment_arc.gather(-1, best) + along).squeeze(-1)
 
 
 def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetrics:
@@ -232,32 +212,25 @@ def step_metrics(state: SimState, query: torch.Tensor, route: Route) -> StepMetr
     pose = gather_rows(state.pose, query)
     present = gather_rows(state.valid, query)
     size = route.size
-    x0, y0, yaw = pose.view(*query.shape, 1, 3).unbind(-1)  # [B, Q, 1]
+    x0, y0, yaw = pose.unsqueeze(-2).unbind(-1)  # [B, Q, 1]
     trig = cos_sin(yaw)
     # The other agents as columns: each row's valid slots (``valid_first``), or every slot.
     slots = valid_first(state.valid, query.shape[1])  # [B, C] or None
-    other_pose, usable, other_size, dense = state.pose, state.valid, None, None
+    other_pose, usable, other_size = state.pose, state.valid, state.agents.size[..., :2]
     if slots is not None:
         other_pose, usable = gather_rows(other_pose, slots), gather_rows(usable, slots)
-        other_size = gather_rows(state.agents.size[..., :2], slots)
-    elif route.pair_halves is None:
-        other_size = state.agents.size[..., :2]
-    if other_size is None:  # few query agents: every pair's box test at once (no sizes read)
-        offsets = agent_offsets(pose, other_pose)
-        gap, dense = torch.hypot(*offsets), (offsets, route.pair_halves)
-    else:
-        gap = agent_distances(pose, other_pose)  # [B, Q, C or N]
+        other_size = gather_rows(other_size, slots)
+    gap = agent_distances(pose, other_pose)  # [B, Q, C or N]
     limit = route.near_limit if slots is None else near_limits(query, size, other_size, slots)
-    coll = collided_with_others(pose, size, other_pose, other_size, usable, limit, trig, gap, dense)
+    coll = collided_with_others(pose, size, other_pose, other_size, usable, limit, trig, gap)
     corners = corners_from_offsets(x0, y0, trig, (route.corner_along, route.corner_across))
     off_d, stale = _offroad(corners, state.road_edges, present)
     log_valid, log_xy = _log_at(route, state.step)
     xy = pose[..., :2]
-    log_gap = torch.linalg.vector_norm(xy - log_xy, dim=-1)
-    log_gap = torch.where(log_valid, log_gap, const(0.0, log_gap))  # as "* log_valid"
+    log_gap = torch.linalg.vector_norm(xy - log_xy, dim=-1) * log_valid
     metrics = StepMetrics(
-        collision=torch.bitwise_and(coll, present),
-        offroad=torch.bitwise_and(off_d > const(0.0, off_d), present),
+        collision=coll & present,
+        offroad=(off_d > const(0.0, off_d)) & present,
         offroad_distance=off_d,
         progress=progress_along(route, xy),
         goal_distance=torch.linalg.vector_norm(xy - route.goal, dim=-1),

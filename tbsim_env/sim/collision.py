@@ -104,83 +104,14 @@ def near_limits(
     return limit.masked_fill(itself, float("-inf"))
 
 
-def agent_offsets(pose_q: torch.Tensor, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """(dx, dy) [B, K, N] m, the centre offsets (other - query) of K query poses [B, K, 3] to
-    every pose [B, N, 3] (views of the poses, then one subtraction per coordinate)."""
-    b, k, n = pose_q.shape[0], pose_q.shape[1], pose.shape[1]
-    other, me = pose.view(b, 1, n, 3), pose_q.view(b, k, 1, 3)
-    return other[..., 0] - me[..., 0], other[..., 1] - me[..., 1]
-
-
 def agent_distances(pose_q: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     """[B, K, N] m centre distances of K query poses [B, K, 3] to every pose [B, N, 3].
 
     x and y apart and ``hypot`` (no [B, K, N, 2] difference and no norm over a dim of 2: a
     third of the time of ``vector_norm``)."""
-    return torch.hypot(*agent_offsets(pose_q, pose))
-
-
-def pair_halves(
-    size_q: torch.Tensor, size: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The half sizes of every (query a, slot b) pair as the separating-axis tests of
-    ``dense_overlap`` read them, each [B, K, N, 2] (last dim: the axes of a, of b) m:
-    (own half length, other's half length, other's half width, own half width), i.e.
-    ((la, lb), (lb, la), (wb, wa), (wa, wb)). Fixed while the sizes are.
-
-    Args:
-        size_q: [B, K, 2] (length, width) of the query agents; size: [B, N, 2] of every slot.
-    """
-    b, k, n = size_q.shape[0], size_q.shape[1], size.shape[1]
-    half_q, half = const(0.5, size_q) * size_q, const(0.5, size) * size
-    la, wa = half_q.view(b, k, 1, 1, 2).expand(b, k, n, 1, 2).unbind(-1)  # [B, K, N, 1]
-    lb, wb = half.view(b, 1, n, 1, 2).expand(b, k, n, 1, 2).unbind(-1)
-    own_l, other_l = torch.cat([la, lb], -1), torch.cat([lb, la], -1)
-    return own_l, other_l, torch.cat([wb, wa], -1), torch.cat([wa, wb], -1)
-
-
-_OF_B: dict[torch.device, torch.Tensor] = {}
-
-
-def _of_b(device: torch.device) -> torch.Tensor:
-    """[2] bool (False, True): the column of box b in the [..., 2] axis layout (cached)."""
-    if torch.compiler.is_compiling():
-        return torch.tensor([False, True], device=device)
-    out = _OF_B.get(device)
-    if out is None:
-        with torch.inference_mode(False):
-            out = _OF_B[device] = torch.tensor([False, True], device=device)
-    return out
-
-
-def dense_overlap(
-    near: torch.Tensor,
-    offsets: tuple[torch.Tensor, torch.Tensor],
-    pose_q: torch.Tensor,
-    pose: torch.Tensor,
-    halves: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
-) -> torch.Tensor:
-    """[B, K] bool: some pair flagged in ``near`` [B, K, N] overlaps, testing every pair at
-    once (``pairwise_overlap``'s test and arithmetic, each pair's four axes as two columns:
-    the length and the width axis of box a, then of box b): for few query agents, a fixed
-    handful of operations on [B, K, N, 2].
-
-    Args:
-        offsets: (dx, dy) [B, K, N] ``agent_offsets``; pose_q: [B, K, 3] and pose: [B, N, 3]
-            the poses; halves: ``pair_halves`` of the pairs.
-    """
-    b, k, n = near.shape
-    own_l, other_l, other_w, own_w = halves
-    yaw_q, yaw = pose_q.view(b, k, 1, 1, 3)[..., 2], pose.view(b, 1, n, 1, 3)[..., 2]
-    dyaw = yaw - yaw_q  # [B, K, N, 1]
-    cd, sd = torch.cos(dyaw).abs_(), torch.sin(dyaw).abs_()
-    axes = torch.where(_of_b(near.device), yaw, yaw_q)  # [B, K, N, 2]: yaw of a, of b
-    c, s = torch.cos(axes), torch.sin(axes)
-    dx, dy = offsets[0].view(b, k, n, 1), offsets[1].view(b, k, n, 1)
-    sep = (dx * c + dy * s).abs_() > own_l + other_l * cd + other_w * sd
-    sep |= ((-dx) * s + dy * c).abs_() > own_w + other_l * sd + other_w * cd
-    # A pair overlaps where it is near and no axis separates it (two bools read as one int16).
-    return torch.gt(near, sep.view(torch.int16).view(b, k, n)).any(-1)
+    dx = pose[:, None, :, 0] - pose_q[:, :, None, 0]
+    dy = pose[:, None, :, 1] - pose_q[:, :, None, 1]
+    return torch.hypot(dx, dy)
 
 
 def collided_with_others(
@@ -192,7 +123,6 @@ def collided_with_others(
     near_limit: torch.Tensor,
     cos_sin_q: tuple[torch.Tensor, torch.Tensor] | None = None,
     gap: torch.Tensor | None = None,
-    dense: tuple[tuple[torch.Tensor, torch.Tensor], tuple[torch.Tensor, ...]] | None = None,
 ) -> torch.Tensor:
     """Collision flag of K query agents against every other valid agent (``collided``'s rule).
 
@@ -207,8 +137,6 @@ def collided_with_others(
             while the sizes are; -inf at each query agent itself, which is never a partner).
         cos_sin_q: optional ``cos_sin`` of the query yaws, [B, K, 1] each.
         gap: optional ``agent_distances(pose_q, pose)`` [B, K, N].
-        dense: optional (``agent_offsets(pose_q, pose)``, ``pair_halves(size_q, size)``): test
-            every pair at once (``dense_overlap``; for few query agents).
 
     Returns:
         [B, K] bool.
@@ -216,8 +144,6 @@ def collided_with_others(
     if gap is None:
         gap = agent_distances(pose_q, pose)
     near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
-    if dense is not None:
-        return dense_overlap(near, dense[0], pose_q, pose, dense[1])
     if not torch.compiler.is_compiling():
         # Eagerly, only the near pairs (a few per agent) get the box test. A compiled graph
         # cannot size tensors by data: it tests every pair (fused into few kernels).
