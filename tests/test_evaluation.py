@@ -304,7 +304,6 @@ if __name__ == "__main__":  # regenerate the export reference after a deliberate
         for name in EXPORT_POLICIES:
             path = Path(tmp) / f"{name}.binproto"
             export_submission([scene], name, path, num_rollouts=32, seed=3)
-            print(name, hashlib.sha256(path.read_bytes()).hexdigest())
             ref[name] = export_summary(path)
     EXPORT_REFERENCE.write_text(json.dumps(ref) + "\n")
     print(f"wrote {EXPORT_REFERENCE}")

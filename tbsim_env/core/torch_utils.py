@@ -104,21 +104,31 @@ def cast(x: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
     return torch.empty(x.shape, dtype=dtype, device=x.device).copy_(x)
 
 
-_ROW_OFFSETS: dict[tuple[int, int, int, torch.device], torch.Tensor] = {}
+_BUILT: dict[tuple, object] = {}
+
+
+def cached(key: tuple, build):
+    """``build()`` (index tensors, constants of a shape) made once per ``key`` outside inference
+    mode and kept; never modify what it returns. Under ``torch.compile`` it is built anew
+    (free in a graph; a cache lookup would only add guards). The one cache behind
+    ``row_offsets`` and the observations' index tables."""
+    if torch.compiler.is_compiling():
+        return build()
+    out = _BUILT.get(key)
+    if out is None:
+        with torch.inference_mode(False):
+            out = _BUILT[key] = build()
+    return out
 
 
 def row_offsets(b: int, n: int, dim: int, device: torch.device) -> torch.Tensor:
-    """``arange(b) * n`` shaped [b, 1, ...] (``dim`` dims) to add to a row index, cached like
-    ``cached_arange`` (and, like it, built anew under ``torch.compile``)."""
+    """``arange(b) * n`` shaped [b, 1, ...] (``dim`` dims) to add to a row index, cached
+    (``cached``)."""
     shape = (b,) + (1,) * (dim - 1)
-    if torch.compiler.is_compiling():
-        return (torch.arange(b, device=device) * n).view(shape)
-    key = (b, n, dim, device)
-    out = _ROW_OFFSETS.get(key)
-    if out is None:
-        with torch.inference_mode(False):
-            out = _ROW_OFFSETS[key] = (torch.arange(b, device=device) * n).view(shape)
-    return out
+    return cached(
+        ("row_offsets", b, n, dim, device),
+        lambda: (torch.arange(b, device=device) * n).view(shape),
+    )
 
 
 def gather_columns(

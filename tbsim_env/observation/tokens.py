@@ -20,6 +20,7 @@ import torch
 from tbsim_env.core import constants as C
 from tbsim_env.core.config import TokenConfig
 from tbsim_env.core.torch_utils import (
+    cached,
     cached_arange,
     cast,
     const,
@@ -403,24 +404,18 @@ def _seen_tokens(
     return index, rel, seen
 
 
-_TOKEN_OFFSETS: dict[tuple, torch.Tensor] = {}
-
-
 def _token_offsets(
     sizes: tuple[int, int, int], n: int, m: int, device: torch.device
 ) -> torch.Tensor:
     """[Ka + Km + Kt] int64: each token column's first row in the pose table of
     ``_seen_tokens`` (0 for agents, N for pieces, N + M for lights); cached (built anew under
     ``torch.compile``)."""
-    key = (sizes, n, m, device)
-    if not torch.compiler.is_compiling() and key in _TOKEN_OFFSETS:
-        return _TOKEN_OFFSETS[key]
-    with torch.inference_mode(False):
+
+    def build() -> torch.Tensor:
         starts = torch.tensor([0, n, n + m], device=device)
-        out = starts.repeat_interleave(torch.tensor(sizes, device=device))
-    if not torch.compiler.is_compiling():
-        _TOKEN_OFFSETS[key] = out
-    return out
+        return starts.repeat_interleave(torch.tensor(sizes, device=device))
+
+    return cached(("token_offsets", sizes, n, m, device), build)
 
 
 def _radii(cfg: ObsConfig) -> tuple[float, ...]:
@@ -550,9 +545,6 @@ def observe_indexed(
     )
 
 
-_GROUPED_ROWS: dict[tuple, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
-
-
 def _grouped_rows(
     q: int, ka: int, device: torch.device, k: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -560,17 +552,14 @@ def _grouped_rows(
     neighbours [Q, K] int64, its Ka neighbours' rows in the first Ka of K token columns, 0 in
     the others; of_agent [K] bool, the first Ka columns); cached (built anew under
     ``torch.compile``)."""
-    key = (q, ka, device, k)
-    if not torch.compiler.is_compiling() and key in _GROUPED_ROWS:
-        return _GROUPED_ROWS[key]
-    with torch.inference_mode(False):
+
+    def build() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         ego = torch.arange(q, device=device) * (1 + ka)
         rows = torch.zeros((q, k), dtype=torch.int64, device=device)
         rows[:, :ka] = ego[:, None] + 1 + torch.arange(ka, device=device)
-        out = ego, rows, torch.arange(k, device=device) < ka
-    if not torch.compiler.is_compiling():
-        _GROUPED_ROWS[key] = out
-    return out
+        return ego, rows, torch.arange(k, device=device) < ka
+
+    return cached(("grouped_rows", q, ka, device, k), build)
 
 
 def densify(obs: IndexedObservation, piece_segments: int) -> dict[str, torch.Tensor]:

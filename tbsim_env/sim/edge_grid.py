@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from tbsim_env.core import constants as C
-from tbsim_env.core.torch_utils import cast, const, gather_rows, scalar, select_rows
+from tbsim_env.core.torch_utils import cast, const, gather_rows, row_offsets, scalar, select_rows
 from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
 
@@ -402,29 +402,12 @@ def _segment_columns(
         c, e = table.shape[1:]
         base = grid.row_columns if rows is None else grid.row_columns[rows]
         base = base.view(-1, *([1] * (seg.dim() - 1)))
-        flat = (seg + base).view(1, *seg.shape) + _column_offsets(c, e, seg.dim(), seg.device)
+        flat = (seg + base).view(1, *seg.shape) + row_offsets(c, e, seg.dim() + 1, seg.device)
         cols = table.view(-1).index_select(0, flat.view(-1)).view(c, *seg.shape).unbind(0)
         return cols if isinstance(edges, EdgeGrid) else cols[:4]
     sa = gather_rows(edges.start, seg, rows)
     sab = gather_rows(edges.end, seg, rows) - sa
     return sa[..., 0], sa[..., 1], sab[..., 0], sab[..., 1]
-
-
-_COLUMN_OFFSETS: dict[tuple, torch.Tensor] = {}
-
-
-def _column_offsets(c: int, e: int, dim: int, device: torch.device) -> torch.Tensor:
-    """[C, 1, ...] (``dim`` ones) ``arange(C) * E``: column c's offset in a [., C, E] table,
-    cached (built anew under ``torch.compile``, like ``torch_utils.cached_arange``)."""
-    shape = (c,) + (1,) * dim
-    if torch.compiler.is_compiling():
-        return (torch.arange(c, device=device) * e).view(shape)
-    key = (c, e, dim, device)
-    out = _COLUMN_OFFSETS.get(key)
-    if out is None:
-        with torch.inference_mode(False):
-            out = _COLUMN_OFFSETS[key] = (torch.arange(c, device=device) * e).view(shape)
-    return out
 
 
 def joint_sign(
