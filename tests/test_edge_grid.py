@@ -148,3 +148,26 @@ def test_each_cell_lists_its_nearest_segments_and_bounds_the_rest(cell, count):
     torch.testing.assert_close(listed, ordered[:, :count], rtol=0, atol=1e-4)
     bound = torch.from_numpy(grid["bound"]).double() + _BOUND_SLACK
     torch.testing.assert_close(bound, ordered[:, count], rtol=0, atol=1e-4)
+
+
+def test_chunked_tiles_give_the_same_grid(monkeypatch):
+    """Chunks of one tile each (a tile larger than the work budget included) list what one
+    big chunk lists."""
+    import tbsim_env.sim.edge_grid as eg
+
+    _, [(st, en)] = _edges(_wiggly_roads(5))
+    whole = eg.scene_edge_grid(st, en, 3.0, 16, 15.0)
+    monkeypatch.setattr(eg, "_TILE_WORK", 1)
+    pieces = eg.scene_edge_grid(st, en, 3.0, 16, 15.0)
+    np.testing.assert_array_equal(pieces["bound"], whole["bound"])
+    # The same lists up to ties (consecutive segments are equally far from their joint).
+    q = torch.from_numpy(whole["center"]).double()
+    a, ab = torch.from_numpy(st), torch.from_numpy(en - st)
+
+    def listed(cells: np.ndarray) -> torch.Tensor:
+        idx = torch.from_numpy(cells)
+        rel = q[:, None] - a[idx]
+        t = ((rel * ab[idx]).sum(-1) / (ab[idx] ** 2).sum(-1)).clamp(0, 1)
+        return (rel - t[..., None] * ab[idx]).norm(dim=-1).sort(1).values
+
+    torch.testing.assert_close(listed(pieces["cells"]), listed(whole["cells"]), rtol=0, atol=1e-9)

@@ -170,6 +170,33 @@ def test_collision_terminates_and_removes_agent():
     assert hit
 
 
+def test_lazy_observations_equal_the_eager_ones():
+    """``lazy_observations=True`` returns, when read, what the eager step returns: every
+    agent, every step, the agents that terminate on the step included."""
+    envs = [
+        TrafficEnv(controlled="all", npc_policy="log_replay", lazy_observations=lazy)
+        for lazy in (False, True)
+    ]
+    (eager, _), (lazy, _) = (env.reset(seed=0) for env in envs)
+    ended = 0
+    for step in range(40):
+        if not envs[0].agents:
+            break
+        actions = {a: np.array([5.0, 1.5 * (-1) ** step]) for a in envs[0].agents}
+        eager, _, term, _, _ = envs[0].step(actions)
+        lazy, _, term_lazy, _, _ = envs[1].step(actions)
+        assert term == term_lazy and list(lazy) == list(eager)
+        ended += sum(term.values())
+        if step % 3 == 0:
+            continue  # some steps nobody reads: the next ones still observe their own state
+        for agent in eager:
+            for key, value in eager[agent].items():
+                np.testing.assert_allclose(lazy[agent][key], value, rtol=0, atol=1e-5)
+    assert ended > 0
+    with pytest.raises(KeyError):
+        lazy["track_does_not_exist"]
+
+
 def test_episode_length_and_truncation(real):
     env = TrafficEnv([real], npc_policy="log_replay")
     env.reset(seed=0)

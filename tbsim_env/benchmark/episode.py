@@ -9,6 +9,7 @@ caller goes on with the next one.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -136,7 +137,7 @@ def _checked(action: Any, where: str) -> np.ndarray:
 
 def _actions(env: TrafficEnv, planners: dict[str, Any], step: int, obs: dict) -> dict:
     """One action per live agent from its planner (``PlannerError`` on a bad one)."""
-    expert = env.expert_actions()
+    expert = functools.cache(env.expert_actions)  # computed once, if a planner reads it
     extra = _planner_inputs(env)
     t0 = env.config.start_step
     out = {}
@@ -147,8 +148,8 @@ def _actions(env: TrafficEnv, planners: dict[str, Any], step: int, obs: dict) ->
             agent=name,
             step=step,
             time_s=round((step - t0) * 0.1, 6),
-            observation=obs[name],
-            expert_action=expert[name],
+            observations=obs,
+            experts=expert,
             **extra[name],
         )
         try:
@@ -197,6 +198,7 @@ def run_episode(spec: EpisodeSpec, make_planner: Callable[[], Any]) -> list[Epis
         npc_policy=spec.traffic,
         npc_checkpoint=spec.npc_checkpoint,
         config=never,
+        lazy_observations=True,  # built-in planners read the state, not observations
     )
     obs, infos = env.reset(seed=spec.seed)
     planners = {name: make_planner() for name in env.agents}

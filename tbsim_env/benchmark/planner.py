@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import inspect
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -38,29 +38,47 @@ class PlannerInput:
         agent: the env's name of the agent (``track_<id>``).
         step: the simulation step (the episode starts at the WOMD current step, 10).
         time_s: s since the episode started.
-        observation: the agent's pairwise-relative observation (``TrafficEnv`` keys).
+        observation: the agent's pairwise-relative observation (``TrafficEnv`` keys),
+            computed when first read (from ``observations``, every agent's).
         route: [R, 2] float32, the next R points of its logged route in its own frame (x
             forward, y left, m), 2 m apart, ending at the goal.
         goal: [2] float32, the last logged position in its own frame, m.
         speed: m/s, its signed speed.
         expert_action: [2] float32, the action that follows its log (privileged: for the
-            ``expert`` baseline; a planner under test should not read it).
+            ``expert`` baseline; a planner under test should not read it). Computed when
+            first read, for every agent of the step at once (``experts``).
         slot: the agent's slot in ``sim`` (its track row in the scenario).
         sim: the whole simulator state as an NPC policy sees it (privileged: for rule-based
             baselines such as ``idm``; a planner under test should read ``observation``).
+        experts: () -> {agent: [2] float32} expert actions of the step (memoized by the
+            caller); None: no expert (``expert_action`` raises).
     """
 
     scenario_id: str
     agent: str
     step: int
     time_s: float
-    observation: dict[str, np.ndarray]
+    observations: Mapping[str, dict[str, np.ndarray]]
     route: np.ndarray
     goal: np.ndarray
     speed: float
-    expert_action: np.ndarray
     slot: int = -1
     sim: SimState | None = None
+    experts: Callable[[], dict[str, np.ndarray]] | None = dataclasses.field(
+        default=None, repr=False, compare=False
+    )
+
+    @property
+    def observation(self) -> dict[str, np.ndarray]:
+        """The agent's observation (see the class docs)."""
+        return self.observations[self.agent]
+
+    @property
+    def expert_action(self) -> np.ndarray:
+        """[2] float32, the action that follows this agent's log (see the class docs)."""
+        if self.experts is None:
+            raise ValueError(f"no expert action for agent {self.agent!r}: the input has none")
+        return self.experts()[self.agent]
 
 
 @runtime_checkable

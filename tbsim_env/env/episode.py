@@ -151,11 +151,14 @@ class StepConfig:
         dense: ``StepOutput.obs`` in the dense layout instead of an ``IndexedObservation``:
             each observer's keys in one row, [B, Q, D] (``observation.densify_flat``;
             ``observation.dense_views`` reads the keys of ``observe``'s dict from it).
+        observe: False: ``step`` leaves ``StepOutput.obs`` None (the caller observes the
+            next state with ``observe_state`` when it needs to: the same values).
     """
 
     env: EnvConfig
     obs: ObsConfig
     dense: bool = False
+    observe: bool = True
 
     def __post_init__(self) -> None:
         reward_weights(self.env.reward)  # an unknown reward term fails here, not mid-episode
@@ -400,22 +403,23 @@ def step(
     if env.remove_terminated and (torch.compiler.is_compiling() or bool(terminated.any())):
         sim = remove_agents(sim, setup.query, terminated)
     history = push_history(state.history, sim)
-    # Removals leave every pose as step_metrics saw it: its agent distances serve.
-    obs = observe_indexed(
-        sim,
-        history,
-        setup.ctx,
-        setup.query,
-        config.obs,
-        setup.static,
-        metrics.agent_distance,
-        observer_mask=active,
-    )
+    obs = None
+    if config.observe:  # removals leave every pose as step_metrics saw it: its distances serve
+        obs = observe_indexed(
+            sim,
+            history,
+            setup.ctx,
+            setup.query,
+            config.obs,
+            setup.static,
+            metrics.agent_distance,
+            observer_mask=active,
+        )
+        if config.dense:
+            obs = densify_flat(obs, config.obs.tokens.piece_segments)
     stale = None
     if torch.compiler.is_compiling():
         stale = metrics.offroad_stale.any(-1)
-    if config.dense:
-        obs = densify_flat(obs, config.obs.tokens.piece_segments)
     reward = torch.where(active, outcome.reward, const(0.0, outcome.reward))
     last = sim.step.view(-1, 1) >= scalar(env.last_step, sim.step.dtype, sim.device)
     # Truncated: active, at the last step and not terminated (terminated implies active).
@@ -455,9 +459,16 @@ def remove_agents(sim: SimState, query: torch.Tensor, remove: torch.Tensor) -> S
 
 
 # ---------------------------------------------------------------------- reading
-def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation | torch.Tensor:
+def observe_state(
+    state: EpisodeState, config: StepConfig, observers: torch.Tensor | None = None
+) -> IndexedObservation | torch.Tensor:
     """Observations of the query agents in the current state, as ``step`` makes them (the
-    dense rows with ``config.dense``)."""
+    dense rows with ``config.dense``).
+
+    Args:
+        observers: [B, Q] bool, the agents that observe (default ``state.alive``; ``step``
+            observes for the agents active before it, ``StepOutput.active``).
+    """
     setup = state.setup
     obs = observe_indexed(
         state.sim,
@@ -466,7 +477,7 @@ def observe_state(state: EpisodeState, config: StepConfig) -> IndexedObservation
         setup.query,
         config.obs,
         setup.static,
-        observer_mask=state.alive,
+        observer_mask=state.alive if observers is None else observers,
     )
     return densify_flat(obs, config.obs.tokens.piece_segments) if config.dense else obs
 

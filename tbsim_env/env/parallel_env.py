@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -72,6 +73,29 @@ class _Start:
     infos: dict[str, dict[str, Any]]
 
 
+class _LazyObservations(Mapping):
+    """{agent: observation} computed on first read (``TrafficEnv(lazy_observations=True)``)."""
+
+    def __init__(
+        self, names: list[str], observe: Callable[[list[str]], dict[str, dict[str, np.ndarray]]]
+    ) -> None:
+        self._names, self._observe = names, observe
+        self._values: dict[str, dict[str, np.ndarray]] | None = None
+
+    def __getitem__(self, name: str) -> dict[str, np.ndarray]:
+        if name not in self._names:
+            raise KeyError(name)
+        if self._values is None:
+            self._values = self._observe(self._names)
+        return self._values[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+
 class TrafficEnv(ParallelEnv, EzPickle):
     """Multi-agent driving on WOMD-style scenarios with NPCs driven by a policy.
 
@@ -101,6 +125,10 @@ class TrafficEnv(ParallelEnv, EzPickle):
         compile: run the core's step (all but the NPC policy) as one ``torch.compile`` graph:
             about three times the steps/s on the CPU after ~15 s of compiling on the first
             step; results equal the eager ones up to float rounding (``env.compiled``).
+        lazy_observations: ``step`` returns the observations as a read-only mapping that
+            computes them (the same values) when first read, for loops that mostly read
+            the simulator state instead (the planner benchmark's built-in planners); a
+            step whose observations nobody reads skips their cost.
 
     Attributes:
         controlled_tracks: per scenario, the track indices of its controlled agents.
@@ -127,6 +155,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         torch_threads: int | None = 1,
         npc_checkpoint: str | None = None,
         compile: bool = False,
+        lazy_observations: bool = False,
     ) -> None:
         EzPickle.__init__(
             self,
@@ -141,6 +170,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
             torch_threads=torch_threads,
             npc_checkpoint=npc_checkpoint,
             compile=compile,
+            lazy_observations=lazy_observations,
         )
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode={render_mode!r}; supported: None, 'rgb_array'")
@@ -159,7 +189,9 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.scenarios = sel.scenarios
         self.controlled_tracks: list[list[int]] = sel.queries
         self._step_config = StepConfig(self.config, self.obs_config, dense=True)
-        self._step_fn = StepFunction(self._step_config, compile)
+        self._lazy_obs = lazy_observations
+        step_config = dataclasses.replace(self._step_config, observe=not lazy_observations)
+        self._step_fn = StepFunction(step_config, compile)
         self._act_spaces: dict[str, gym.spaces.Box] = {}
         for sc, idx in zip(self.scenarios, self.controlled_tracks):
             for i in idx:
@@ -365,11 +397,27 @@ class TrafficEnv(ParallelEnv, EzPickle):
             truncs[name] = trunc_l[j]
             infos[name] = {k: v[j] for k, v in columns.items()}
             infos[name]["reward_terms"] = {t: values[i][j] for i, t in enumerate(names)}
-        obs = self._per_agent(live_before, out.obs, self._slot_of)
+        if self._lazy_obs:
+            obs = _LazyObservations(live_before, self._observer(state, out.active))
+        else:
+            obs = self._per_agent(live_before, out.obs, self._slot_of)
         self.agents = [a for a in live_before if not (terms[a] or truncs[a])]
         return obs, rewards, terms, truncs, infos
 
     # ------------------------------------------------------------------ helpers
+    def _observer(
+        self, state: EpisodeState, observers: torch.Tensor
+    ) -> Callable[[list[str]], dict[str, dict[str, np.ndarray]]]:
+        """A function observing ``state`` for the named agents (``lazy_observations``)."""
+        slot_of = dict(self._slot_of)
+
+        def observe(names: list[str]) -> dict[str, dict[str, np.ndarray]]:
+            with torch_threads(self.torch_threads), torch.inference_mode():
+                rows = ep.observe_state(state, self._step_config, observers)
+            return self._per_agent(names, rows, slot_of)
+
+        return observe
+
     def _per_agent(
         self, names: list[str], rows: torch.Tensor, slot_of: dict[str, int]
     ) -> dict[str, dict[str, np.ndarray]]:

@@ -60,23 +60,7 @@ def scene_edge_grid(
     # float32 is enough: the bound keeps a slack far above its rounding at map coordinates.
     seg = _Segments.of(start, end)
     k = min(count + 1, e)
-    tiles = _tiles(shape, _TILE_CELLS)
-    q = torch.from_numpy(center).float()
-    near = torch.empty(len(center), k, dtype=torch.int64)
-    kth = torch.empty(len(center))
-    # A tile's cells can only list segments within (k-th distance from its centre + 2 radii)
-    # of the tile centre (triangle inequality; the radius reaches the farthest cell centre):
-    # each tile measures those alone.
-    radius = float(np.hypot(*(0.5 * (_TILE_CELLS - 1) * cell,) * 2))
-    for cells_of_tile in tiles:
-        pts = q[cells_of_tile]
-        hub = pts.mean(0, keepdim=True)
-        d_hub = seg.distance(hub)[0]
-        cutoff = torch.kthvalue(d_hub, k).values + 2.0 * radius + 1e-3
-        cand = torch.nonzero(d_hub <= cutoff).squeeze(1)
-        top, idx = torch.topk(seg.take(cand).distance(pts), k, dim=-1, largest=False, sorted=True)
-        near[cells_of_tile] = cand[idx]
-        kth[cells_of_tile] = top[:, -1]
+    near, kth = _nearest_by_tiles(torch.from_numpy(center).float(), shape, cell, seg, k)
     near = near[:, :count].numpy()
     bound = kth.numpy() if k > count else np.full(len(center), np.inf, np.float32)
     if near.shape[1] < count:  # fewer segments than candidates: repeat the farthest
@@ -93,15 +77,80 @@ def scene_edge_grid(
 _TILE_CELLS = 8
 """Cells per side of the tiles that ``scene_edge_grid`` measures together."""
 
+_TILE_WORK = 1 << 20
+"""Cell-segment distances ``_nearest_by_tiles`` measures at once (bounds its memory)."""
 
-def _tiles(shape: np.ndarray, side: int) -> list[torch.Tensor]:
-    """Flat cell indices (row-major over ``shape`` [2]) of each ``side`` x ``side`` tile."""
-    flat = torch.arange(int(shape[0] * shape[1])).view(int(shape[0]), int(shape[1]))
-    return [
-        flat[i : i + side, j : j + side].reshape(-1)
-        for i in range(0, int(shape[0]), side)
-        for j in range(0, int(shape[1]), side)
-    ]
+
+def _nearest_by_tiles(
+    q: torch.Tensor, shape: np.ndarray, cell: float, seg: _Segments, k: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The k nearest segments of every cell centre, measured tile by tile, tiles batched.
+
+    A tile's cells can only list segments within (k-th distance from the tile's centre +
+    2 radii) of that centre (triangle inequality; the radius reaches the farthest cell centre
+    of a full tile), so each tile measures those candidates alone.
+
+    Args:
+        q: [G, 2] cell centres (row-major over ``shape``); cell: m; k: segments kept.
+
+    Returns:
+        (indices [G, k] int64 sorted by distance, distance of the k-th [G] m).
+    """
+    side = _TILE_CELLS
+    cells, hubs = _tiles(shape, side, q, cell)  # [T, side^2] (-1: none), [T, 2]
+    d_hub = seg.distance(hubs)  # [T, E]
+    radius = float(np.hypot(*(0.5 * (side - 1) * cell,) * 2))
+    order = torch.from_numpy(np.argsort(d_hub.numpy(), axis=1))  # nearest first
+    cutoff = d_hub.gather(1, order[:, k - 1 : k])[:, 0] + 2.0 * radius + 1e-3
+    n_cand = (d_hub <= cutoff[:, None]).sum(1)  # [T]
+    near = torch.empty(len(q), k, dtype=torch.int64)
+    kth2 = torch.empty(len(q))
+    # Tiles in order of their candidate counts, so that a chunk pads little; the padding
+    # lists the sentinel, a segment far from every cell.
+    by_count = n_cand.argsort()
+    cells, n_cand, order = cells[by_count], n_cand[by_count], order[by_count]
+    order = torch.where(torch.arange(order.shape[1]) < n_cand[:, None], order, len(seg.ax))
+    padded = seg.with_sentinel()
+    for t0, t1, width in _chunks(n_cand.tolist(), side * side, _TILE_WORK):
+        tc, cand = cells[t0:t1], order[t0:t1, :width]  # [t, side^2], [t, W]
+        d2 = padded.take(cand).squared_distance_batched(q[tc.clamp_min(0)])  # [t, side^2, W]
+        # numpy's (SIMD) argsort beats torch.topk several times over on these short rows.
+        idx = torch.from_numpy(np.argsort(d2.numpy(), axis=-1)[..., :k])
+        top = d2.gather(-1, idx)
+        ok = tc >= 0
+        near[tc[ok]] = cand.gather(1, idx.flatten(1)).view(idx.shape)[ok]
+        kth2[tc[ok]] = top[..., -1][ok]
+    return near, kth2.sqrt()
+
+
+def _chunks(counts: list[int], cells: int, work: int) -> list[tuple[int, int, int]]:
+    """(first tile, end, width) of chunks of tiles with ascending candidate ``counts``, each
+    measuring at most ``work`` cell-candidate pairs (a single tile may exceed it)."""
+    out, t0 = [], 0
+    while t0 < len(counts):
+        t1 = t0 + 1
+        while t1 < len(counts) and (t1 + 1 - t0) * counts[t1] * cells <= work:
+            t1 += 1
+        out.append((t0, t1, counts[t1 - 1]))
+        t0 = t1
+    return out
+
+
+def _tiles(
+    shape: np.ndarray, side: int, q: torch.Tensor, cell: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``side`` x ``side`` tiles of a grid of ``shape`` [2] cells with centres ``q``
+    [G, 2]: their flat cell indices [T, side^2] (row-major; -1 past the grid's edge) and the
+    centres [T, 2] of the full tiles."""
+    nx, ny = int(shape[0]), int(shape[1])
+    tx, ty = -(-nx // side), -(-ny // side)
+    flat = torch.full((tx * side, ty * side), -1, dtype=torch.int64)
+    flat[:nx, :ny] = torch.arange(nx * ny).view(nx, ny)
+    cells = flat.view(tx, side, ty, side).permute(0, 2, 1, 3).reshape(tx * ty, side * side)
+    corner = q[0] - 0.5 * cell  # the grid's lower corner
+    i, j = torch.meshgrid(torch.arange(tx), torch.arange(ty), indexing="ij")
+    hubs = corner + (torch.stack([i, j], -1).reshape(-1, 2).float() + 0.5) * (side * cell)
+    return cells, hubs
 
 
 class _Segments:
@@ -117,6 +166,7 @@ class _Segments:
         return cls(a[:, 0], a[:, 1], ab[:, 0], ab[:, 1], (ab * ab).sum(-1).clamp_min(1e-12))
 
     def take(self, rows: torch.Tensor) -> _Segments:
+        """The segments ``rows`` (any shape [..., W])."""
         return _Segments(*(v[rows] for v in (self.ax, self.ay, self.abx, self.aby, self.len2)))
 
     def distance(self, q: torch.Tensor) -> torch.Tensor:
@@ -124,6 +174,31 @@ class _Segments:
         dx, dy = q[:, :1] - self.ax, q[:, 1:] - self.ay  # [g, E]
         t = ((dx * self.abx + dy * self.aby) / self.len2).clamp_(0.0, 1.0)
         return torch.hypot(dx - t * self.abx, dy - t * self.aby)
+
+    def with_sentinel(self) -> _Segments:
+        """These segments and one more of length zero, ``_FAR`` m away from every map."""
+        far = torch.tensor([_FAR])
+        ext = lambda v, x: torch.cat([v, x])  # noqa: E731
+        return _Segments(
+            ext(self.ax, far),
+            ext(self.ay, far),
+            ext(self.abx, far * 0),
+            ext(self.aby, far * 0),
+            ext(self.len2, torch.ones(1)),
+        )
+
+    def squared_distance_batched(self, q: torch.Tensor) -> torch.Tensor:
+        """[t, g, W] squared distances (m^2) of points ``q`` [t, g, 2] to the segments of a
+        ``take`` of shape [t, W] (tile i's points to tile i's segments)."""
+        col = lambda v: v[:, None, :]  # noqa: E731
+        dx, dy = q[..., :1] - col(self.ax), q[..., 1:] - col(self.ay)
+        t = ((dx * col(self.abx) + dy * col(self.aby)) / col(self.len2)).clamp_(0.0, 1.0)
+        ex, ey = dx - t * col(self.abx), dy - t * col(self.aby)
+        return ex * ex + ey * ey
+
+
+_FAR = 1.0e9
+"""m: where the padding segment of ``_nearest_by_tiles`` lies (its square fits float32)."""
 
 
 _BOUND_SLACK = 1e-3
