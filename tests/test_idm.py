@@ -5,6 +5,7 @@ invariance, and lane links inferred from geometry against the protos' own."""
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import warnings
 
@@ -236,6 +237,39 @@ def test_brakes_for_a_controlled_agent_cutting_in():
     assert abs(out["pose"][-1, 1, 1]) < 0.5  # the cut-in happened (now in the follower's lane)
     assert out["action"][:, 0, 0].min() < -1.0  # the follower braked for it
     assert not overlaps(out["pose"]).any()
+
+
+def test_yields_to_fast_crossing_traffic_between_sample_times():
+    """A slow car 8 m before a crossing, a log-replayed car at 18 m/s 30 m away on the
+    crossing road: the slow car yields (the fast car's boxes 1 s and 2 s ahead lie on either
+    side of the corridor; its path between them does not)."""
+    north = line((0.0, -150.0), (0.0, 150.0))
+    lanes = {1: (EAST, []), 2: (north, [])}
+    sc = scene([(EAST, 142.0, 3.0), (north, 120.0, 18.0)], lanes)
+    out = drive(sc, 60, replayed=(1,))
+    assert out["action"][:20, 0, 0].min() < -0.5  # it brakes for the crossing car
+    assert not overlaps(out["pose"]).any()
+    assert out["pose"][-1, 0, 0] > 5.0  # and crosses once it has passed
+
+
+def _with_types(sc: Scenario, kinds: list[int]) -> Scenario:
+    t = dataclasses.replace(sc.tracks, object_type=np.array(kinds, np.int8))
+    t = dataclasses.replace(
+        t, size=np.broadcast_to(np.float32([0.6, 0.6, 1.7]), t.size.shape).copy()
+    )
+    return dataclasses.replace(sc, tracks=t).validate()
+
+
+@pytest.mark.parametrize("gaps", [False, True])
+def test_pedestrians_in_a_group_keep_no_gaps_unless_asked(gaps):
+    """Two pedestrians 0.7 m apart, the rear one faster: by default it walks on through the
+    group (WOMD's groups overlap); with ``pedestrian_gaps`` it slows behind the other."""
+    walk = {1: (EAST, [])}
+    ped = int(ObjectType.PEDESTRIAN)
+    sc = _with_types(scene([(EAST, 150.0, 1.8), (EAST, 150.7, 1.0)], walk), [ped, ped])
+    policy = IDMPolicy(speed_spread=0.0, headway_spread=0.0, pedestrian_gaps=gaps)
+    speed = drive(sc, 30, policy=policy)["speed"][:, 0]
+    assert (speed.min() < 1.2) if gaps else (speed.min() > 1.7)
 
 
 def _fork(turn: bool) -> Scenario:

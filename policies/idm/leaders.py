@@ -22,8 +22,8 @@ import torch
 
 from policies.idm.params import (
     CHORDS,
+    CROSSING_HORIZON,
     CROSSING_SIN,
-    GHOST_TIMES,
     MOVING_SPEED,
     YIELD_SLACK,
     IDMConfig,
@@ -112,11 +112,14 @@ class Agents:
         pose: [B, N, 3] (x m, y m, yaw rad).
         speed: [B, N] m/s.
         size: [B, N, 2] (length, width) m.
+        pedestrian: [B, N] bool, or None: no pair is left out for its types
+            (``IDMConfig.pedestrian_gaps``: pedestrian pairs are).
     """
 
     pose: torch.Tensor
     speed: torch.Tensor
     size: torch.Tensor
+    pedestrian: torch.Tensor | None = None
 
 
 def _others(agents: Agents, fj: torch.Tensor) -> torch.Tensor:
@@ -127,7 +130,7 @@ def _others(agents: Agents, fj: torch.Tensor) -> torch.Tensor:
 
 
 def _near_corridor(chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor) -> torch.Tensor:
-    """[Q] bool: j's path over the last ghost time comes near i's corridor: within one of
+    """[Q] bool: j's path over the crossing horizon comes near i's corridor: within one of
     the discs around the corridor's quarters (chords 2k, 2k + 1 lie within their length of
     the start of chord 2k + 1) widened by the corridor's and j's half sizes.
 
@@ -139,7 +142,7 @@ def _near_corridor(chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor
     centre = chords[:, 1::2, :2]  # [Q, M / 2, 2]
     radius = chords[:, 0::2, 4] + mine[:, 1:2]
     xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))
-    travel = vj * GHOST_TIMES[-1]  # j's centre moves along (cj, sj) by this
+    travel = vj * CROSSING_HORIZON  # j's centre moves along (cj, sj) by this
     rx, ry = centre[..., 0] - xj, centre[..., 1] - yj
     t = (rx * cj + ry * sj).clamp(min=torch.zeros_like(travel), max=travel.clamp_min(0.0))
     dx, dy = rx - t * cj, ry - t * sj
@@ -148,36 +151,43 @@ def _near_corridor(chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor
 
 
 def _chord_gaps(
-    chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor, ghosts: tuple[float, ...]
+    chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor, horizon: float
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The corridor test of j's box now and at the ``ghosts`` times ahead (see ``pair_gaps``).
+    """The corridor test of j's box now, and of the first time within ``horizon`` s that
+    j's box, moving at constant velocity across i's route, enters i's corridor (see
+    ``pair_gaps``).
 
     Args:
         chords, other, mine: as ``_near_corridor`` ([Q, M, 6], [Q, 7], [Q, 3]).
-        ghosts: s, the times ahead tested (may be empty).
+        horizon: s ahead j's path is tested (0: its box now only).
 
     Returns:
         (gap now [Q] m, lead speed [Q] m/s, gap to the crossing yielded to [Q] m).
     """
-    ox, oy, ux, uy, length, offset = (c.unsqueeze(1) for c in chords.unbind(-1))  # [Q, 1, M]
-    xj, yj, cj, sj, vj, lj, wj = (c.view(-1, 1, 1) for c in other.unbind(-1))
-    mine = mine.unsqueeze(-1)  # [Q, 3, 1]
-    tau = torch.tensor((0.0, *ghosts), device=xj.device).view(1, -1, 1)  # [1, G, 1]
-    dx = xj + (vj * cj) * tau - ox  # [Q, G, M]
-    dy = yj + (vj * sj) * tau - oy
+    ox, oy, ux, uy, length, offset = chords.unbind(-1)  # [Q, M]
+    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))  # [Q, 1]
+    half_len_i, half_width_i, speed_i = mine[:, 0:1] * 0.5, mine[:, 1:2], mine[:, 2:3]
+    dx, dy = xj - ox, yj - oy
     along, across = dx * ux + dy * uy, dy * ux - dx * uy
-    cos_rel, sin_rel = (cj * ux + sj * uy), (sj * ux - cj * uy)  # [Q, 1, M]
+    cos_rel, sin_rel = cj * ux + sj * uy, sj * ux - cj * uy
     half_along = 0.5 * (lj * cos_rel.abs() + wj * sin_rel.abs())
-    half_across = 0.5 * (lj * sin_rel.abs() + wj * cos_rel.abs())
-    inside = (along >= 0) & (along < length) & (across.abs() < mine[:, 1:2] + half_across)
-    gap = torch.where(inside, offset + along - half_along - 0.5 * mine[:, 0:1], float("inf"))
-    now, m = gap[:, 0].min(-1)
-    lead = (vj[:, 0, 0] * cos_rel[:, 0].gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
-    if not ghosts:
+    reach = half_width_i + 0.5 * (lj * sin_rel.abs() + wj * cos_rel.abs())
+    inside = (along >= 0) & (along < length) & (across.abs() < reach)
+    gap = torch.where(inside, offset + along - half_along - half_len_i, float("inf"))
+    now, m = gap.min(-1)
+    lead = (vj[:, 0] * cos_rel.gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
+    if horizon <= 0.0:
         return now, lead, torch.full_like(now, float("inf"))
+    # The time j's box starts to overlap the corridor across: |across + rate t| < reach.
+    rate = vj * sin_rel
     crossing = sin_rel.abs() > CROSSING_SIN
-    late = gap[:, 1:] >= mine[:, 2:3].clamp_min(1.0) * (tau[:, 1:] - YIELD_SLACK)
-    ghost = torch.where(crossing & late, gap[:, 1:], float("inf")).flatten(1).amin(-1)
+    safe = torch.where(crossing, rate, torch.ones_like(rate))
+    t_in = torch.minimum((-reach - across) / safe, (reach - across) / safe)
+    along_in = along + vj * cos_rel * t_in
+    gap_in = offset + along_in - half_along - half_len_i
+    enters = crossing & (t_in > 0) & (t_in <= horizon) & (along_in >= 0) & (along_in < length)
+    late = gap_in >= speed_i.clamp_min(1.0) * (t_in - YIELD_SLACK)
+    ghost = torch.where(enters & late, gap_in, float("inf")).amin(-1)
     return now, lead, ghost
 
 
@@ -190,11 +200,12 @@ def pair_gaps(
     """Bumper gap along i's route to j and j's speed along it, and the gap to where j will
     cross i's route, of every pair.
 
-    Besides j's box now, its boxes ``GHOST_TIMES`` ahead (constant velocity) are tested when
-    j moves and crosses i's route (more than 30 deg off the route's direction,
-    ``CROSSING_SIN``): such a box in the corridor is a standing obstacle for i unless i would
-    be past it well before j (``YIELD_SLACK``), so that i yields to crossing traffic instead
-    of meeting it. Pairs whose j comes nowhere near the corridor are left out first.
+    Besides j's box now, when j moves and crosses i's route (more than 30 deg off the
+    route's direction, ``CROSSING_SIN``) its path over the next ``CROSSING_HORIZON`` s
+    (constant velocity) is tested: where its box first enters the corridor is a standing
+    obstacle for i unless i would be past it well before j (``YIELD_SLACK``), so that i
+    yields to crossing traffic instead of meeting it. Pairs whose j comes nowhere near the
+    corridor are left out first.
 
     Args:
         pairs: (i [Q] row of the L agents, j [Q] flat slot index b * N + n).
@@ -216,10 +227,10 @@ def pair_gaps(
     lead, ghost = torch.zeros_like(gap), gap.clone()
     near = _near_corridor(chords, other, mine)
     moving = other[:, 4].abs() > MOVING_SPEED
-    for part, times in ((near & ~moving, ()), (near & moving, GHOST_TIMES)):
+    for part, horizon in ((near & ~moving, 0.0), (near & moving, CROSSING_HORIZON)):
         k = part.nonzero()[:, 0]
         if k.numel():
-            out = _chord_gaps(chords[k], other[k], mine[k], times)
+            out = _chord_gaps(chords[k], other[k], mine[k], horizon)
             for dst, src in zip((gap, lead, ghost), out):
                 dst[k] = src
     return gap, lead, ghost
@@ -272,9 +283,13 @@ def find_leaders(
     asks = torch.zeros(b * n, dtype=torch.bool, device=valid.device)
     asks[agent] = True
     size = agents.size
-    reach = 0.5 * torch.linalg.vector_norm(size, dim=-1) + agents.speed.abs() * GHOST_TIMES[-1]
+    reach = 0.5 * torch.linalg.vector_norm(size, dim=-1) + agents.speed.abs() * CROSSING_HORIZON
     discs = (asks.view(b, n), disc.view(b, n, 3), reach)
     row, i, j = candidate_pairs(agents.pose[..., :2], valid, *discs)
+    if agents.pedestrian is not None:  # groups of pedestrians keep no gaps between them
+        ped = agents.pedestrian.flatten()
+        keep = ~(ped[row * n + i] & ped[row * n + j])
+        row, i, j = row[keep], i[keep], j[keep]
     index = torch.full((b * n,), -1, dtype=torch.long, device=valid.device)
     index[agent] = torch.arange(agent.shape[0], device=valid.device)
     li = index[row * n + i]

@@ -45,8 +45,9 @@ LEADER_PERIOD = 2
 """Steps between two leader searches of an agent (0.2 s, a reaction time; half the agents
 search each step): in between, the gap to the leader found is carried on at the speeds
 then."""
-GHOST_TIMES = (1.0, 2.0)
-"""s: a crossing agent's boxes this far ahead in time (constant velocity) are tested too."""
+CROSSING_HORIZON = 2.0
+"""s: a crossing agent's path this far ahead in time (constant velocity) is tested too: the
+first time its box enters the corridor."""
 CROSSING_SIN = 0.5
 """An agent crosses a route when its heading is more than 30 deg off the route's (sine)."""
 YIELD_SLACK = 0.5
@@ -205,6 +206,10 @@ class IDMConfig:
         cruise_speed: m/s (>= 0): an agent at least this fast at the start keeps its highest
             history speed as its desired speed; a slower one on a lane (queued, starting off)
             wants the lane's speed limit (``plan.desired_speeds``).
+        pedestrian_gaps: pedestrians keep IDM gaps to other pedestrians. Off by default:
+            people walk in groups, shoulder to shoulder, and WOMD's pedestrian boxes overlap
+            there (logged pedestrians "collide" with each other in many real scenes); a
+            pedestrian still keeps its gap to vehicles and cyclists, and they to it.
     """
 
     route: Route | str = Route.LOG
@@ -220,6 +225,7 @@ class IDMConfig:
     stop_gap: float = 1.0
     junction_radius: float = 12.0
     cruise_speed: float = 8.0
+    pedestrian_gaps: bool = False
 
     def __post_init__(self) -> None:
         try:

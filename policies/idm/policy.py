@@ -293,7 +293,10 @@ class IDMPolicy:
         horizon = (HORIZON_BASE + HORIZON_TIME * speed_now).clamp_max(self.config.horizon)
         ask = agent.index_select(0, search)
         lanes = corridor(ps.route, ask, progress.index_select(0, search), horizon)
-        agents = Agents(state.pose, state.speed, state.agents.size[..., :2])
+        pedestrian = None
+        if not self.config.pedestrian_gaps:
+            pedestrian = state.agents.object_type == int(ObjectType.PEDESTRIAN)
+        agents = Agents(state.pose, state.speed, state.agents.size[..., :2], pedestrian)
         sub = IDMTerms(*(getattr(terms, f).index_select(0, search) for f in _TERMS))
         found = find_leaders(agents, (state.valid, ask), lanes, sub, self.config)
         lead = Leader(
