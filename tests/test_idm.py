@@ -421,3 +421,20 @@ def test_batched_env_cli_and_planner_use(one_scenario_path, tmp_path):
     view = tmp_path / "view.html"
     args = ["view", str(one_scenario_path), "--policy", "idm", "--rollouts", "1"]
     assert cli.main([*args, "--out", str(view)]) == 0 and view.stat().st_size > 10_000
+
+
+def test_planning_one_track_routes_it_alone():
+    """``plan(tracks=[k])`` (the planner's: one agent) routes track k alone, with the route
+    and stop lines the full plan gives it where no branch is drawn."""
+    sc = _fork(turn=True)
+    policy = IDMPolicy(route="lanes")
+    full, one = policy.plan(sc, NOW), policy.plan(sc, NOW, tracks=[0])
+    assert one.routes.valid.tolist() == [True] and full.routes.valid.tolist() == [True]
+    np.testing.assert_array_equal(one.routes.points, full.routes.points)
+    two = scene(
+        [(EAST, 100.0, 8.0), (EAST, 60.0, 8.0)], JUNCTION, signs=((500, (-1.0, -3.0), [2]),)
+    )
+    full, one = policy.plan(two, NOW), policy.plan(two, NOW, tracks=[1])
+    assert one.routes.valid.tolist() == [False, True]
+    assert np.isinf(one.events.sign_arc[0]).all() and np.isfinite(one.events.sign_arc[1, 0])
+    np.testing.assert_array_equal(one.events.sign_arc[1], full.events.sign_arc[1])

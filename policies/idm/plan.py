@@ -107,21 +107,24 @@ def scene_plan(
     start: int,
     cfg: IDMConfig,
     rng: np.random.Generator,
+    only: np.ndarray | None = None,
 ) -> ScenePlan:
-    """The plan of every track of ``scenario`` from step ``start`` (branches drawn by
-    ``rng`` where no logged future decides them)."""
+    """The plan of every track of ``scenario`` (of the tracks ``only`` [A] bool flags) from
+    step ``start`` (branches drawn by ``rng`` where no logged future decides them)."""
     kinds = scenario.tracks.object_type
     per_type = type_params(cfg, kinds)
     params = np.array([[getattr(p, f) for f in PARAM_FIELDS] for p in per_type], np.float64)
     params = params.reshape(len(per_type), len(PARAM_FIELDS))
-    routes = build_routes(scenario, graph, start, cfg.route, rng)
+    routes = build_routes(scenario, graph, start, cfg.route, rng, only)
+    routed = np.flatnonzero(routes.valid)  # events along the routes there are
+    events = route_events(routes.points[routed], scenario, graph)
     decel = params[:, PARAM_FIELDS.index("comfort_decel")]
     pedestrian = kinds == int(ObjectType.PEDESTRIAN)
     defaults = np.array([p.default_speed for p in per_type], np.float64)
     return ScenePlan(
         routes=routes,
         speed_cap=speed_caps(routes.points, cfg.lateral_accel, decel),
-        events=route_events(routes.points, scenario, graph),
+        events=events.scattered(routed, len(routes.valid)),
         crosswalks=crosswalk_polygons(scenario),
         params=params,
         desired_speed=desired_speeds(

@@ -175,13 +175,26 @@ class IDMPolicy:
             self._graphs.popitem(last=False)
         return hit[1]
 
-    def plan(self, scenario: Scenario, start: int, variant: int = 0) -> ScenePlan:
-        """The scene plan from step ``start`` with branch variant ``variant`` (cached)."""
-        key = (id(scenario), int(start), int(variant))
+    def plan(
+        self,
+        scenario: Scenario,
+        start: int,
+        variant: int = 0,
+        tracks: Sequence[int] | None = None,
+    ) -> ScenePlan:
+        """The scene plan from step ``start`` with branch variant ``variant`` (cached), of
+        every track or of the track rows ``tracks`` alone (the others get no route)."""
+        only = None if tracks is None else tuple(sorted(int(k) for k in tracks))
+        key = (id(scenario), int(start), int(variant), only)
         hit = self._plans.get(key)
         if hit is None or hit[0] is not scenario:
             rng = np.random.default_rng([int(variant), int(start)])
-            built = scene_plan(scenario, self.lane_graph(scenario), start, self.config, rng)
+            mask = None
+            if only is not None:
+                mask = np.zeros(scenario.tracks.num_tracks, bool)
+                mask[list(only)] = True
+            graph = self.lane_graph(scenario)
+            built = scene_plan(scenario, graph, start, self.config, rng, mask)
             hit = self._plans[key] = (scenario, built)
         self._plans.move_to_end(key)
         while len(self._plans) > CACHE_SCENES:
@@ -189,16 +202,25 @@ class IDMPolicy:
         return hit[1]
 
     def initial_state(
-        self, state: SimState, scenarios: Sequence[Scenario], generator: torch.Generator
+        self,
+        state: SimState,
+        scenarios: Sequence[Scenario],
+        generator: torch.Generator,
+        tracks: Sequence[Sequence[int]] | None = None,
     ) -> IDMState:
         """Routes and per-agent parameters of every row (desired speed and time headway drawn
-        from ``generator``)."""
+        from ``generator``); with ``tracks``, per row the track rows (= slots) the policy
+        will drive, the others getting no route (``IDMPlanner`` drives one agent)."""
         b, n = state.batch_size, state.num_agents
         variant = torch.randint(BRANCH_VARIANTS, (b,), generator=generator).tolist()
         steps = state.step.tolist()
         origins = state.origin.cpu().numpy()
         rows = [
-            _row(self.plan(sc, steps[k], variant[k]), origins[k], n)
+            _row(
+                self.plan(sc, steps[k], variant[k], None if tracks is None else tracks[k]),
+                origins[k],
+                n,
+            )
             for k, sc in enumerate(scenarios)
         ]
         dev = state.device

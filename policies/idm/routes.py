@@ -249,7 +249,12 @@ def _path_length(path: np.ndarray) -> float:
 
 
 def build_routes(
-    scenario: Scenario, graph: LaneGraph, start: int, mode: Route, rng: np.random.Generator
+    scenario: Scenario,
+    graph: LaneGraph,
+    start: int,
+    mode: Route,
+    rng: np.random.Generator,
+    only: np.ndarray | None = None,
 ) -> RoutePlan:
     """The routes of every track of ``scenario`` from step ``start`` on.
 
@@ -262,12 +267,14 @@ def build_routes(
         start: the first simulated step.
         mode: the route mode.
         rng: draws the branches no logged future decides.
+        only: optional [A] bool, the tracks to route (the others get no route, ``valid``
+            False): a planner driving one agent needs its route alone.
     """
     t = scenario.tracks
     a = t.num_tracks
     mode = mode if scenario.has_future else Route.LANES
     valid_from = t.valid[:, start:]
-    present = valid_from.any(1)
+    present = valid_from.any(1) if only is None else valid_from.any(1) & only
     first = np.where(present, np.argmax(valid_from, axis=1) + start, start)
     rows = np.arange(a)
     xy = t.xyz[rows, first, :2].astype(np.float64)

@@ -71,6 +71,23 @@ class RouteEvents:
     crosswalk_arc: np.ndarray
     crosswalk_row: np.ndarray
 
+    def scattered(self, rows: np.ndarray, a: int) -> RouteEvents:
+        """These events (of the routes ``rows`` [R] of A) at their rows of A; the other rows
+        have none."""
+
+        def put(x: np.ndarray, pad: float) -> np.ndarray:
+            out = np.full((a, x.shape[1]), pad, x.dtype)
+            out[rows] = x
+            return out
+
+        return RouteEvents(
+            put(self.signal_arc, np.inf),
+            put(self.signal_row, -1),
+            put(self.sign_arc, np.inf),
+            put(self.crosswalk_arc, np.inf),
+            put(self.crosswalk_row, -1),
+        )
+
 
 def _point_at(poly: np.ndarray, s: float) -> np.ndarray:
     """[2] point ``s`` m along a polyline (clipped to its length)."""

@@ -193,11 +193,10 @@ class IDMPlanner:
     def act(self, x: PlannerInput) -> Any:
         if x.sim is None or self._scenario is None:
             raise ValueError("the idm planner needs PlannerInput.sim and a reset() first")
-        if self._plan is None:  # the routes of every agent, the actions of this one alone
-            plan = self.policy.initial_state(x.sim, [self._scenario], self._generator)
-            mine = torch.zeros_like(plan.valid)
-            mine[0, x.slot] = True
-            self._plan = dataclasses.replace(plan, valid=plan.valid & mine)
+        if self._plan is None:  # the route of this agent alone (its slot is its track row)
+            self._plan = self.policy.initial_state(
+                x.sim, [self._scenario], self._generator, tracks=[[x.slot]]
+            )
         action, self._plan = self.policy.act(x.sim, self._plan, self._generator)
         return action[0, x.slot].numpy()
 
