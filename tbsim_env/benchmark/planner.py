@@ -175,12 +175,14 @@ class ConstantVelocityPlanner:
 class IDMPlanner:
     """The ``idm`` NPC controller driving the agent (``policies.idm``): IDM along a lane-graph
     route (or its logged path), keeping its gap, stopping for signals, stop signs and
-    crossing agents. It reads the simulator state (``PlannerInput.sim``), as an NPC does."""
+    crossing agents. It reads the simulator state (``PlannerInput.sim``), as an NPC does,
+    with the type's parameters as they are: no per-agent spread of desired speed or headway
+    (that spread makes NPC rollouts differ; a planner baseline drives as designed)."""
 
     def __init__(self, route: str = "lanes") -> None:
         from policies.idm import IDMPolicy
 
-        self.policy = IDMPolicy(route=route)
+        self.policy = IDMPolicy(route=route, speed_spread=0.0, headway_spread=0.0)
         self.name = "idm" if route == "lanes" else f"idm_{route}"
         self._scenario: Scenario | None = None
         self._plan: Any = None
