@@ -128,12 +128,16 @@ def test_points_gathered_from_several_rows_read_their_own_scenes_edges():
     assert (full[:, :e] < 0).any() and (full[:, :e] > 0).any()
 
 
+@pytest.mark.parametrize("leaf", [1, 4, 8])
 @pytest.mark.parametrize("cell, count", [(6.0, 16), (9.0, 96), (50.0, 4)])
-def test_each_cell_lists_its_nearest_segments_and_bounds_the_rest(cell, count):
-    """The tiled build against every (cell, segment) distance: each cell lists ``count``
-    segments at the ``count`` smallest distances (ties in any order) and its bound is the next
-    distance (less the slack)."""
+def test_each_cell_lists_its_nearest_segments_and_bounds_the_rest(cell, count, leaf, monkeypatch):
+    """The tiled build (tiles quartered down to ``leaf`` cells a side) against every (cell,
+    segment) distance: each cell lists ``count`` segments at the ``count`` smallest distances
+    (ties in any order) and its bound is the next distance (less the slack)."""
+    import tbsim_env.sim.edge_grid as eg
     from tbsim_env.sim.edge_grid import _BOUND_SLACK, scene_edge_grid
+
+    monkeypatch.setattr(eg, "_LEAF_CELLS", leaf)
 
     _, [(st, en)] = _edges(_wiggly_roads(3))
     grid = scene_edge_grid(st, en, cell, count, 15.0)

@@ -75,7 +75,11 @@ def scene_edge_grid(
 
 
 _TILE_CELLS = 8
-"""Cells per side of the tiles that ``scene_edge_grid`` measures together."""
+"""Cells per side of the tiles that ``scene_edge_grid`` narrows the candidates for first."""
+
+_LEAF_CELLS = 4
+"""Cells per side of the blocks whose cells measure their candidates (tiles are quartered
+down to it)."""
 
 _TILE_WORK = 1 << 20
 """Cell-segment distances ``_nearest_by_tiles`` measures at once (bounds its memory)."""
@@ -86,9 +90,11 @@ def _nearest_by_tiles(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The k nearest segments of every cell centre, measured tile by tile, tiles batched.
 
-    A tile's cells can only list segments within (k-th distance from the tile's centre +
-    2 radii) of that centre (triangle inequality; the radius reaches the farthest cell centre
-    of a full tile), so each tile measures those candidates alone.
+    A point p's k nearest segments lie within (k-th distance from a hub h + 2 |p - h|) of h
+    (triangle inequality). So a tile of ``_TILE_CELLS``^2 cells keeps the segments within
+    that cutoff of its centre (its radius reaching the farthest cell centre), each of its four
+    quarters keeps those of the tile's within the cutoff of the quarter's centre, and each
+    cell measures its quarter's candidates alone.
 
     Args:
         q: [G, 2] cell centres (row-major over ``shape``); cell: m; k: segments kept.
@@ -98,29 +104,71 @@ def _nearest_by_tiles(
     """
     side = _TILE_CELLS
     cells, hubs = _tiles(shape, side, q, cell)  # [T, side^2] (-1: none), [T, 2]
-    d_hub = seg.distance(hubs)  # [T, E]
-    radius = float(np.hypot(*(0.5 * (side - 1) * cell,) * 2))
-    order = torch.from_numpy(np.argsort(d_hub.numpy(), axis=1))  # nearest first
-    cutoff = d_hub.gather(1, order[:, k - 1 : k])[:, 0] + 2.0 * radius + 1e-3
-    n_cand = (d_hub <= cutoff[:, None]).sum(1)  # [T]
+    padded = seg.with_sentinel()  # lists are padded with the sentinel (index E)
+    sentinel = len(seg.ax)
+    cand, n_cand = _within_cutoff(seg.distance(hubs), k, _radius(side, cell), sentinel)
+    while side > _LEAF_CELLS:
+        cells, hubs, cand, n_cand = _quarters(cells, hubs, cand, padded, (side, cell, k))
+        side //= 2
+    keep = (cells >= 0).any(1)
+    cells, cand, n_cand = cells[keep], cand[keep], n_cand[keep]
     near = torch.empty(len(q), k, dtype=torch.int64)
     kth2 = torch.empty(len(q))
-    # Tiles in order of their candidate counts, so that a chunk pads little; the padding
-    # lists the sentinel, a segment far from every cell.
+    # Quarters in order of their candidate counts, so that a chunk pads little.
     by_count = n_cand.argsort()
-    cells, n_cand, order = cells[by_count], n_cand[by_count], order[by_count]
-    order = torch.where(torch.arange(order.shape[1]) < n_cand[:, None], order, len(seg.ax))
-    padded = seg.with_sentinel()
+    cells, n_cand, cand = cells[by_count], n_cand[by_count], cand[by_count]
     for t0, t1, width in _chunks(n_cand.tolist(), side * side, _TILE_WORK):
-        tc, cand = cells[t0:t1], order[t0:t1, :width]  # [t, side^2], [t, W]
-        d2 = padded.take(cand).squared_distance_batched(q[tc.clamp_min(0)])  # [t, side^2, W]
+        tc, cc = cells[t0:t1], cand[t0:t1, :width]  # [t, side^2], [t, W]
+        d2 = padded.take(cc).squared_distance_batched(q[tc.clamp_min(0)])  # [t, side^2, W]
         # numpy's (SIMD) argsort beats torch.topk several times over on these short rows.
         idx = torch.from_numpy(np.argsort(d2.numpy(), axis=-1)[..., :k])
         top = d2.gather(-1, idx)
         ok = tc >= 0
-        near[tc[ok]] = cand.gather(1, idx.flatten(1)).view(idx.shape)[ok]
+        near[tc[ok]] = cc.gather(1, idx.flatten(1)).view(idx.shape)[ok]
         kth2[tc[ok]] = top[..., -1][ok]
     return near, kth2.sqrt()
+
+
+def _quarters(
+    cells: torch.Tensor,
+    hubs: torch.Tensor,
+    cand: torch.Tensor,
+    segments: _Segments,
+    block: tuple[int, float, int],
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The four quarters of R blocks of ``side`` x ``side`` cells (``block``: side, cell m,
+    k): their cells [4 R, (side / 2)^2], centres [4 R, 2], and candidates of the block's
+    ``cand`` [R, W] within the quarter's cutoff ([4 R, W'] padded with the sentinel, counts
+    [4 R]). Quarter (a, b) holds cells (a side / 2 + i, b side / 2 + j) of its block."""
+    side, cell, k = block
+    half, r = side // 2, len(cells)
+    quarter_cells = cells.view(r, 2, half, 2, half).permute(0, 1, 3, 2, 4).reshape(4 * r, -1)
+    shift = (torch.tensor([[-1, -1], [-1, 1], [1, -1], [1, 1]]) * (0.5 * half * cell)).float()
+    quarter_hubs = hubs[:, None] + shift  # [R, 4, 2]
+    d = segments.take(cand).squared_distance_batched(quarter_hubs).sqrt()  # [R, 4, W]
+    cols, count = _within_cutoff(d.view(4 * r, -1), k, _radius(half, cell), -1)
+    sentinel = len(segments.ax) - 1
+    out = cand.repeat_interleave(4, 0).gather(1, cols.clamp_min(0))
+    return quarter_cells, quarter_hubs.view(-1, 2), torch.where(cols >= 0, out, sentinel), count
+
+
+def _radius(side: int, cell: float) -> float:
+    """m from the centre of a ``side`` x ``side`` block of cells to its farthest cell centre."""
+    return float(np.hypot(*(0.5 * (side - 1) * cell,) * 2))
+
+
+def _within_cutoff(
+    d: torch.Tensor, k: int, radius: float, pad: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per row of hub distances ``d`` [R, C], the columns within (its k-th distance +
+    2 ``radius``), nearest first: ([R, W] int64 padded with ``pad``, W the largest count;
+    counts [R])."""
+    order = torch.from_numpy(np.argsort(d.numpy(), axis=1))
+    cutoff = d.gather(1, order[:, k - 1 : k]) + (2.0 * radius + 1e-3)
+    count = (d <= cutoff).sum(1)
+    width = int(count.max())
+    order = order[:, :width]
+    return torch.where(torch.arange(width) < count[:, None], order, pad), count
 
 
 def _chunks(counts: list[int], cells: int, work: int) -> list[tuple[int, int, int]]:
