@@ -171,13 +171,18 @@ def test_collision_terminates_and_removes_agent():
 
 
 def test_lazy_observations_equal_the_eager_ones():
-    """``lazy_observations=True`` returns, when read, what the eager step returns: every
-    agent, every step, the agents that terminate on the step included."""
+    """``lazy_observations=True`` returns, when read, what the eager reset and step return:
+    every agent, every step, the agents that terminate on the step included."""
     envs = [
         TrafficEnv(controlled="all", npc_policy="log_replay", lazy_observations=lazy)
         for lazy in (False, True)
     ]
-    (eager, _), (lazy, _) = (env.reset(seed=0) for env in envs)
+    for k in (1, 0):  # two scenes: each builds its own map context when first observed
+        (eager, _), (lazy, _) = (env.reset(options={"scenario_index": k}) for env in envs)
+        assert list(lazy) == list(eager)
+        for agent in eager:
+            for key, value in eager[agent].items():
+                np.testing.assert_allclose(lazy[agent][key], value, rtol=0, atol=1e-5)
     ended = 0
     for step in range(40):
         if not envs[0].agents:

@@ -204,6 +204,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self._obs_space = observation_space(self.obs_config)
         self.agents: list[str] = []
         self._starts: dict[int, _Start] = {}
+        self._contexts: dict[int, Any] = {}  # lazy_observations: map contexts built so far
         self._state: EpisodeState | None = None
         self._names: list[str] = []
         self._slot_of: dict[str, int] = {}
@@ -317,20 +318,28 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self.agents = list(first.names)
         # Every episode of scenario k starts from the same (immutable) state; the returned
         # arrays and dicts are copies.
+        infos = {a: dict(info) for a, info in first.infos.items()}
+        if self._lazy_obs:
+            return _LazyObservations(list(first.names), self._observer(state, state.alive)), infos
         obs = {a: {key: v.copy() for key, v in o.items()} for a, o in first.obs.items()}
-        return obs, {a: dict(info) for a, info in first.infos.items()}
+        return obs, infos
 
     def _start(self, k: int) -> _Start:
         """The first state, observations and infos of scenario ``k``'s episodes."""
         sc, query = self.scenarios[k], self.controlled_tracks[k]
         exact = bool(getattr(self.npc_policy, "exact_replay", False))
-        bank = ep.build_bank([sc], [query], exact, self._step_config, self.device)
+        # Lazy observations: the map context is built when an observation is first read.
+        bank = ep.build_bank(
+            [sc], [query], exact, self._step_config, self.device, not self._lazy_obs
+        )
         ks = torch.zeros(1, dtype=torch.int64, device=self.device)
         state, metrics = ep.start(bank, ks)
         names = [agent_name(sc.tracks.id[i]) for i in query]
-        obs = ep.observe_state(state, self._step_config)
         columns = self._info_columns(state, metrics, None)[0]
         infos = {a: {c: v[j] for c, v in columns.items()} for j, a in enumerate(names)}
+        if self._lazy_obs:
+            return _Start(state, names, {}, infos)
+        obs = ep.observe_state(state, self._step_config)
         slot_of = {n: j for j, n in enumerate(names)}
         return _Start(state, names, self._per_agent(names, obs, slot_of), infos)
 
@@ -408,12 +417,18 @@ class TrafficEnv(ParallelEnv, EzPickle):
     def _observer(
         self, state: EpisodeState, observers: torch.Tensor
     ) -> Callable[[list[str]], dict[str, dict[str, np.ndarray]]]:
-        """A function observing ``state`` for the named agents (``lazy_observations``)."""
-        slot_of = dict(self._slot_of)
+        """A function observing ``state`` for the named agents (``lazy_observations``: the
+        scenario's map context is built on the first call and kept)."""
+        slot_of, k = dict(self._slot_of), self._scenario_index
 
         def observe(names: list[str]) -> dict[str, dict[str, np.ndarray]]:
             with torch_threads(self.torch_threads), torch.inference_mode():
-                rows = ep.observe_state(state, self._step_config, observers)
+                if k not in self._contexts:
+                    built = ep.with_map_context(state, [self.scenarios[k]], self._step_config)
+                    self._contexts[k] = built.setup.ctx
+                setup = dataclasses.replace(state.setup, ctx=self._contexts[k])
+                seen = dataclasses.replace(state, setup=setup)
+                rows = ep.observe_state(seen, self._step_config, observers)
             return self._per_agent(names, rows, slot_of)
 
         return observe
