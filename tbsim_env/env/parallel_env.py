@@ -125,10 +125,11 @@ class TrafficEnv(ParallelEnv, EzPickle):
         compile: run the core's step (all but the NPC policy) as one ``torch.compile`` graph:
             about three times the steps/s on the CPU after ~15 s of compiling on the first
             step; results equal the eager ones up to float rounding (``env.compiled``).
-        lazy_observations: ``step`` returns the observations as a read-only mapping that
-            computes them (the same values) when first read, for loops that mostly read
-            the simulator state instead (the planner benchmark's built-in planners); a
-            step whose observations nobody reads skips their cost.
+        lazy_observations: ``reset`` and ``step`` return the observations as a read-only
+            mapping that computes them (the same values) when first read, and a scene's
+            observation map context is built then; for loops that mostly read the simulator
+            state instead (the planner benchmark's built-in planners): a step whose
+            observations nobody reads skips their cost.
 
     Attributes:
         controlled_tracks: per scenario, the track indices of its controlled agents.
