@@ -93,8 +93,9 @@ def _nearest_by_tiles(
     A point p's k nearest segments lie within (k-th distance from a hub h + 2 |p - h|) of h
     (triangle inequality). So a tile of ``_TILE_CELLS``^2 cells keeps the segments within
     that cutoff of its centre (its radius reaching the farthest cell centre), each of its four
-    quarters keeps those of the tile's within the cutoff of the quarter's centre, and each
-    cell measures its quarter's candidates alone.
+    quarters keeps those of the tile's within the cutoff of the quarter's centre (quartered
+    again down to ``_LEAF_CELLS`` cells a side), and each cell measures its block's
+    candidates alone.
 
     Args:
         q: [G, 2] cell centres (row-major over ``shape``); cell: m; k: segments kept.
