@@ -252,6 +252,18 @@ def test_yields_to_fast_crossing_traffic_between_sample_times():
     assert out["pose"][-1, 0, 0] > 5.0  # and crosses once it has passed
 
 
+def test_a_slow_car_near_a_crossing_waits_until_it_can_clear_it():
+    """A car creeping at 1 m/s, its front 0.5 m from where a log-replayed car at 12 m/s will
+    pass in about 1.4 s: reaching the crossing first is not clearing it; it waits, then
+    crosses."""
+    north = line((0.0, -150.0), (0.0, 150.0))
+    lanes = {1: (EAST, []), 2: (north, [])}
+    sc = scene([(EAST, 146.25, 1.0), (north, 130.0, 12.0)], lanes)
+    out = drive(sc, 60, replayed=(1,))
+    assert not overlaps(out["pose"]).any()
+    assert out["pose"][-1, 0, 0] > 3.0  # it crossed once the other had passed
+
+
 def _with_types(sc: Scenario, kinds: list[int]) -> Scenario:
     t = dataclasses.replace(sc.tracks, object_type=np.array(kinds, np.int8))
     t = dataclasses.replace(

@@ -186,7 +186,10 @@ def _chord_gaps(
     along_in = along + vj * cos_rel * t_in
     gap_in = offset + along_in - half_along - half_len_i
     enters = crossing & (t_in > 0) & (t_in <= horizon) & (along_in >= 0) & (along_in < length)
-    late = gap_in >= speed_i.clamp_min(1.0) * (t_in - YIELD_SLACK)
+    # i goes first only if it clears the crossing (its gap, j's extent along the route and
+    # its own length) well before j's box arrives; else it yields.
+    clear = gap_in + 2.0 * (half_along + half_len_i)
+    late = clear >= speed_i.clamp_min(1.0) * (t_in - YIELD_SLACK)
     ghost = torch.where(enters & late, gap_in, float("inf")).amin(-1)
     return now, lead, ghost
 

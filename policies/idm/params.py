@@ -51,8 +51,9 @@ first time its box enters the corridor."""
 CROSSING_SIN = 0.5
 """An agent crosses a route when its heading is more than 30 deg off the route's (sine)."""
 YIELD_SLACK = 0.5
-"""s: an agent does not yield to a crossing agent's box of time tau when it would reach that
-point more than this before tau (at its speed now, at least 1 m/s)."""
+"""s: an agent goes before a crossing agent whose box enters its path at time tau only when
+it would clear that point (its gap, the crossing box's extent along its route and its own
+length, at its speed now, at least 1 m/s) more than this before tau; else it yields."""
 MAX_SIGNAL_STOPS = 4
 """Signal-controlled stop lines kept per route (the first along it)."""
 MAX_SIGN_STOPS = 2
