@@ -1,18 +1,19 @@
 """Planner benchmark throughput: scenes per second of ``run_benchmark``, one thread.
 
-Prints the machine line (``bench/machine.py``), then, for each planner (default: the
-built-in ``constant_velocity``, ``expert`` and ``idm``) and each traffic mode (default:
-``log_replay``), the scenes per second of whole benchmark episodes on the held-out real
-scenes (files read and parsed beforehand; one warm-up scene apart), and where a scene's time
-goes: building the environment (reset), the 80 steps, the planner, scoring. The default scene
-set is the 17 held-out scenes of ``docs/model_card/real_splits.json`` outside
-``gpudrive_codec/`` (the held-out set before the splits grew); ``--all-held-out`` takes all 59.
+Prints the machine line (``bench/machine.py``), then, for each planner (default: the built-in
+``constant_velocity``, ``expert`` and ``idm``) and each traffic mode (default:
+``log_replay``), the scenes per second of whole benchmark episodes on the held-out real scenes
+(files read and parsed beforehand; one warm-up scene apart), and where a scene's time goes:
+building the environment (reset), the 80 steps, the planner, scoring (the rate: the median of
+``--rounds`` timed runs, with their range). The default scene set is the 17 held-out scenes of
+``docs/model_card/real_splits.json`` outside ``gpudrive_codec/`` (the held-out set before the
+splits grew); ``--all-held-out`` takes all 59.
 
 Target (issue 41): at least 5 scenes/s for a planner as cheap as IDM with log-replayed
 traffic.
 
     python bench/planner_benchmark.py [--planners constant_velocity expert idm]
-        [--traffic log_replay] [--all-held-out] [--womd-dir DIR]
+        [--traffic log_replay] [--all-held-out] [--rounds 3] [--womd-dir DIR]
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import cProfile
 import json
 import os
 import pstats
+import statistics
 import sys
 import time
 import warnings
@@ -75,6 +77,7 @@ def main() -> None:
     p.add_argument("--traffic", nargs="+", default=["log_replay"])
     p.add_argument("--all-held-out", action="store_true")
     p.add_argument("--womd-dir", type=Path, default=DEFAULT_DATA)
+    p.add_argument("--rounds", type=int, default=3, help="timed runs per row (min/median/max)")
     args = p.parse_args()
     torch.set_num_threads(1)
     scenes = held_out_scenes(args.womd_dir, args.all_held_out)
@@ -84,13 +87,19 @@ def main() -> None:
         for traffic in args.traffic:
             settings = BenchmarkSettings(planner=planner, traffic=(traffic,))
             run_benchmark(scenes[:1], settings, progress=False)  # warm-up
-            start = time.perf_counter()
-            run_benchmark(scenes, settings, progress=False)
-            rate = len(scenes) / (time.perf_counter() - start)
+            rates = []
+            for _ in range(args.rounds):
+                start = time.perf_counter()
+                run_benchmark(scenes, settings, progress=False)
+                rates.append(len(scenes) / (time.perf_counter() - start))
+            lo, mid, hi = min(rates), statistics.median(rates), max(rates)
             prof = cProfile.Profile()
             prof.runcall(run_benchmark, scenes, settings, progress=False)
             split = stage_split(pstats.Stats(prof), len(scenes))
-            print(f"{planner:>18} / {traffic:<11} {rate:5.2f} scenes/s | {split}")
+            print(
+                f"{planner:>18} / {traffic:<11} {mid:5.2f} scenes/s (median of "
+                f"{len(rates)}; {lo:.2f}-{hi:.2f}) | {split}"
+            )
 
 
 if __name__ == "__main__":
