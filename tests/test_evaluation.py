@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 import tempfile
@@ -118,10 +117,11 @@ def test_cli_export_is_byte_identical_and_scores(tmp_path, one_scenario_path, ca
 
 EXPORT_REFERENCE = Path(__file__).parent / "data" / "full_scene_export_reference.json"
 """``export_submission([637f20cafde22ff8], policy, num_rollouts=32, seed=3)`` of each policy,
-summarised by ``export_summary``: recorded from exports whose bytes had the sha256 pinned on
-main before history-only scenes were supported (commit 87e04d9), so full WOMD scenes are
-simulated as before. Regenerate (``python tests/test_evaluation.py``) only for a deliberate
-change of the rollouts."""
+summarised by ``export_summary`` (exact structure; floats compared with ``EXPORT_ATOL``):
+the structure written from exports whose proto, floats cleared, had the recorded digest, the
+floats from exports whose bytes matched those pinned before history-only scenes were supported
+(commit 87e04d9), so full WOMD scenes are simulated as before. Regenerate (``python
+tests/test_evaluation.py``) only for a deliberate change of the rollouts."""
 EXPORT_POLICIES = ("constant_velocity", "linear_extrapolation", "log_replay")
 SAMPLED_ROLLOUTS, SAMPLED_STEPS = (0, 31), (0, 39, 79)
 EXPORT_ATOL = {"x": 0.01, "y": 0.01, "z": 0.01, "heading": 1e-3}
@@ -129,21 +129,35 @@ EXPORT_ATOL = {"x": 0.01, "y": 0.01, "z": 0.01, "heading": 1e-3}
 0.5 mm) that other CPUs round differently; a change of the simulation moves them by far more."""
 
 
+def export_structure(sub) -> dict:
+    """The exact (non-float) content of a submission: its header fields, the scenario id, and
+    per joint scene each trajectory's object id and the step counts of its four float
+    fields."""
+    from google.protobuf.json_format import MessageToDict
+
+    header = MessageToDict(sub, preserving_proto_field_name=True)
+    header.pop("scenario_rollouts", None)
+    (scene,) = sub.scenario_rollouts
+    trajectories = [
+        [
+            [t.object_id, len(t.center_x), len(t.center_y), len(t.center_z), len(t.heading)]
+            for t in joint.simulated_trajectories
+        ]
+        for joint in scene.joint_scenes
+    ]
+    return {"header": header, "scenario_id": scene.scenario_id, "trajectories": trajectories}
+
+
 def export_summary(path) -> dict:
-    """The export at ``path`` as exact structure (a digest of the proto with every trajectory
-    float cleared: ids, counts, header) and the floats of ``SAMPLED_ROLLOUTS`` at
-    ``SAMPLED_STEPS`` (x, y, z, heading [R, A, S] as lists)."""
+    """The export at ``path`` as exact structure (``export_structure``) and the floats of
+    ``SAMPLED_ROLLOUTS`` at ``SAMPLED_STEPS`` (x, y, z, heading [R, A, S] as lists)."""
     from tbsim_env.metrics.wosac.submission import rollouts_from_proto
 
     sub = read_submission(path)
     (scene,) = sub.scenario_rollouts
     r = rollouts_from_proto(scene)
     rows, steps = list(SAMPLED_ROLLOUTS), list(SAMPLED_STEPS)
-    for joint in scene.joint_scenes:
-        for traj in joint.simulated_trajectories:
-            for name in ("center_x", "center_y", "center_z", "heading"):
-                traj.ClearField(name)
-    out = {"structure": hashlib.sha256(sub.SerializeToString(deterministic=True)).hexdigest()}
+    out = {"structure": export_structure(sub)}
     for name in EXPORT_ATOL:
         out[name] = getattr(r, name)[rows][:, :, steps].tolist()
     return out
