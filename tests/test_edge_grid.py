@@ -12,7 +12,7 @@ from tbsim_env.sim.edge_grid import build_edge_grid, grid_signed_distance
 from tbsim_env.sim.offroad import grid_exact_signed_distance, signed_distance_to_edges
 from tbsim_env.sim.state import RoadEdges
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 
 def _edges(polylines: list[np.ndarray]) -> tuple[RoadEdges, list[tuple[np.ndarray, np.ndarray]]]:
@@ -163,8 +163,10 @@ def test_chunked_tiles_give_the_same_grid(monkeypatch):
     whole = eg.scene_edge_grid(st, en, 3.0, 16, 15.0)
     monkeypatch.setattr(eg, "_TILE_WORK", 1)
     pieces = eg.scene_edge_grid(st, en, 3.0, 16, 15.0)
-    np.testing.assert_array_equal(pieces["bound"], whole["bound"])
-    # The same lists up to ties (consecutive segments are equally far from their joint).
+    # The same lists and bounds up to ties: consecutive segments are equally far from their
+    # joint, and float32 distances that differ by less than their rounding (~1e-5 m at map
+    # coordinates) may rank either way with another chunk width on another kernel path.
+    np.testing.assert_allclose(pieces["bound"], whole["bound"], rtol=0, atol=1e-4)
     q = torch.from_numpy(whole["center"]).double()
     a, ab = torch.from_numpy(st), torch.from_numpy(en - st)
 
@@ -174,4 +176,4 @@ def test_chunked_tiles_give_the_same_grid(monkeypatch):
         t = ((rel * ab[idx]).sum(-1) / (ab[idx] ** 2).sum(-1)).clamp(0, 1)
         return (rel - t[..., None] * ab[idx]).norm(dim=-1).sort(1).values
 
-    torch.testing.assert_close(listed(pieces["cells"]), listed(whole["cells"]), rtol=0, atol=1e-9)
+    torch.testing.assert_close(listed(pieces["cells"]), listed(whole["cells"]), rtol=0, atol=1e-4)
