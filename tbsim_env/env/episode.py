@@ -60,8 +60,8 @@ class EpisodeSetup:
     """What an episode is, fixed from its start to its end (leading dimension: rows).
 
     Attributes:
-        ctx: the static map context (observation tokens); None in a bank built without
-            it (``build_bank(with_context=False)``: ``with_map_context`` adds it).
+        ctx: the static map context (observation tokens); None in a bank of a config that
+            does not observe (``StepConfig.observe``).
         query: [., Q] int64, agent slot of each externally controlled agent (padding repeats
             the first).
         qmask: [., Q] bool, a real controlled agent (not padding).
@@ -203,7 +203,6 @@ def build_bank(
     exact_replay: bool,
     config: StepConfig,
     device: torch.device,
-    with_context: bool = True,
 ) -> EpisodeBank:
     """The start of every scenario's episode, padded into one bank.
 
@@ -214,12 +213,13 @@ def build_bank(
         exact_replay: the NPC policy replays the log (then no slot is an NPC slot).
         config: the step's constants (start step, observation sizes, goal radius).
         device: torch device of the bank.
-        with_context: build the observations' map context (False: ``setup.ctx`` is None,
-            for steps that do not observe, ``StepConfig.observe``).
+
+    Without ``config.observe`` the bank has no observation map context (``setup.ctx`` None):
+    its steps do not observe.
     """
     start_step = config.env.start_step
     state = build_sim_state(scenarios, start_step=start_step, device=device)
-    ctx = build_map_context(scenarios, state.origin, config.obs) if with_context else None
+    ctx = build_map_context(scenarios, state.origin, config.obs) if config.observe else None
     s, q, n = len(scenarios), max(len(x) for x in queries), state.num_agents
     query = torch.zeros((s, q), dtype=torch.int64)
     qmask = torch.zeros((s, q), dtype=torch.bool)
@@ -486,14 +486,6 @@ def observe_state(
     return densify_flat(obs, config.obs.tokens.piece_segments) if config.dense else obs
 
 
-def with_map_context(
-    state: EpisodeState, scenarios: list[Scenario], config: StepConfig
-) -> EpisodeState:
-    """``state`` with the map context of its B ``scenarios`` (its rows') in its setup."""
-    ctx = build_map_context(scenarios, state.sim.origin, config.obs)
-    return dataclasses.replace(state, setup=dataclasses.replace(state.setup, ctx=ctx))
-
-
 def agent_infos(state: EpisodeState, metrics: StepMetrics) -> dict[str, torch.Tensor]:
     """The per-agent info columns of both envs, each [B, Q]: the metrics of ``state``
     (``metrics``), whether the goal was reached, and the speed m/s."""
@@ -543,7 +535,6 @@ __all__ = [
     "npc_actions",
     "observe_state",
     "remove_agents",
-    "with_map_context",
     "merge_rows",
     "reset_rows",
     "slot_actions",

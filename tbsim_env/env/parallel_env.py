@@ -57,7 +57,13 @@ from tbsim_env.env.setup import (
     resolve_scenarios,
     select_scenarios,
 )
-from tbsim_env.observation.tokens import ObsConfig, dense_views, observation_space
+from tbsim_env.observation.tokens import (
+    MapContext,
+    ObsConfig,
+    build_map_context,
+    dense_views,
+    observation_space,
+)
 from tbsim_env.sim.state import SimState
 
 AgentDict = dict[str, Any]
@@ -189,10 +195,11 @@ class TrafficEnv(ParallelEnv, EzPickle):
         sel = select_scenarios(scenarios, controlled, self.config, self.npc_policy, False)
         self.scenarios = sel.scenarios
         self.controlled_tracks: list[list[int]] = sel.queries
-        self._step_config = StepConfig(self.config, self.obs_config, dense=True)
         self._lazy_obs = lazy_observations
-        step_config = dataclasses.replace(self._step_config, observe=not lazy_observations)
-        self._step_fn = StepFunction(step_config, compile)
+        self._step_config = StepConfig(
+            self.config, self.obs_config, dense=True, observe=not lazy_observations
+        )
+        self._step_fn = StepFunction(self._step_config, compile)
         self._act_spaces: dict[str, gym.spaces.Box] = {}
         for sc, idx in zip(self.scenarios, self.controlled_tracks):
             for i in idx:
@@ -205,7 +212,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         self._obs_space = observation_space(self.obs_config)
         self.agents: list[str] = []
         self._starts: dict[int, _Start] = {}
-        self._contexts: dict[int, Any] = {}  # lazy_observations: map contexts built so far
+        self._contexts: dict[int, MapContext] = {}  # lazy_observations: built so far
         self._state: EpisodeState | None = None
         self._names: list[str] = []
         self._slot_of: dict[str, int] = {}
@@ -330,9 +337,7 @@ class TrafficEnv(ParallelEnv, EzPickle):
         sc, query = self.scenarios[k], self.controlled_tracks[k]
         exact = bool(getattr(self.npc_policy, "exact_replay", False))
         # Lazy observations: the map context is built when an observation is first read.
-        bank = ep.build_bank(
-            [sc], [query], exact, self._step_config, self.device, not self._lazy_obs
-        )
+        bank = ep.build_bank([sc], [query], exact, self._step_config, self.device)
         ks = torch.zeros(1, dtype=torch.int64, device=self.device)
         state, metrics = ep.start(bank, ks)
         names = [agent_name(sc.tracks.id[i]) for i in query]
@@ -425,8 +430,8 @@ class TrafficEnv(ParallelEnv, EzPickle):
         def observe(names: list[str]) -> dict[str, dict[str, np.ndarray]]:
             with torch_threads(self.torch_threads), torch.inference_mode():
                 if k not in self._contexts:
-                    built = ep.with_map_context(state, [self.scenarios[k]], self._step_config)
-                    self._contexts[k] = built.setup.ctx
+                    scene, origin = [self.scenarios[k]], state.sim.origin
+                    self._contexts[k] = build_map_context(scene, origin, self.obs_config)
                 setup = dataclasses.replace(state.setup, ctx=self._contexts[k])
                 seen = dataclasses.replace(state, setup=setup)
                 rows = ep.observe_state(seen, self._step_config, observers)

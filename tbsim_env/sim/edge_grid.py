@@ -107,7 +107,8 @@ def _nearest_by_tiles(
     cells, hubs = _tiles(shape, side, q, cell)  # [T, side^2] (-1: none), [T, 2]
     padded = seg.with_sentinel()  # lists are padded with the sentinel (index E)
     sentinel = len(seg.ax)
-    cand, n_cand = _within_cutoff(seg.distance(hubs), k, _radius(side, cell), sentinel)
+    d_hub = seg.squared_distance(hubs).sqrt()  # [T, E]
+    cand, n_cand = _within_cutoff(d_hub, k, _radius(side, cell), sentinel)
     while side > _LEAF_CELLS:
         cells, hubs, cand, n_cand = _quarters(cells, hubs, cand, padded, (side, cell, k))
         side //= 2
@@ -120,7 +121,7 @@ def _nearest_by_tiles(
     cells, n_cand, cand = cells[by_count], n_cand[by_count], cand[by_count]
     for t0, t1, width in _chunks(n_cand.tolist(), side * side, _TILE_WORK):
         tc, cc = cells[t0:t1], cand[t0:t1, :width]  # [t, side^2], [t, W]
-        d2 = padded.take(cc).squared_distance_batched(q[tc.clamp_min(0)])  # [t, side^2, W]
+        d2 = padded.take(cc).squared_distance(q[tc.clamp_min(0)])  # [t, side^2, W]
         # numpy's (SIMD) argsort beats torch.topk several times over on these short rows.
         idx = torch.from_numpy(np.argsort(d2.numpy(), axis=-1)[..., :k])
         top = d2.gather(-1, idx)
@@ -146,7 +147,7 @@ def _quarters(
     quarter_cells = cells.view(r, 2, half, 2, half).permute(0, 1, 3, 2, 4).reshape(4 * r, -1)
     shift = (torch.tensor([[-1, -1], [-1, 1], [1, -1], [1, 1]]) * (0.5 * half * cell)).float()
     quarter_hubs = hubs[:, None] + shift  # [R, 4, 2]
-    d = segments.take(cand).squared_distance_batched(quarter_hubs).sqrt()  # [R, 4, W]
+    d = segments.take(cand).squared_distance(quarter_hubs).sqrt()  # [R, 4, W]
     cols, count = _within_cutoff(d.view(4 * r, -1), k, _radius(half, cell), -1)
     sentinel = len(segments.ax) - 1
     out = cand.repeat_interleave(4, 0).gather(1, cols.clamp_min(0))
@@ -218,12 +219,6 @@ class _Segments:
         """The segments ``rows`` (any shape [..., W])."""
         return _Segments(*(v[rows] for v in (self.ax, self.ay, self.abx, self.aby, self.len2)))
 
-    def distance(self, q: torch.Tensor) -> torch.Tensor:
-        """[g, E] distances (m) of points ``q`` [g, 2] to every segment."""
-        dx, dy = q[:, :1] - self.ax, q[:, 1:] - self.ay  # [g, E]
-        t = ((dx * self.abx + dy * self.aby) / self.len2).clamp_(0.0, 1.0)
-        return torch.hypot(dx - t * self.abx, dy - t * self.aby)
-
     def with_sentinel(self) -> _Segments:
         """These segments and one more of length zero, ``_FAR`` m away from every map."""
         far = torch.tensor([_FAR])
@@ -236,10 +231,11 @@ class _Segments:
             ext(self.len2, torch.ones(1)),
         )
 
-    def squared_distance_batched(self, q: torch.Tensor) -> torch.Tensor:
-        """[t, g, W] squared distances (m^2) of points ``q`` [t, g, 2] to the segments of a
-        ``take`` of shape [t, W] (tile i's points to tile i's segments)."""
-        col = lambda v: v[:, None, :]  # noqa: E731
+    def squared_distance(self, q: torch.Tensor) -> torch.Tensor:
+        """[..., g, W] squared distances (m^2) of points ``q`` [..., g, 2] to these segments
+        (of shape [..., W]: a ``take`` per leading index, e.g. tile i's segments for tile i's
+        points; or [W], every point to every segment)."""
+        col = lambda v: v.unsqueeze(-2)  # noqa: E731
         dx, dy = q[..., :1] - col(self.ax), q[..., 1:] - col(self.ay)
         t = ((dx * col(self.abx) + dy * col(self.aby)) / col(self.len2)).clamp_(0.0, 1.0)
         ex, ey = dx - t * col(self.abx), dy - t * col(self.aby)
