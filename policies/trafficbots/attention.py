@@ -179,7 +179,7 @@ class KnarpeAttention(nn.Module):
         logits = logits.masked_fill(~keep[..., None], float("-inf"))
         attn = self.dropout(torch.softmax(logits, dim=-2)).transpose(-1, -2)  # [B, Q, h, K]
         if dense:
-            weights = torch.zeros_like(scores).scatter_add_(-1, pick, attn.transpose(1, 2))
+            weights = torch.zeros_like(scores, dtype=attn.dtype).scatter_add_(-1, pick, attn.transpose(1, 2))
             out = (weights @ v_src.transpose(1, 2)).transpose(1, 2)  # [B, Q, h, c]
         else:
             out = (attn @ v).unflatten(-1, (h, c))  # [B, Q, h, h, c]: head g's weights, head h
