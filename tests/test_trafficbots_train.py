@@ -144,3 +144,18 @@ def test_overfit_one_real_scene(one_scenario_path) -> None:
     after = evaluate()
     print(f"overfit: imitation {before:.4f} -> {after:.4f} in {time.perf_counter() - t0:.1f} s")
     assert after <= 0.5 * before
+
+
+def test_training_step_runs_under_autocast(batch) -> None:
+    """``tbsim train --amp`` runs the step under autocast (float16 on a GPU): every op must
+    accept the mixed dtypes autocast produces. bfloat16 on the CPU takes the same paths
+    (matrix products in half precision, softmax in float32), the sparse and dense attention
+    both."""
+    torch.manual_seed(0)
+    model = TrafficBots(TrafficBotsConfig.small()).train()
+    gen = torch.Generator().manual_seed(0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss, _ = training_step(model, batch, generator=gen, teacher_forcing_p=0.3, n_steps=8)
+    assert torch.isfinite(loss)
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)

@@ -177,9 +177,11 @@ class KnarpeAttention(nn.Module):
         # Rows without a valid neighbour attend uniformly (no NaN) and are zeroed below.
         keep = mask | ~any_valid[..., None]
         logits = logits.masked_fill(~keep[..., None], float("-inf"))
-        attn = self.dropout(torch.softmax(logits, dim=-2)).transpose(-1, -2)  # [B, Q, h, K]
+        # Softmax in float32 on every device (CUDA's autocast does so; CPU's would not).
+        attn = self.dropout(torch.softmax(logits, dim=-2, dtype=torch.float32))
+        attn = attn.transpose(-1, -2)  # [B, Q, h, K]
         if dense:
-            weights = torch.zeros_like(scores, dtype=attn.dtype).scatter_add_(-1, pick, attn.transpose(1, 2))
+            weights = attn.new_zeros(scores.shape).scatter_add_(-1, pick, attn.transpose(1, 2))
             out = (weights @ v_src.transpose(1, 2)).transpose(1, 2)  # [B, Q, h, c]
         else:
             out = (attn @ v).unflatten(-1, (h, c))  # [B, Q, h, h, c]: head g's weights, head h
