@@ -10,7 +10,7 @@
 #   docs/model_card/real_splits.json (tbsim preprocess), gzip-packed into gpu_data/ (about 35 MB,
 #   git-ignored): small enough to travel with the working tree (the device tool's carry, or any
 #   copy). Nothing on the GPU machine needs the WOMD files.
-# train: unpacks gpu_data/ to a temporary folder and runs `tbsim train` from the shipped weights
+# train: unpacks gpu_data/ to a temporary folder and runs `tbsim train` from the shipped weights (or $INIT)
 #   (--init, fresh AdamW): batch $BATCH (default 64) of full 91-step closed-loop rollouts with
 #   back-propagation through the unicycle, float16 autocast with a grad scaler (AMP), lr 1e-4
 #   after a 20-step warm-up, EMA of the weights (decay 0.99), the validation loss
@@ -33,9 +33,9 @@
 #   carry gpu_data and wheels of pettingzoo, gymnasium, farama-notifications, crc32c, shapely
 #   and protobuf (pip download ... --python-version 3.12), pip install them --target a folder
 #   on PYTHONPATH with the checkout, and call the CLI as `python3 -m tbsim_env.cli`.
-# Environment: DEVICE (auto), BATCH (64), VAL_EVERY (25), WORKERS (4), TRAIN_SOURCES and
-# VAL_SOURCES (the splits' files; anything `tbsim preprocess` takes, e.g. generated:merge:0-3,
-# for a test), GPU_DATA (gpu_data).
+# Environment: INIT (weights to start from; the shipped ones), DEVICE (auto), BATCH (64),
+# VAL_EVERY (25), WORKERS (4), TRAIN_SOURCES and VAL_SOURCES (the splits' files; anything
+# `tbsim preprocess` takes, e.g. generated:merge:0-3, for a test), GPU_DATA (gpu_data).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 STAGE=${1:?usage: train_gpu.sh prepare [DATA_DIR] | train OUT [MINUTES]}
@@ -79,7 +79,7 @@ train)
   unpack "$GPU_DATA/validation" "$tmp/validation"
   budget=$(python -c "print(round(float('$MINUTES') * 60, 1))")
   tbsim train --data "$tmp/train" --val-data "$tmp/validation" --out "$OUT" \
-    --init "$WEIGHTS" --model small --steps 100000 --batch-size "${BATCH:-64}" --lr 1e-4 \
+    --init "${INIT:-$WEIGHTS}" --model small --steps 100000 --batch-size "${BATCH:-64}" --lr 1e-4 \
     --warmup-steps 20 --ema-decay 0.99 --teacher-forcing-start 0 --teacher-forcing-end 0 \
     --workers "${WORKERS:-4}" --cache-shards 0 --device "${DEVICE:-auto}" --amp \
     --time-budget-s "$budget" --val-every "${VAL_EVERY:-25}" --ckpt-every 25 --log-every 5
