@@ -12,8 +12,9 @@
 #   copy). Nothing on the GPU machine needs the WOMD files.
 # train: unpacks gpu_data/ to a temporary folder and runs `tbsim train` from the shipped
 #   weights or $INIT (--init, fresh AdamW): batch $BATCH (default 64) of full 91-step
-#   closed-loop rollouts with back-propagation through the unicycle, float16 autocast with a grad scaler (AMP), lr 1e-4
-#   after a 20-step warm-up, EMA of the weights (decay 0.99), the validation loss
+#   closed-loop rollouts with back-propagation through the unicycle, float16 autocast with a
+#   grad scaler (AMP), lr 1e-4 after a 20-step warm-up, EMA of the weights (decay 0.99), the
+#   validation loss
 #   (policies/trafficbots/validate.py) of the starting weights and then every $VAL_EVERY steps
 #   (default 25) and at the end; the lowest is kept as OUT/best.safetensors + .json (the
 #   shipped weights themselves when nothing beats them), its step and scores in
