@@ -14,9 +14,8 @@
 #   weights or $INIT (--init, fresh AdamW): batch $BATCH (default 64) of full 91-step
 #   closed-loop rollouts with back-propagation through the unicycle, float16 autocast with a
 #   grad scaler (AMP), lr 1e-4 after a 20-step warm-up, EMA of the weights (decay 0.99), the
-#   validation loss
-#   (policies/trafficbots/validate.py) of the starting weights and then every $VAL_EVERY steps
-#   (default 25) and at the end; the lowest is kept as OUT/best.safetensors + .json (the
+#   validation loss (policies/trafficbots/validate.py) of the starting weights and then every
+#   $VAL_EVERY steps (default 25) and at the end; the lowest is kept as OUT/best.safetensors + .json (the
 #   shipped weights themselves when nothing beats them), its step and scores in
 #   OUT/best_step.json. The run stops after MINUTES of training, checkpoints included, and
 #   resumes from OUT when started again (OUT/last, OUT/optimizer). Scalars: OUT/metrics.jsonl.
