@@ -122,7 +122,7 @@ def test_garbage_bytes(tmp_path: Path) -> None:
     rng = np.random.default_rng(0)
     path = tmp_path / "garbage.tfrecord"
     for size in (3, 12, 100, 5000):
-        path.write_bytes(rng.integers(0, 256, size, dtype=np.uint8).tobytes())
+        path.write_bytes(rng.bytes(size))
         with pytest.raises(ScenarioFormatError):
             _load_all(path)
         with pytest.raises(ScenarioFormatError):
@@ -133,7 +133,7 @@ def test_garbage_payload_in_valid_framing(tmp_path: Path) -> None:
     rng = np.random.default_rng(1)
     path = tmp_path / "framed_garbage.tfrecord"
     for size in (0, 1, 50, 4000):
-        write_records(path, [rng.integers(0, 256, size, dtype=np.uint8).tobytes()])
+        write_records(path, [rng.bytes(size)])
         with pytest.raises(ScenarioFormatError) as info:
             _load_all(path)
         assert info.value.record == 0
@@ -204,7 +204,7 @@ def _mutate(
         elif kind == 2:
             del buf[at:]
         elif kind == 3:
-            buf[at:at] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
+            buf[at:at] = rng.bytes(int(rng.integers(1, 9)))
         else:
             del buf[at : at + int(rng.integers(1, 9))]
     return bytes(buf)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 import subprocess
 import sys
 import time
@@ -302,7 +303,7 @@ def test_packed_and_unpacked_repeated_scalars_and_unknown_fields() -> None:
     b = parse_scenario(unknown + base + packed)
     assert a.objects_of_interest.tolist() == ids == b.objects_of_interest.tolist()
     # timestamps: the real files use unpacked doubles; packed must decode the same.
-    doubles = np.array([0.0, 0.1, 0.2]).astype("<f8").tobytes()
+    doubles = struct.pack("<3d", 0.0, 0.1, 0.2)  # wire format: little-endian doubles
     no_ts = _tiny_scenario()
     del no_ts.timestamps_seconds[:]
     packed_ts = bytes([1 << 3 | 2]) + _varint(len(doubles)) + doubles
