@@ -3,17 +3,20 @@
 Prints the machine line (``bench/machine.py``), then, for each planner (default: the built-in
 ``constant_velocity``, ``expert`` and ``idm``) and each traffic mode (default:
 ``log_replay``), the scenes per second of whole benchmark episodes on the held-out real scenes
-(files read and parsed beforehand; one warm-up scene apart), and where a scene's time goes:
-building the environment (reset), the 80 steps, the planner, scoring (the rate: the median of
-``--rounds`` timed runs, with their range). The default scene set is the 17 held-out scenes of
-``docs/model_card/real_splits.json`` outside ``gpudrive_codec/`` (the held-out set before the
-splits grew); ``--all-held-out`` takes all 59.
+(files read and parsed beforehand; a warm-up apart) at each ``--batch-sizes`` value (scenes
+stepped together where the episodes stay the same: ``tbsim_env.benchmark.batch``), and where
+a scene's time goes: building the simulation (reset), the 80 steps, the planner, scoring (the
+rate: the median of ``--rounds`` timed runs, the batch sizes interleaved, with their range).
+The default scene set is the 17 held-out scenes of ``docs/model_card/real_splits.json``
+outside ``gpudrive_codec/`` (the held-out set before the splits grew); ``--all-held-out``
+takes all 59.
 
 Target (issue 41): at least 5 scenes/s for a planner as cheap as IDM with log-replayed
 traffic.
 
     python bench/planner_benchmark.py [--planners constant_velocity expert idm]
-        [--traffic log_replay] [--all-held-out] [--rounds 3] [--womd-dir DIR]
+        [--traffic log_replay] [--batch-sizes 1 16] [--all-held-out] [--rounds 3]
+        [--womd-dir DIR]
 """
 
 from __future__ import annotations
@@ -42,10 +45,13 @@ SPLITS = REPO / "docs" / "model_card" / "real_splits.json"
 DEFAULT_DATA = Path(os.environ.get("TBSIM_WOMD_DIR", REPO.parent / "shared" / "data" / "womd"))
 
 STAGES = {
-    "reset": "parallel_env.py", "step": "parallel_env.py", "act": "planner.py",
-    "score_record": "score.py",
-}  # fmt: skip
-"""Functions whose cumulative time the split reports, and the file each lives in."""
+    "reset": [("reset", "parallel_env.py"), ("_start", "batch.py")],
+    "step": [("step", "parallel_env.py"), ("__call__", "compiled.py")],
+    "act": [("act", "planner.py"), ("act_batch", "planner.py")],
+    "score": [("score_record", "score.py")],
+}
+"""Per stage, the functions whose cumulative time the split reports, in order of preference
+(the first one the run called: one scene at a time, or a batch), and the file of each."""
 
 
 def held_out_scenes(womd_dir: Path, everything: bool) -> list:
@@ -63,12 +69,17 @@ def held_out_scenes(womd_dir: Path, everything: bool) -> list:
 
 
 def stage_split(stats: pstats.Stats, scenes: int) -> str:
-    """ms per scene of each ``STAGES`` function (cumulative, from a cProfile run)."""
+    """ms per scene of each ``STAGES`` entry (cumulative, from a cProfile run)."""
+    found = {
+        (name, file.rsplit("/", 1)[-1]): row[3]
+        for (file, _, name), row in stats.stats.items()  # type: ignore[attr-defined]
+    }
     out = []
-    for (file, _, name), row in stats.stats.items():  # type: ignore[attr-defined]
-        if name in STAGES and file.endswith(STAGES[name]):
-            out.append(f"{name} {row[3] / scenes * 1e3:.0f}")
-    return ", ".join(sorted(out)) + " ms/scene (profiled)"
+    for label, candidates in STAGES.items():
+        hit = next((found[c] for c in candidates if c in found), None)
+        if hit is not None:
+            out.append(f"{label} {hit / scenes * 1e3:.0f}")
+    return ", ".join(out) + " ms/scene (profiled)"
 
 
 def main() -> None:
@@ -78,6 +89,10 @@ def main() -> None:
     p.add_argument("--all-held-out", action="store_true")
     p.add_argument("--womd-dir", type=Path, default=DEFAULT_DATA)
     p.add_argument("--rounds", type=int, default=3, help="timed runs per row (min/median/max)")
+    p.add_argument(
+        "--batch-sizes", type=int, nargs="+", default=[1, 16],
+        help="BenchmarkSettings.batch_size values (ratios against the first)",
+    )  # fmt: skip
     args = p.parse_args()
     torch.set_num_threads(1)
     scenes = held_out_scenes(args.womd_dir, args.all_held_out)
@@ -85,21 +100,28 @@ def main() -> None:
     print(f"{len(scenes)} held-out scenes")
     for planner in args.planners:
         for traffic in args.traffic:
-            settings = BenchmarkSettings(planner=planner, traffic=(traffic,))
-            run_benchmark(scenes[:1], settings, progress=False)  # warm-up
-            rates = []
-            for _ in range(args.rounds):
-                start = time.perf_counter()
-                run_benchmark(scenes, settings, progress=False)
-                rates.append(len(scenes) / (time.perf_counter() - start))
-            lo, mid, hi = min(rates), statistics.median(rates), max(rates)
-            prof = cProfile.Profile()
-            prof.runcall(run_benchmark, scenes, settings, progress=False)
-            split = stage_split(pstats.Stats(prof), len(scenes))
-            print(
-                f"{planner:>18} / {traffic:<11} {mid:5.2f} scenes/s (median of "
-                f"{len(rates)}; {lo:.2f}-{hi:.2f}) | {split}"
-            )
+            rates: dict[int, list[float]] = {b: [] for b in args.batch_sizes}
+            for batch in args.batch_sizes:  # warm-up
+                settings = BenchmarkSettings(planner, (traffic,), batch_size=batch)
+                run_benchmark(scenes[:2], settings, progress=False)
+            for _ in range(args.rounds):  # the batch sizes interleaved in every round
+                for batch in args.batch_sizes:
+                    settings = BenchmarkSettings(planner, (traffic,), batch_size=batch)
+                    start = time.perf_counter()
+                    run_benchmark(scenes, settings, progress=False)
+                    rates[batch].append(len(scenes) / (time.perf_counter() - start))
+            for batch in args.batch_sizes:
+                settings = BenchmarkSettings(planner, (traffic,), batch_size=batch)
+                prof = cProfile.Profile()
+                prof.runcall(run_benchmark, scenes, settings, progress=False)
+                split = stage_split(pstats.Stats(prof), len(scenes))
+                r = rates[batch]
+                lo, mid, hi = min(r), statistics.median(r), max(r)
+                ratio = mid / statistics.median(rates[args.batch_sizes[0]])
+                print(
+                    f"{planner:>18} / {traffic:<11} batch {batch:>3} {mid:6.2f} scenes/s "
+                    f"(median of {len(r)}; {lo:.2f}-{hi:.2f}; {ratio:.2f}x) | {split}"
+                )
 
 
 if __name__ == "__main__":

@@ -207,12 +207,17 @@ class IDMPolicy:
         scenarios: Sequence[Scenario],
         generator: torch.Generator,
         tracks: Sequence[Sequence[int]] | None = None,
+        variants: Sequence[int] | None = None,
     ) -> IDMState:
         """Routes and per-agent parameters of every row (desired speed and time headway drawn
         from ``generator``); with ``tracks``, per row the track rows (= slots) the policy
-        will drive, the others getting no route (``IDMPlanner`` drives one agent)."""
+        will drive, the others getting no route (``IDMPlanner`` drives one agent); with
+        ``variants``, per row the branch variant (in [0, ``BRANCH_VARIANTS``)) instead of a
+        draw."""
         b, n = state.batch_size, state.num_agents
         variant = torch.randint(BRANCH_VARIANTS, (b,), generator=generator).tolist()
+        if variants is not None:
+            variant = [int(v) % BRANCH_VARIANTS for v in variants]
         steps = state.step.tolist()
         origins = state.origin.cpu().numpy()
         rows = [
@@ -252,7 +257,11 @@ class IDMPolicy:
         del generator  # everything random was drawn in ``initial_state``
         ps, cfg = policy_state, self.config
         b, n = state.batch_size, state.num_agents
-        agent = (state.valid & ps.valid).flatten().nonzero()[:, 0]  # [L] the present agents
+        # [L] the present agents, less the parked ones: held (no desired speed: they never
+        # move again in this rollout) and standing, whose action is zero and whose progress,
+        # stop-sign flags and leaders nothing reads; about half the agents of real scenes.
+        parked = (ps.desired_speed < MIN_DESIRED_SPEED) & (state.speed == 0.0)
+        agent = (state.valid & ps.valid & ~parked).flatten().nonzero()[:, 0]
         take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
         pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
         progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])

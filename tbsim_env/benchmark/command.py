@@ -48,6 +48,7 @@ def settings_of(args: Any) -> BenchmarkSettings:
         controlled=args.controlled,
         seed=args.seed,
         npc_checkpoint=args.npc_checkpoint,
+        batch_size=args.batch_size,
     )
 
 

@@ -222,6 +222,62 @@ def run_episode(spec: EpisodeSpec, make_planner: Callable[[], Any]) -> list[Epis
     return [_record(env, spec, name, states, metrics, error) for name in names]
 
 
+@dataclass(frozen=True)
+class Trace:
+    """What an episode recorded of one scene's N agent slots (S steps, S + 1 states).
+
+    Attributes:
+        pose: [S + 1, N, 3] (x m, y m, yaw rad) in the scenario's frame; speed: [S + 1, N]
+            m/s; valid: [S + 1, N] bool.
+        size: [N, 2] (length, width) m; object_type, track_id, track_index: [N].
+        offroad: [S + 1] m, the ego's signed road-edge distance (the env's info).
+        progress: [S + 1] m, the ego's progress along its logged route (the env's info).
+    """
+
+    pose: np.ndarray
+    speed: np.ndarray
+    valid: np.ndarray
+    size: np.ndarray
+    object_type: np.ndarray
+    track_id: np.ndarray
+    track_index: np.ndarray
+    offroad: np.ndarray
+    progress: np.ndarray
+
+
+def make_record(
+    spec: EpisodeSpec, name: str, slot: int, trace: Trace, config: EnvConfig, error: str | None
+) -> EpisodeRecord:
+    """The record of the ego ``name`` (agent slot ``slot``) from its scene's trace."""
+    others_valid = trace.valid.copy()
+    others_valid[:, slot] = False
+    track = int(trace.track_index[slot])
+    expert, length = _expert_span(spec.scenario, track, config.start_step, config.last_step)
+    return EpisodeRecord(
+        scenario_id=spec.scenario.scenario_id,
+        traffic=spec.traffic,
+        agent=name,
+        slot=slot,
+        ego_pose=trace.pose[:, slot],
+        ego_speed=trace.speed[:, slot],
+        ego_size=trace.size[slot],
+        ego_type=int(trace.object_type[slot]),
+        others_pose=trace.pose,
+        others_speed=trace.speed,
+        others_valid=others_valid,
+        others_size=trace.size,
+        others_type=trace.object_type,
+        others_id=trace.track_id,
+        track_index=trace.track_index,
+        offroad_distance=trace.offroad,
+        progress=trace.progress,
+        expert_progress=expert,
+        route_length=length,
+        dt=0.1,
+        error=error,
+    )
+
+
 def _record(
     env: TrafficEnv,
     spec: EpisodeSpec,
@@ -231,44 +287,30 @@ def _record(
     error: str | None,
 ) -> EpisodeRecord:
     """The record of agent ``name`` from the per-step states and info metrics."""
-    setup = env.episode.setup
-    slot = int(setup.query[0, env.agent_columns[name]])
+    slot = int(env.episode.setup.query[0, env.agent_columns[name]])
     agents = env.sim_state.agents
-    pose = np.stack([s[0] for s in states])
-    speed = np.stack([s[1] for s in states])
-    valid = np.stack([s[2] for s in states])
-    others_valid = valid.copy()
-    others_valid[:, slot] = False
-    track = int(agents.track_index[0, slot])
-    start, end = env.config.start_step, env.config.last_step
-    expert, length = _expert_span(spec.scenario, track, start, end)
-    size = agents.size[0, :, :2].double().numpy()
-    return EpisodeRecord(
-        scenario_id=spec.scenario.scenario_id,
-        traffic=spec.traffic,
-        agent=name,
-        slot=slot,
-        ego_pose=pose[:, slot],
-        ego_speed=speed[:, slot],
-        ego_size=size[slot],
-        ego_type=int(agents.object_type[0, slot]),
-        others_pose=pose,
-        others_speed=speed,
-        others_valid=others_valid,
-        others_size=size,
-        others_type=agents.object_type[0].numpy().copy(),
-        others_id=agents.track_id[0].numpy().copy(),
+    trace = Trace(
+        pose=np.stack([s[0] for s in states]),
+        speed=np.stack([s[1] for s in states]),
+        valid=np.stack([s[2] for s in states]),
+        size=agents.size[0, :, :2].double().numpy(),
+        object_type=agents.object_type[0].numpy().copy(),
+        track_id=agents.track_id[0].numpy().copy(),
         track_index=agents.track_index[0].numpy().copy(),
-        offroad_distance=np.array([m[name][0] for m in metrics]),
+        offroad=np.array([m[name][0] for m in metrics]),
         progress=np.array([m[name][1] for m in metrics]),
-        expert_progress=expert,
-        route_length=length,
-        dt=0.1,
-        error=error,
     )
+    return make_record(spec, name, slot, trace, env.config, error)
 
 
-__all__ = ["EpisodeRecord", "EpisodeSpec", "PlannerError", "run_episode"]
+__all__ = [
+    "EpisodeRecord",
+    "EpisodeSpec",
+    "PlannerError",
+    "Trace",
+    "make_record",
+    "run_episode",
+]
 
 
 def log_record(scenario: Scenario, track: int, traffic: str = "log") -> EpisodeRecord:

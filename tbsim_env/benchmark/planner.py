@@ -18,15 +18,18 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import inspect
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.state import SimState
+
+if TYPE_CHECKING:
+    from tbsim_env.benchmark.batch import BatchInput
 
 
 @dataclass(frozen=True)
@@ -162,6 +165,9 @@ class ExpertPlanner:
     def act(self, x: PlannerInput) -> Any:
         return x.expert_action
 
+    def act_batch(self, x: BatchInput) -> Any:
+        return x.expert_actions
+
 
 class ConstantVelocityPlanner:
     """Holds its speed and heading: zero acceleration and yaw rate."""
@@ -170,6 +176,9 @@ class ConstantVelocityPlanner:
 
     def act(self, x: PlannerInput) -> Any:
         return np.zeros(2, np.float32)
+
+    def act_batch(self, x: BatchInput) -> Any:
+        return np.zeros((len(x.agents), 2), np.float32)
 
 
 class IDMPlanner:
@@ -185,12 +194,41 @@ class IDMPlanner:
         self.policy = IDMPolicy(route=route, speed_spread=0.0, headway_spread=0.0)
         self.name = "idm" if route == "lanes" else f"idm_{route}"
         self._scenario: Scenario | None = None
+        self._scenarios: list[Scenario] = []
+        self._variants: list[int] = []
         self._plan: Any = None
         self._generator = torch.Generator()
 
     def reset(self, scenario: Scenario, agent: str, seed: int) -> None:
         self._scenario, self._plan = scenario, None
         self._generator.manual_seed(int(seed))
+
+    def reset_batch(
+        self, scenarios: Sequence[Scenario], agents: Sequence[str], seeds: Sequence[int]
+    ) -> None:
+        """Start a batch of episodes: agent k in ``scenarios[k]``, seeded by ``seeds[k]``
+        (each row's fork branches drawn as ``reset`` with that seed draws them)."""
+        del agents  # the slots come with the first input
+        self._scenarios, self._plan = list(scenarios), None
+        self._variants = [self._first_variant(seed) for seed in seeds]
+
+    def act_batch(self, x: BatchInput) -> Any:
+        if x.sim is None or not self._scenarios:
+            raise ValueError("the idm planner needs BatchInput.sim and a reset_batch() first")
+        if self._plan is None:  # each row's plan of its ego alone
+            tracks = [[int(s)] for s in x.slots]
+            self._plan = self.policy.initial_state(
+                x.sim, self._scenarios, self._generator, tracks, self._variants
+            )
+        action, self._plan = self.policy.act(x.sim, self._plan, self._generator)
+        return action[torch.from_numpy(x.rows), torch.from_numpy(x.slots)].numpy()
+
+    def _first_variant(self, seed: int) -> int:
+        """The branch variant ``initial_state`` draws first from a generator seeded ``seed``."""
+        from policies.idm.policy import BRANCH_VARIANTS
+
+        g = torch.Generator().manual_seed(int(seed))
+        return int(torch.randint(BRANCH_VARIANTS, (1,), generator=g))
 
     def act(self, x: PlannerInput) -> Any:
         if x.sim is None or self._scenario is None:

@@ -8,6 +8,7 @@ from typing import Any
 
 from tqdm import tqdm
 
+from tbsim_env.benchmark.batch import batchable, run_batch
 from tbsim_env.benchmark.config import BenchmarkConfig
 from tbsim_env.benchmark.episode import EpisodeSpec, run_episode
 from tbsim_env.benchmark.metrics import LaneIndex
@@ -31,6 +32,9 @@ class BenchmarkSettings:
         seed: base seed (each scene gets ``scenario_seed(seed, id)``).
         npc_checkpoint: TrafficBots weights of ``trafficbots`` traffic (None: shipped).
         config: thresholds and weights.
+        batch_size: scenes stepped together where that gives the same episodes
+            (``batch.batchable``: the SDC, log-replayed traffic, a planner with
+            ``act_batch``); 1 runs every scene alone.
     """
 
     planner: str
@@ -39,8 +43,11 @@ class BenchmarkSettings:
     seed: int = 0
     npc_checkpoint: str | None = None
     config: BenchmarkConfig = field(default_factory=BenchmarkConfig)
+    batch_size: int = 16
 
     def __post_init__(self) -> None:
+        if self.batch_size < 1:
+            raise ValueError(f"BenchmarkSettings.batch_size must be >= 1, not {self.batch_size}")
         if not self.traffic:
             raise ValueError("BenchmarkSettings.traffic names no traffic mode")
         if self.controlled not in ("sdc", "tracks_to_predict"):
@@ -82,10 +89,44 @@ def run_benchmark(
     """
     scenarios = list(scenarios)
     check_logged_future(scenarios, "the planner benchmark")
-    out: list[ScenarioResult] = []
-    for sc in tqdm(scenarios, desc=f"benchmark {settings.planner}", disable=not progress):
-        out += benchmark_scenario(sc, settings, make_planner)
-    return out
+    make = make_planner or (lambda: load_planner(settings.planner))
+    lanes = [LaneIndex.of(sc) for sc in scenarios]
+    seeds = [scenario_seed(settings.seed, sc.scenario_id) for sc in scenarios]
+    done: dict[tuple[int, str], list[ScenarioResult]] = {}
+    total = len(scenarios) * len(settings.traffic)
+    with tqdm(total=total, desc=f"benchmark {settings.planner}", disable=not progress) as bar:
+        for traffic in settings.traffic:
+            specs = [
+                EpisodeSpec(sc, traffic, settings.controlled, seed, settings.npc_checkpoint)
+                for sc, seed in zip(scenarios, seeds)
+            ]
+            for chunk in _chunks(specs, settings.batch_size, make):
+                if isinstance(chunk, tuple):  # a batch: its planner and its scene indices
+                    planner, ks = chunk
+                    records = run_batch([specs[k] for k in ks], planner)
+                    groups = [(k, [r]) for k, r in zip(ks, records)]
+                else:
+                    groups = [(chunk, run_episode(specs[chunk], make))]
+                for k, records in groups:
+                    done[k, traffic] = [score_record(r, lanes[k], settings.config)
+                                        for r in records]  # fmt: skip
+                    bar.update()
+    return [r for k in range(len(scenarios)) for t in settings.traffic for r in done[k, t]]
+
+
+def _chunks(
+    specs: Sequence[EpisodeSpec], batch_size: int, make: Callable[[], Any]
+) -> Iterable[int | tuple[Any, list[int]]]:
+    """The episodes of one traffic mode as work items: a scene index (run alone), or a
+    planner and up to ``batch_size`` scene indices (run together, ``batch.batchable``)."""
+    if batch_size > 1 and specs:
+        planner = make()
+        if batchable(specs[0], planner):
+            for i in range(0, len(specs), batch_size):
+                ks = list(range(i, min(i + batch_size, len(specs))))
+                yield (planner if i == 0 else make()), ks
+            return
+    yield from range(len(specs))
 
 
 def by_traffic(results: Sequence[ScenarioResult]) -> dict[str, list[ScenarioResult]]:

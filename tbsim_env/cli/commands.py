@@ -266,6 +266,8 @@ class Benchmark(DataOptions, ShardOptions):
         html: folder for viewer pages of the worst episodes, infractions marked.
         worst: how many worst episodes get a page.
         shard_size: scenarios per shard (default: one shard per input file).
+        batch_size: scenes stepped together where the episodes stay the same (the SDC,
+            log-replayed traffic, a planner with act_batch: the built-ins); 1: one at a time.
     """
 
     planner: str
@@ -278,6 +280,7 @@ class Benchmark(DataOptions, ShardOptions):
     html: str | None = None
     worst: int = 5
     shard_size: int | None = None
+    batch_size: int = 16
 
 
 COMMANDS: dict[str, type] = {

@@ -1,0 +1,255 @@
+"""Several scenes' benchmark episodes stepped together: one batched simulation of B scenes,
+one planner call a step for all of them.
+
+Used where it gives what one scene at a time gives (``batchable``): the SDC driven, traffic
+that replays the log (nothing drawn at random, so a scene's episode cannot depend on the
+scenes beside it), and a planner with ``act_batch`` (a ``BatchPlanner``: the built-ins). The
+episode is the one of ``episode.run_episode`` (no termination; the same records), its cost
+per scene a fraction: the simulation's step, the planner's rules and their fixed per-call
+costs are paid once for the batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+import torch
+
+from tbsim_env.benchmark.episode import (
+    ROUTE_POINTS,
+    ROUTE_SPACING,
+    EpisodeRecord,
+    EpisodeSpec,
+    PlannerError,
+    Trace,
+    make_record,
+)
+from tbsim_env.core.config import EnvConfig, TerminationConfig
+from tbsim_env.core.torch_utils import torch_threads
+from tbsim_env.env import episode as ep
+from tbsim_env.env.compiled import StepFunction
+from tbsim_env.env.setup import agent_name, make_npc_policy, select_scenarios
+from tbsim_env.env.vector_env import route_features
+from tbsim_env.observation.tokens import ObsConfig
+from tbsim_env.sim.geometry import to_local
+from tbsim_env.sim.state import SimState
+
+
+@dataclass(frozen=True)
+class BatchInput:
+    """What K controlled agents, one per scene of the batch, see at one step (the batched
+    ``PlannerInput``; agent k drives in batch row ``rows[k]``).
+
+    Attributes:
+        scenario_ids, agents: [K] the scenes and the env's agent names.
+        step: the simulation step; time_s: s since the episode started.
+        route: [K, R, 2] float32, the next R points of each logged route in the agent's own
+            frame (x forward, y left, m), 2 m apart.
+        goal: [K, 2] float32, the last logged position in the agent's frame, m.
+        speed: [K] float32 m/s, signed.
+        rows, slots: [K] int64, each agent's batch row and agent slot in ``sim``.
+        sim: the batched simulator state (privileged, as ``PlannerInput.sim``).
+        experts: () -> [K, 2] float32 expert actions (privileged; memoized by the caller).
+    """
+
+    scenario_ids: list[str]
+    agents: list[str]
+    step: int
+    time_s: float
+    route: np.ndarray
+    goal: np.ndarray
+    speed: np.ndarray
+    rows: np.ndarray
+    slots: np.ndarray
+    sim: SimState
+    experts: Callable[[], np.ndarray]
+
+    @property
+    def expert_actions(self) -> np.ndarray:
+        """[K, 2] float32, the actions that follow each agent's log (see ``experts``)."""
+        return self.experts()
+
+
+@runtime_checkable
+class BatchPlanner(Protocol):
+    """A planner that drives the agents of several scenes at once: ``act_batch`` each step;
+    ``reset_batch(scenarios, agents, seeds)`` (optional, [K] each) at the start."""
+
+    def act_batch(self, x: BatchInput) -> Any:
+        """[K, 2] (acceleration m/s^2, yaw rate rad/s) as anything ``np.asarray`` takes."""
+        ...
+
+
+def batchable(spec: EpisodeSpec, planner: Any) -> bool:
+    """Whether ``spec``'s episode may run in a batch with ``planner`` (see the module)."""
+    replays = spec.traffic == "log_replay"
+    return spec.controlled == "sdc" and replays and isinstance(planner, BatchPlanner)
+
+
+@dataclass
+class _Run:
+    """The batch's simulation and what it has recorded so far (one list entry a state)."""
+
+    specs: Sequence[EpisodeSpec]
+    state: ep.EpisodeState
+    names: list[str]
+    pose: list[torch.Tensor]
+    speed: list[torch.Tensor]
+    valid: list[torch.Tensor]
+    offroad: list[torch.Tensor]
+    progress: list[torch.Tensor]
+
+    def record(self, state: ep.EpisodeState, metrics: Any) -> None:
+        """Keep the states of every slot and the egos' infos of ``state``."""
+        sim = state.sim
+        pose = sim.pose.double()
+        pose[..., :2] += sim.origin.double()[:, None]
+        infos = ep.agent_infos(state, metrics)
+        self.pose.append(pose)
+        self.speed.append(sim.speed.double())
+        self.valid.append(sim.valid.clone())
+        self.offroad.append(infos["offroad_distance"][:, 0].double())
+        self.progress.append(infos["progress"][:, 0].double())
+        self.state = state
+
+
+def _inputs(run: _Run, step: int, t0: int) -> BatchInput:
+    """The batch's ``BatchInput`` at ``step`` (one ego per row: column 0 of the query)."""
+    state = run.state
+    setup, sim = state.setup, state.sim
+    query = setup.query[:, :1]
+    pose = sim.pose.gather(1, query[..., None].expand(-1, -1, 3))  # [B, 1, 3]
+    route = route_features(setup.route, state.progress, pose, ROUTE_POINTS, ROUTE_SPACING)
+    goal = to_local(setup.route.goal[:, :1, None, :], pose[..., None, :])[..., 0, :]
+    experts = functools.cache(lambda: ep.expert_actions(state)[:, 0].float().numpy())
+    b = state.batch_size
+    return BatchInput(
+        scenario_ids=[s.scenario.scenario_id for s in run.specs],
+        agents=run.names,
+        step=step,
+        time_s=round((step - t0) * 0.1, 6),
+        route=route[:, 0].numpy(),
+        goal=goal[:, 0].float().numpy(),
+        speed=sim.speed.gather(1, query)[:, 0].numpy(),
+        rows=np.arange(b),
+        slots=query[:, 0].numpy().copy(),
+        sim=sim,
+        experts=experts,
+    )
+
+
+def _checked(action: Any, x: BatchInput) -> tuple[np.ndarray, dict[int, str]]:
+    """The batch's actions as float32 [K, 2] (zero in failed rows) and {row: why it failed}
+    (every row when the whole answer is malformed)."""
+    k = len(x.agents)
+    where = [f"scene {s}, agent {a}, step {x.step}" for s, a in zip(x.scenario_ids, x.agents)]
+    try:
+        a = np.asarray(action, np.float32)
+    except (TypeError, ValueError) as err:
+        return np.zeros((k, 2), np.float32), {i: f"{w}: action is not numeric ({err})"
+                                              for i, w in enumerate(where)}  # fmt: skip
+    if a.shape != (k, 2):
+        why = f"act_batch returned shape {a.shape}, expected ({k}, 2) (accel, yaw rate)"
+        return np.zeros((k, 2), np.float32), {i: f"{w}: {why}" for i, w in enumerate(where)}
+    bad = np.flatnonzero(~np.isfinite(a).all(-1))
+    failed = {int(i): f"{where[i]}: action {a[i].tolist()} is not finite" for i in bad}
+    return np.where(np.isfinite(a), a, 0.0).astype(np.float32), failed
+
+
+def _start(specs: Sequence[EpisodeSpec], config: EnvConfig) -> tuple[_Run, Any, Any]:
+    """The batch's first state (recorded), its step function and its NPC policy."""
+    first = specs[0]
+    kwargs = None if first.npc_checkpoint is None else {"checkpoint": first.npc_checkpoint}
+    policy = make_npc_policy(first.traffic, kwargs, torch.device("cpu"))
+    sel = select_scenarios([s.scenario for s in specs], "sdc", config, policy, False)
+    step_config = ep.StepConfig(config, ObsConfig(), dense=True, observe=False)
+    exact = bool(getattr(policy, "exact_replay", False))
+    bank = ep.build_bank(sel.scenarios, sel.queries, exact, step_config, torch.device("cpu"))
+    state, metrics = ep.start(bank, torch.arange(len(specs)))
+    if bool(state.setup.npc.any()):  # as ``TrafficEnv``: NPCs act through the policy
+        start = policy.initial_state(state.sim, sel.scenarios, torch.Generator())
+        state = dataclasses.replace(state, policy_state=start)
+    names = [agent_name(sc.tracks.id[q[0]]) for sc, q in zip(sel.scenarios, sel.queries)]
+    run = _Run(specs, state, names, [], [], [], [], [])
+    run.record(state, metrics)
+    return run, StepFunction(step_config, False), policy
+
+
+def _traces(run: _Run, ends: Sequence[int]) -> list[Trace]:
+    """Each scene's ``Trace`` (its own agent slots, its states up to ``ends[k]``)."""
+    pose, speed, valid = (torch.stack(x, 1).numpy() for x in (run.pose, run.speed, run.valid))
+    offroad, progress = (torch.stack(x, 1).numpy() for x in (run.offroad, run.progress))
+    agents = run.state.sim.agents
+    out = []
+    for k, spec in enumerate(run.specs):
+        n, t = spec.scenario.tracks.num_tracks, ends[k] + 1
+        out.append(
+            Trace(
+                pose=pose[k, :t, :n],
+                speed=speed[k, :t, :n],
+                valid=valid[k, :t, :n],
+                size=agents.size[k, :n, :2].double().numpy(),
+                object_type=agents.object_type[k, :n].numpy().copy(),
+                track_id=agents.track_id[k, :n].numpy().copy(),
+                track_index=agents.track_index[k, :n].numpy().copy(),
+                offroad=offroad[k, :t],
+                progress=progress[k, :t],
+            )
+        )
+    return out
+
+
+def run_batch(
+    specs: Sequence[EpisodeSpec], planner: Any, torch_thread_count: int | None = 1
+) -> list[EpisodeRecord]:
+    """The episodes of ``specs`` (``batchable`` ones of one traffic mode), stepped together
+    with one ``BatchPlanner``; one record per scene, in order, equal to ``run_episode``'s.
+    A row whose action is malformed fails alone (its record carries the error and the states
+    up to it); a planner that raises fails every row of the batch."""
+    never = EnvConfig(termination=TerminationConfig(collision=False, goal=False))
+    with torch_threads(torch_thread_count), torch.inference_mode():
+        run, step_fn, policy = _start(specs, never)
+        reset = getattr(planner, "reset_batch", None)
+        if callable(reset):
+            reset([s.scenario for s in specs], run.names, [s.seed for s in specs])
+        t0 = never.start_step
+        errors: dict[int, str] = {}
+        ends = [never.last_step - t0] * len(specs)
+        generator, has_npc = torch.Generator(), bool(run.state.setup.npc.any())
+        for i, step in enumerate(range(t0, never.last_step)):
+            x = _inputs(run, step, t0)
+            try:
+                action, failed = _checked(planner.act_batch(x), x)
+            except Exception as err:  # the planner's own failure, reported, not raised
+                why = f"planner raised {type(err).__name__}: {err}"
+                failed = {k: f"scene {s}, agent {x.agents[k]}, step {step}: {why}"
+                          for k, s in enumerate(x.scenario_ids)}  # fmt: skip
+                action = np.zeros((len(specs), 2), np.float32)
+            for k, why in failed.items():
+                if k not in errors:
+                    errors[k], ends[k] = str(PlannerError(why)), i
+            if len(errors) == len(specs):
+                break
+            act = torch.zeros(len(specs), run.state.setup.query.shape[1], 2)
+            act[:, 0] = torch.from_numpy(action)
+            state, npc = run.state, None
+            if has_npc:
+                npc, ps = ep.npc_actions(policy, state, generator)
+                state = dataclasses.replace(state, policy_state=ps)
+            state, out = step_fn(state, act, npc)
+            run.record(state, out.metrics)
+    traces = _traces(run, ends)
+    return [
+        make_record(
+            spec, run.names[k], int(run.state.setup.query[k, 0]), traces[k], never, errors.get(k)
+        )  # fmt: skip
+        for k, spec in enumerate(specs)
+    ]
+
+
+__all__ = ["BatchInput", "BatchPlanner", "batchable", "run_batch"]
