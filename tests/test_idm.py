@@ -15,7 +15,8 @@ import torch
 
 from policies import make_policy, make_rollout_fn
 from policies.idm import IDMConfig, IDMPolicy
-from policies.idm.lanes import infer_successors, lane_graph
+from policies.idm.lanes import infer_successors, lane_graph, match_lanes
+from policies.idm.params import LANE_MATCH_COS, LANE_MATCH_DISTANCE
 from tbsim_env.cli import app as cli
 from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.core.constants import DT, MapFeatureType, ObjectType, SignalState
@@ -388,6 +389,33 @@ def test_lane_links_inferred_from_geometry_are_the_protos_own(womd_dir):
         assert len(proto) > 80 and inferred == proto, name
     gpudrive = lane_graph(_load(womd_dir / REAL_FORMATS[3]).road_map)
     assert gpudrive.links_inferred and sum(len(s) for s in gpudrive.successors) > 20
+
+
+def test_lane_matching_through_the_grid_equals_testing_every_segment(one_scenario_path):
+    """``match_lanes`` reads only the segments listed in a position's grid cell: the lanes
+    and arcs it finds are those of a test against every segment of the map."""
+    graph = lane_graph(_load(one_scenario_path).road_map)
+    rng = np.random.default_rng(0)
+    e = rng.integers(0, len(graph.seg_start), 1500)
+    xy = graph.seg_start[e] + rng.random((1500, 1)) * graph.seg_vec[e]
+    xy += rng.normal(0.0, 1.5, (1500, 2))  # on, beside and beyond the match distance
+    yaw = np.arctan2(graph.seg_vec[e, 1], graph.seg_vec[e, 0]) + rng.normal(0.0, 0.6, 1500)
+    lane, arc = match_lanes(graph, xy, yaw)
+    # Every segment: projection, distance, heading within 45 degrees, the first nearest.
+    vec, start = graph.seg_vec[None], graph.seg_start[None]
+    len2 = (vec**2).sum(-1)
+    t = np.clip(((xy[:, None] - start) * vec).sum(-1) / len2, 0.0, 1.0)
+    dist = np.linalg.norm(xy[:, None] - start - t[..., None] * vec, axis=-1)
+    heading = np.stack([np.cos(yaw), np.sin(yaw)], -1)
+    cos = (heading[:, None] * vec).sum(-1) / np.sqrt(len2)
+    dist = np.where(cos >= LANE_MATCH_COS, dist, np.inf)
+    best = dist.argmin(1)
+    rows = np.arange(len(xy))
+    ok = dist[rows, best] <= LANE_MATCH_DISTANCE
+    assert 400 < ok.sum() < len(xy)  # both outcomes are exercised
+    np.testing.assert_array_equal(lane, np.where(ok, graph.seg_lane[best], -1))
+    want = graph.seg_arc[best] + t[rows, best] * np.sqrt(len2[0, best])
+    np.testing.assert_allclose(arc[ok], want[ok], atol=1e-9)
 
 
 YAW, SHIFT = 1.1, (3000.0, -1500.0)

@@ -39,6 +39,10 @@ class LaneGraph:
         seg_vec: [E, 2] float64, segment end - start.
         seg_lane: [E] int64, the lane row of each segment.
         seg_arc: [E] float64, arc length of the segment start along its lane (m).
+        cell_keys: [C] int64 sorted keys (``_cell_key``) of the ``MATCH_CELL`` grid cells
+            near some segment; cell_bounds: [C + 1] int64 offsets into ``cell_segments``;
+            cell_segments: per cell, in increasing order, the segments within
+            ``LANE_MATCH_DISTANCE`` of its square (by their bounding boxes).
     """
 
     ids: np.ndarray
@@ -50,6 +54,9 @@ class LaneGraph:
     seg_vec: np.ndarray
     seg_lane: np.ndarray
     seg_arc: np.ndarray
+    cell_keys: np.ndarray
+    cell_bounds: np.ndarray
+    cell_segments: np.ndarray
 
     @property
     def num_lanes(self) -> int:
@@ -125,17 +132,51 @@ def lane_graph(road_map: RoadMap) -> LaneGraph:
     vecs = [np.diff(p, axis=0) for p in polylines]
     arcs = [np.concatenate([[0.0], np.cumsum(np.linalg.norm(v, axis=1))[:-1]]) for v in vecs]
     cat = lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape)  # noqa: E731
+    seg_start, seg_vec = cat(starts, (0, 2)), cat(vecs, (0, 2))
+    keys, bounds, members = _segment_cells(seg_start, seg_vec)
     return LaneGraph(
         ids=ids,
         polylines=polylines,
         successors=succ,
         speed_limit=limit,
         links_inferred=not has_links,
-        seg_start=cat(starts, (0, 2)),
-        seg_vec=cat(vecs, (0, 2)),
+        seg_start=seg_start,
+        seg_vec=seg_vec,
         seg_lane=np.repeat(np.arange(len(polys)), [len(v) for v in vecs]).astype(np.int64),
         seg_arc=cat(arcs, (0,)),
+        cell_keys=keys,
+        cell_bounds=bounds,
+        cell_segments=members,
     )
+
+
+MATCH_CELL = 8.0
+"""m, side of the grid cells that list the lane segments an agent in them can match."""
+_KEY_SPAN = 1 << 31
+"""Cell key = ix * _KEY_SPAN + iy (cell indices of any map fit in 31 bits)."""
+
+
+def _cell_key(ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    return ix.astype(np.int64) * _KEY_SPAN + iy.astype(np.int64)
+
+
+def _segment_cells(start: np.ndarray, vec: np.ndarray) -> tuple[np.ndarray, ...]:
+    """(keys [C], bounds [C + 1], members) of the cells each segment [E] (start, vector)
+    can be matched from: those its bounding box widened by ``LANE_MATCH_DISTANCE`` meets."""
+    end = start + vec
+    lo = np.floor((np.minimum(start, end) - LANE_MATCH_DISTANCE) / MATCH_CELL).astype(np.int64)
+    hi = np.floor((np.maximum(start, end) + LANE_MATCH_DISTANCE) / MATCH_CELL).astype(np.int64)
+    nx, ny = hi[:, 0] - lo[:, 0] + 1, hi[:, 1] - lo[:, 1] + 1
+    count = nx * ny
+    seg = np.repeat(np.arange(len(start), dtype=np.int64), count)
+    k = np.arange(len(seg)) - np.repeat(np.cumsum(count) - count, count)  # index in own box
+    ix = lo[seg, 0] + k % nx[seg]
+    iy = lo[seg, 1] + k // nx[seg]
+    key = _cell_key(ix, iy)
+    order = np.lexsort((seg, key))  # by cell, then segment
+    key, seg = key[order], seg[order]
+    keys, first = np.unique(key, return_index=True)
+    return keys, np.append(first, len(key)).astype(np.int64), seg
 
 
 def match_lanes(graph: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -160,8 +201,8 @@ def match_lanes(graph: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[np.n
     return lane, arc
 
 
-_MATCH_CHUNK = 32
-"""Agents matched at once (their [agents, segments] distances: ~10k segments per real map)."""
+_MATCH_CHUNK = 256
+"""Agents matched at once (their [agents, segments of their cells] distances)."""
 
 
 def _match_chunk(graph: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -169,20 +210,45 @@ def _match_chunk(graph: LaneGraph, xy: np.ndarray, yaw: np.ndarray) -> tuple[np.
     a = xy.shape[0]
     lane = np.full(a, -1, np.int64)
     arc = np.zeros(a)
-    vec = graph.seg_vec
-    len2 = np.maximum((vec**2).sum(-1), 1e-12)  # [E]
-    rel = xy[:, None, :] - graph.seg_start[None]  # [A, E, 2]
-    t = np.clip((rel * vec[None]).sum(-1) / len2, 0.0, 1.0)
-    dist = np.linalg.norm(rel - t[..., None] * vec[None], axis=-1)
+    cand = _candidates(graph, xy)  # [A, K] segment rows in increasing order, -1 padding
+    if cand.shape[1] == 0:
+        return lane, arc
+    seg = np.maximum(cand, 0)
+    vec = graph.seg_vec[seg]  # [A, K, 2]
+    len2 = np.maximum((vec**2).sum(-1), 1e-12)
+    rel = xy[:, None, :] - graph.seg_start[seg]
+    t = np.clip((rel * vec).sum(-1) / len2, 0.0, 1.0)
+    dist = np.linalg.norm(rel - t[..., None] * vec, axis=-1)
     seg_len = np.sqrt(len2)
     heading = np.stack([np.cos(yaw), np.sin(yaw)], -1)  # [A, 2]
-    cos = (heading @ vec.T) / seg_len[None]
-    dist = np.where(cos >= LANE_MATCH_COS, dist, np.inf)
-    best = np.argmin(dist, axis=1)
-    ok = dist[np.arange(a), best] <= LANE_MATCH_DISTANCE
-    lane[ok] = graph.seg_lane[best[ok]]
-    arc[ok] = graph.seg_arc[best[ok]] + t[np.arange(a), best][ok] * seg_len[best[ok]]
+    cos = (vec * heading[:, None]).sum(-1) / seg_len
+    dist = np.where((cos >= LANE_MATCH_COS) & (cand >= 0), dist, np.inf)
+    best = np.argmin(dist, axis=1)  # the first of equals: the lowest segment row, as over all
+    rows = np.arange(a)
+    ok = dist[rows, best] <= LANE_MATCH_DISTANCE
+    hit = seg[rows, best][ok]
+    lane[ok] = graph.seg_lane[hit]
+    arc[ok] = graph.seg_arc[hit] + t[rows, best][ok] * seg_len[rows, best][ok]
     return lane, arc
+
+
+def _candidates(graph: LaneGraph, xy: np.ndarray) -> np.ndarray:
+    """[A, K] int64: the segments listed in each position's grid cell (every segment within
+    ``LANE_MATCH_DISTANCE`` of it is), in increasing order, -1 padding."""
+    cell = np.floor(xy / MATCH_CELL).astype(np.int64)
+    key = _cell_key(cell[:, 0], cell[:, 1])
+    at = np.searchsorted(graph.cell_keys, key).clip(max=max(len(graph.cell_keys) - 1, 0))
+    found = len(graph.cell_keys) > 0
+    found = found & (graph.cell_keys[at] == key) if found else np.zeros(len(xy), bool)
+    lo = np.where(found, graph.cell_bounds[at], 0)
+    n = np.where(found, graph.cell_bounds[at + 1] - lo, 0)
+    k = np.arange(int(n.max()) if len(n) else 0)
+    pick = lo[:, None] + k[None]
+    return np.where(
+        k[None] < n[:, None],
+        graph.cell_segments[np.minimum(pick, len(graph.cell_segments) - 1)],
+        -1,
+    )
 
 
 __all__ = ["LaneGraph", "infer_successors", "lane_graph", "match_lanes"]

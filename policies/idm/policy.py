@@ -136,6 +136,19 @@ def _row(plan: ScenePlan, origin: np.ndarray, n: int) -> dict[str, np.ndarray]:
     }
 
 
+def _row_draws(
+    generators: Sequence[torch.Generator], counts: Sequence[int], n: int
+) -> tuple[list[int], torch.Tensor]:
+    """(branch variant per row, [2, B, n] uniform draws): row k's drawn from
+    ``generators[k]`` as ``initial_state`` draws them for its scene alone (``counts[k]``
+    slots), zero in the padding."""
+    variant, u = [], torch.zeros(2, len(counts), n)
+    for k, (g, c) in enumerate(zip(generators, counts)):
+        variant.append(int(torch.randint(BRANCH_VARIANTS, (1,), generator=g)))
+        u[:, k, :c] = torch.rand(2, 1, c, generator=g)[:, 0]
+    return variant, u
+
+
 class IDMPolicy:
     """Rule-based reactive traffic: IDM along a route, pure-pursuit steering (see the module
     docstring and ``policies/idm/__init__``).
@@ -207,17 +220,20 @@ class IDMPolicy:
         scenarios: Sequence[Scenario],
         generator: torch.Generator,
         tracks: Sequence[Sequence[int]] | None = None,
-        variants: Sequence[int] | None = None,
+        generators: Sequence[torch.Generator] | None = None,
     ) -> IDMState:
         """Routes and per-agent parameters of every row (desired speed and time headway drawn
         from ``generator``); with ``tracks``, per row the track rows (= slots) the policy
         will drive, the others getting no route (``IDMPlanner`` drives one agent); with
-        ``variants``, per row the branch variant (in [0, ``BRANCH_VARIANTS``)) instead of a
-        draw."""
+        ``generators``, one per row instead of ``generator``: row k draws from its own what a
+        batch of its scene alone draws, so that it starts as it would alone."""
         b, n = state.batch_size, state.num_agents
-        variant = torch.randint(BRANCH_VARIANTS, (b,), generator=generator).tolist()
-        if variants is not None:
-            variant = [int(v) % BRANCH_VARIANTS for v in variants]
+        if generators is None:
+            variant = torch.randint(BRANCH_VARIANTS, (b,), generator=generator).tolist()
+            u = torch.rand(2, b, n, generator=generator)
+        else:
+            counts = [sc.tracks.num_tracks for sc in scenarios]  # a scene's slots alone
+            variant, u = _row_draws(generators, counts, n)
         steps = state.step.tolist()
         origins = state.origin.cpu().numpy()
         rows = [
@@ -230,7 +246,7 @@ class IDMPolicy:
         ]
         dev = state.device
         f = {k: torch.from_numpy(np.stack([r[k] for r in rows])).to(dev) for k in rows[0]}
-        u = torch.rand(2, b, n, generator=generator).to(dev) * 2.0 - 1.0
+        u = u.to(dev) * 2.0 - 1.0
         cfg = self.config
         f["desired_speed"] = f["desired_speed"] * (1.0 + cfg.speed_spread * u[0])
         headway = PARAM_FIELDS.index("time_headway")

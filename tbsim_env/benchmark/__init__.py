@@ -4,6 +4,8 @@ and a PDM score (``docs/benchmark.md``; ``tbsim benchmark``)."""
 
 from tbsim_env.benchmark.config import BenchmarkConfig, ComfortBounds
 from tbsim_env.benchmark.planner import (
+    BatchInput,
+    BatchPlanner,
     ConstantVelocityPlanner,
     ExpertPlanner,
     FunctionPlanner,
@@ -17,6 +19,8 @@ from tbsim_env.benchmark.runner import BenchmarkSettings, benchmark_scenario, ru
 from tbsim_env.benchmark.score import ScenarioResult
 
 __all__ = [
+    "BatchInput",
+    "BatchPlanner",
     "BenchmarkConfig",
     "BenchmarkSettings",
     "ComfortBounds",

@@ -2,8 +2,9 @@
 one planner call a step for all of them.
 
 Used where it gives what one scene at a time gives (``batchable``): the SDC driven, traffic
-that replays the log (nothing drawn at random, so a scene's episode cannot depend on the
-scenes beside it), and a planner with ``act_batch`` (a ``BatchPlanner``: the built-ins). The
+whose draws a batch can make per scene (``BATCHED_TRAFFIC``: log replay, ``idm``), so that a
+scene's episode cannot depend on the scenes beside it, and a planner with ``act_batch`` (a
+``BatchPlanner``: the built-ins). The
 episode is the one of ``episode.run_episode`` (no termination; the same records), its cost
 per scene a fraction: the simulation's step, the planner's rules and their fixed per-call
 costs are paid once for the batch.
@@ -13,9 +14,9 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import Any
 
 import numpy as np
 import torch
@@ -29,6 +30,7 @@ from tbsim_env.benchmark.episode import (
     Trace,
     make_record,
 )
+from tbsim_env.benchmark.planner import BatchInput, BatchPlanner
 from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.core.torch_utils import torch_threads
 from tbsim_env.env import episode as ep
@@ -37,58 +39,16 @@ from tbsim_env.env.setup import agent_name, make_npc_policy, select_scenarios
 from tbsim_env.env.vector_env import route_features
 from tbsim_env.observation.tokens import ObsConfig
 from tbsim_env.sim.geometry import to_local
-from tbsim_env.sim.state import SimState
 
-
-@dataclass(frozen=True)
-class BatchInput:
-    """What K controlled agents, one per scene of the batch, see at one step (the batched
-    ``PlannerInput``; agent k drives in batch row ``rows[k]``).
-
-    Attributes:
-        scenario_ids, agents: [K] the scenes and the env's agent names.
-        step: the simulation step; time_s: s since the episode started.
-        route: [K, R, 2] float32, the next R points of each logged route in the agent's own
-            frame (x forward, y left, m), 2 m apart.
-        goal: [K, 2] float32, the last logged position in the agent's frame, m.
-        speed: [K] float32 m/s, signed.
-        rows, slots: [K] int64, each agent's batch row and agent slot in ``sim``.
-        sim: the batched simulator state (privileged, as ``PlannerInput.sim``).
-        experts: () -> [K, 2] float32 expert actions (privileged; memoized by the caller).
-    """
-
-    scenario_ids: list[str]
-    agents: list[str]
-    step: int
-    time_s: float
-    route: np.ndarray
-    goal: np.ndarray
-    speed: np.ndarray
-    rows: np.ndarray
-    slots: np.ndarray
-    sim: SimState
-    experts: Callable[[], np.ndarray]
-
-    @property
-    def expert_actions(self) -> np.ndarray:
-        """[K, 2] float32, the actions that follow each agent's log (see ``experts``)."""
-        return self.experts()
-
-
-@runtime_checkable
-class BatchPlanner(Protocol):
-    """A planner that drives the agents of several scenes at once: ``act_batch`` each step;
-    ``reset_batch(scenarios, agents, seeds)`` (optional, [K] each) at the start."""
-
-    def act_batch(self, x: BatchInput) -> Any:
-        """[K, 2] (acceleration m/s^2, yaw rate rad/s) as anything ``np.asarray`` takes."""
-        ...
+BATCHED_TRAFFIC = ("log_replay", "idm", "idm_lanes")
+"""Traffic whose episodes a batch reproduces: log replay draws nothing; the ``idm`` policies
+draw only at the start, each row from a generator seeded as its scene alone would be."""
 
 
 def batchable(spec: EpisodeSpec, planner: Any) -> bool:
     """Whether ``spec``'s episode may run in a batch with ``planner`` (see the module)."""
-    replays = spec.traffic == "log_replay"
-    return spec.controlled == "sdc" and replays and isinstance(planner, BatchPlanner)
+    fixed = spec.traffic in BATCHED_TRAFFIC
+    return spec.controlled == "sdc" and fixed and isinstance(planner, BatchPlanner)
 
 
 @dataclass
@@ -172,7 +132,10 @@ def _start(specs: Sequence[EpisodeSpec], config: EnvConfig) -> tuple[_Run, Any, 
     bank = ep.build_bank(sel.scenarios, sel.queries, exact, step_config, torch.device("cpu"))
     state, metrics = ep.start(bank, torch.arange(len(specs)))
     if bool(state.setup.npc.any()):  # as ``TrafficEnv``: NPCs act through the policy
-        start = policy.initial_state(state.sim, sel.scenarios, torch.Generator())
+        rows = {}
+        if first.traffic != "log_replay":  # each row seeded as its scene's env alone
+            rows["generators"] = [torch.Generator().manual_seed(int(s.seed)) for s in specs]
+        start = policy.initial_state(state.sim, sel.scenarios, torch.Generator(), **rows)
         state = dataclasses.replace(state, policy_state=start)
     names = [agent_name(sc.tracks.id[q[0]]) for sc, q in zip(sel.scenarios, sel.queries)]
     run = _Run(specs, state, names, [], [], [], [], [])
@@ -252,4 +215,4 @@ def run_batch(
     ]
 
 
-__all__ = ["BatchInput", "BatchPlanner", "batchable", "run_batch"]
+__all__ = ["BATCHED_TRAFFIC", "batchable", "run_batch"]

@@ -20,16 +20,13 @@ import importlib
 import inspect
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 import torch
 
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.state import SimState
-
-if TYPE_CHECKING:
-    from tbsim_env.benchmark.batch import BatchInput
 
 
 @dataclass(frozen=True)
@@ -90,6 +87,51 @@ class Planner(Protocol):
 
     def act(self, x: PlannerInput) -> Any:
         """(acceleration m/s^2, yaw rate rad/s) as anything ``np.asarray`` takes."""
+        ...
+
+
+@dataclass(frozen=True)
+class BatchInput:
+    """What K controlled agents, one per scene of the batch, see at one step (the batched
+    ``PlannerInput``; agent k drives in batch row ``rows[k]``).
+
+    Attributes:
+        scenario_ids, agents: [K] the scenes and the env's agent names.
+        step: the simulation step; time_s: s since the episode started.
+        route: [K, R, 2] float32, the next R points of each logged route in the agent's own
+            frame (x forward, y left, m), 2 m apart.
+        goal: [K, 2] float32, the last logged position in the agent's frame, m.
+        speed: [K] float32 m/s, signed.
+        rows, slots: [K] int64, each agent's batch row and agent slot in ``sim``.
+        sim: the batched simulator state (privileged, as ``PlannerInput.sim``).
+        experts: () -> [K, 2] float32 expert actions (privileged; memoized by the caller).
+    """
+
+    scenario_ids: list[str]
+    agents: list[str]
+    step: int
+    time_s: float
+    route: np.ndarray
+    goal: np.ndarray
+    speed: np.ndarray
+    rows: np.ndarray
+    slots: np.ndarray
+    sim: SimState
+    experts: Callable[[], np.ndarray]
+
+    @property
+    def expert_actions(self) -> np.ndarray:
+        """[K, 2] float32, the actions that follow each agent's log (see ``experts``)."""
+        return self.experts()
+
+
+@runtime_checkable
+class BatchPlanner(Protocol):
+    """A planner that drives the agents of several scenes at once: ``act_batch`` each step;
+    ``reset_batch(scenarios, agents, seeds)`` (optional, [K] each) at the start."""
+
+    def act_batch(self, x: BatchInput) -> Any:
+        """[K, 2] (acceleration m/s^2, yaw rate rad/s) as anything ``np.asarray`` takes."""
         ...
 
 
@@ -195,7 +237,7 @@ class IDMPlanner:
         self.name = "idm" if route == "lanes" else f"idm_{route}"
         self._scenario: Scenario | None = None
         self._scenarios: list[Scenario] = []
-        self._variants: list[int] = []
+        self._seeds: list[int] = []
         self._plan: Any = None
         self._generator = torch.Generator()
 
@@ -207,28 +249,22 @@ class IDMPlanner:
         self, scenarios: Sequence[Scenario], agents: Sequence[str], seeds: Sequence[int]
     ) -> None:
         """Start a batch of episodes: agent k in ``scenarios[k]``, seeded by ``seeds[k]``
-        (each row's fork branches drawn as ``reset`` with that seed draws them)."""
+        (its row starts as ``reset`` with that seed starts it)."""
         del agents  # the slots come with the first input
         self._scenarios, self._plan = list(scenarios), None
-        self._variants = [self._first_variant(seed) for seed in seeds]
+        self._seeds = [int(s) for s in seeds]
 
     def act_batch(self, x: BatchInput) -> Any:
         if x.sim is None or not self._scenarios:
             raise ValueError("the idm planner needs BatchInput.sim and a reset_batch() first")
-        if self._plan is None:  # each row's plan of its ego alone
+        if self._plan is None:  # each row's plan of its ego alone, drawn from its own seed
             tracks = [[int(s)] for s in x.slots]
+            rows = [torch.Generator().manual_seed(s) for s in self._seeds]
             self._plan = self.policy.initial_state(
-                x.sim, self._scenarios, self._generator, tracks, self._variants
+                x.sim, self._scenarios, self._generator, tracks, generators=rows
             )
         action, self._plan = self.policy.act(x.sim, self._plan, self._generator)
         return action[torch.from_numpy(x.rows), torch.from_numpy(x.slots)].numpy()
-
-    def _first_variant(self, seed: int) -> int:
-        """The branch variant ``initial_state`` draws first from a generator seeded ``seed``."""
-        from policies.idm.policy import BRANCH_VARIANTS
-
-        g = torch.Generator().manual_seed(int(seed))
-        return int(torch.randint(BRANCH_VARIANTS, (1,), generator=g))
 
     def act(self, x: PlannerInput) -> Any:
         if x.sim is None or self._scenario is None:
