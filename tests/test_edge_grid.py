@@ -177,3 +177,22 @@ def test_chunked_tiles_give_the_same_grid(monkeypatch):
         return (rel - t[..., None] * ab[idx]).norm(dim=-1).sort(1).values
 
     torch.testing.assert_close(listed(pieces["cells"]), listed(whole["cells"]), rtol=0, atol=1e-4)
+
+
+def test_a_grid_asked_for_again_is_kept_and_each_caller_gets_its_own_copy():
+    """``scene_edge_grid`` keeps grids by their segments: the same segments give the grid
+    computed anew (a caller writing into its copy changes nothing kept); moved segments are
+    another grid."""
+    import tbsim_env.sim.edge_grid as eg
+
+    _, [(st, en)] = _edges(_wiggly_roads(4))
+    first = eg.scene_edge_grid(st, en, 3.0, 16, 15.0)
+    first["cells"][:] = -1
+    first["bound"][:] = 0.0
+    again = eg.scene_edge_grid(st, en, 3.0, 16, 15.0)
+    fresh = eg._scene_edge_grid(st, en, 3.0, 16, 15.0)
+    assert again.keys() == fresh.keys()
+    for key in fresh:
+        np.testing.assert_array_equal(again[key], fresh[key], err_msg=key)
+    moved = eg.scene_edge_grid(st + 7.0, en + 7.0, 3.0, 16, 15.0)
+    np.testing.assert_allclose(moved["lower"], fresh["lower"] + 7.0)

@@ -45,10 +45,15 @@ BATCHED_TRAFFIC = ("log_replay", "idm", "idm_lanes")
 draw only at the start, each row from a generator seeded as its scene alone would be."""
 
 
+def batch_eligible(spec: EpisodeSpec) -> bool:
+    """Whether ``spec``'s episode may run in a batch with a planner that has ``act_batch``:
+    the SDC driven, traffic of ``BATCHED_TRAFFIC``."""
+    return spec.controlled == "sdc" and spec.traffic in BATCHED_TRAFFIC
+
+
 def batchable(spec: EpisodeSpec, planner: Any) -> bool:
     """Whether ``spec``'s episode may run in a batch with ``planner`` (see the module)."""
-    fixed = spec.traffic in BATCHED_TRAFFIC
-    return spec.controlled == "sdc" and fixed and isinstance(planner, BatchPlanner)
+    return batch_eligible(spec) and isinstance(planner, BatchPlanner)
 
 
 @dataclass
@@ -215,4 +220,4 @@ def run_batch(
     ]
 
 
-__all__ = ["BATCHED_TRAFFIC", "batchable", "run_batch"]
+__all__ = ["BATCHED_TRAFFIC", "batch_eligible", "batchable", "run_batch"]

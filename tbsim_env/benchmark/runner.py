@@ -8,7 +8,7 @@ from typing import Any
 
 from tqdm import tqdm
 
-from tbsim_env.benchmark.batch import batchable, run_batch
+from tbsim_env.benchmark.batch import batch_eligible, batchable, run_batch
 from tbsim_env.benchmark.config import BenchmarkConfig
 from tbsim_env.benchmark.episode import EpisodeSpec, run_episode
 from tbsim_env.benchmark.metrics import LaneIndex
@@ -93,40 +93,33 @@ def run_benchmark(
     lanes = [LaneIndex.of(sc) for sc in scenarios]
     seeds = [scenario_seed(settings.seed, sc.scenario_id) for sc in scenarios]
     done: dict[tuple[int, str], list[ScenarioResult]] = {}
-    total = len(scenarios) * len(settings.traffic)
+    total, size = len(scenarios) * len(settings.traffic), settings.batch_size
     with tqdm(total=total, desc=f"benchmark {settings.planner}", disable=not progress) as bar:
-        for traffic in settings.traffic:
-            specs = [
-                EpisodeSpec(sc, traffic, settings.controlled, seed, settings.npc_checkpoint)
-                for sc, seed in zip(scenarios, seeds)
-            ]
-            for chunk in _chunks(specs, settings.batch_size, make):
-                if isinstance(chunk, tuple):  # a batch: its planner and its scene indices
-                    planner, ks = chunk
-                    records = run_batch([specs[k] for k in ks], planner)
-                    groups = [(k, [r]) for k, r in zip(ks, records)]
-                else:
-                    groups = [(chunk, run_episode(specs[chunk], make))]
-                for k, records in groups:
+        # A group of scenes under every traffic mode in turn, then the next group: what the
+        # modes share (each scene's road-edge grid, ``scene_edge_grid``) is still kept.
+        for lo in range(0, len(scenarios), size):
+            ks = list(range(lo, min(lo + size, len(scenarios))))
+            for traffic in settings.traffic:
+                specs = [
+                    EpisodeSpec(scenarios[k], traffic, settings.controlled, seeds[k],
+                                settings.npc_checkpoint)
+                    for k in ks
+                ]  # fmt: skip
+                for k, records in zip(ks, _episodes(specs, make)):
                     done[k, traffic] = [score_record(r, lanes[k], settings.config)
                                         for r in records]  # fmt: skip
                     bar.update()
     return [r for k in range(len(scenarios)) for t in settings.traffic for r in done[k, t]]
 
 
-def _chunks(
-    specs: Sequence[EpisodeSpec], batch_size: int, make: Callable[[], Any]
-) -> Iterable[int | tuple[Any, list[int]]]:
-    """The episodes of one traffic mode as work items: a scene index (run alone), or a
-    planner and up to ``batch_size`` scene indices (run together, ``batch.batchable``)."""
-    if batch_size > 1 and specs:
+def _episodes(specs: Sequence[EpisodeSpec], make: Callable[[], Any]) -> list[list]:
+    """Each spec's episode records: together (``batch.run_batch``) where ``batch.batchable``
+    allows it, else one scene at a time."""
+    if len(specs) > 1 and batch_eligible(specs[0]):
         planner = make()
         if batchable(specs[0], planner):
-            for i in range(0, len(specs), batch_size):
-                ks = list(range(i, min(i + batch_size, len(specs))))
-                yield (planner if i == 0 else make()), ks
-            return
-    yield from range(len(specs))
+            return [[r] for r in run_batch(specs, planner)]
+    return [run_episode(spec, make) for spec in specs]
 
 
 def by_traffic(results: Sequence[ScenarioResult]) -> dict[str, list[ScenarioResult]]:

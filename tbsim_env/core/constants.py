@@ -259,6 +259,10 @@ EDGE_GRID_CANDIDATES = 16
 EDGE_GRID_MARGIN = 20.0
 """m the grid extends beyond the road edges' bounding box (points beyond use the border cell,
 and are recomputed over every segment when its list cannot vouch for them)."""
+EDGE_GRID_CACHE_SCENES = 32
+"""Per-scenario grids kept (by their segments' bytes; least recently used dropped first): an
+environment built again on the same scenes (another traffic mode of the benchmark, another
+env in a test session) reuses them (~50 ms each for a real scene)."""
 EDGE_SIMPLIFY_TOLERANCE = 0.02
 """m, road-edge polylines are simplified (Douglas-Peucker) to within this distance for the
 environment's off-road check (about 10x fewer segments; the WOSAC metric uses them as logged)."""

@@ -19,6 +19,9 @@ is a segment of length zero).
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
+
 import numpy as np
 import torch
 
@@ -31,7 +34,8 @@ from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
 def scene_edge_grid(
     start: np.ndarray, end: np.ndarray, cell: float, count: int, margin: float
 ) -> dict[str, np.ndarray]:
-    """The grid of one scenario, see ``EdgeGrid``.
+    """The grid of one scenario, see ``EdgeGrid`` (kept: ``EDGE_GRID_CACHE_SCENES``; a call
+    with the same arguments gets a copy).
 
     Args:
         start, end: [E, 2] segment ends (m, state frame); E may be 0.
@@ -43,6 +47,35 @@ def scene_edge_grid(
         dict of numpy arrays: ``lower`` [2], ``shape`` [2], ``cells`` [G, count], ``bound``
         [G] (lowered by ``_BOUND_SLACK`` against rounding), ``center`` [G, 2].
     """
+    digest = hashlib.blake2b(digest_size=16)
+    for x in (start, end):
+        x = np.ascontiguousarray(x)
+        digest.update(f"{x.dtype.str}{x.shape}".encode())
+        digest.update(x.tobytes())
+    tiling = (_TILE_CELLS, _LEAF_CELLS, _TILE_WORK)  # the same grid however tiled, but keyed
+    key = (digest.digest(), float(cell), int(count), float(margin), tiling)
+    grid = _GRIDS.get(key)
+    if grid is None:
+        grid = _GRIDS[key] = _scene_edge_grid(start, end, cell, count, margin)
+        while len(_GRIDS) > C.EDGE_GRID_CACHE_SCENES:
+            _GRIDS.popitem(last=False)
+    _GRIDS.move_to_end(key)
+    return {k: v.copy() for k, v in grid.items()}
+
+
+_GRIDS: OrderedDict[tuple, dict[str, np.ndarray]] = OrderedDict()
+"""``scene_edge_grid``'s kept grids, least recently used first."""
+
+
+def forget_grids() -> None:
+    """Drop every grid ``scene_edge_grid`` keeps (a benchmark timing a first build)."""
+    _GRIDS.clear()
+
+
+def _scene_edge_grid(
+    start: np.ndarray, end: np.ndarray, cell: float, count: int, margin: float
+) -> dict[str, np.ndarray]:
+    """``scene_edge_grid`` computed."""
     e = len(start)
     if e == 0:
         return {
