@@ -17,6 +17,7 @@ from policies import make_policy, make_rollout_fn
 from policies.idm import IDMConfig, IDMPolicy
 from policies.idm.lanes import infer_successors, lane_graph, match_lanes
 from policies.idm.params import LANE_MATCH_COS, LANE_MATCH_DISTANCE
+from policies.idm.routes import LOG_POINT_SPACING, thin
 from tbsim_env.cli import app as cli
 from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.core.constants import DT, MapFeatureType, ObjectType, SignalState
@@ -416,6 +417,20 @@ def test_lane_matching_through_the_grid_equals_testing_every_segment(one_scenari
     np.testing.assert_array_equal(lane, np.where(ok, graph.seg_lane[best], -1))
     want = graph.seg_arc[best] + t[rows, best] * np.sqrt(len2[0, best])
     np.testing.assert_allclose(arc[ok], want[ok], atol=1e-9)
+
+
+def test_thinning_keeps_each_logged_position_far_enough_from_the_last_kept_one():
+    rng = np.random.default_rng(3)
+    steps = rng.normal(0.0, 0.6, (400, 2)) * (rng.random((400, 1)) < 0.6)  # stands, creeps
+    xy = np.cumsum(steps, 0)
+    keep = [0]  # the rule, one position at a time
+    for k in range(1, len(xy)):
+        if np.hypot(*(xy[k] - xy[keep[-1]])) >= LOG_POINT_SPACING:
+            keep.append(k)
+    assert 50 < len(keep) < 350
+    np.testing.assert_array_equal(thin(xy), xy[keep])
+    np.testing.assert_array_equal(thin(xy[:1]), xy[:1])
+    assert thin(xy[:0]).shape == (0, 2)
 
 
 YAW, SHIFT = 1.1, (3000.0, -1500.0)

@@ -99,10 +99,13 @@ def thin(xy: np.ndarray) -> np.ndarray:
     if len(xy) == 0:
         return xy
     keep = [0]
-    for k in range(1, len(xy)):
-        if np.hypot(*(xy[k] - xy[keep[-1]])) >= LOG_POINT_SPACING:
-            keep.append(k)
-    return xy[keep]
+    while True:  # the next kept: the first position far enough from the last kept one
+        last = keep[-1]
+        rest = xy[last + 1 :]
+        far = np.hypot(rest[:, 0] - xy[last, 0], rest[:, 1] - xy[last, 1]) >= LOG_POINT_SPACING
+        if not far.any():
+            return xy[keep]
+        keep.append(last + 1 + int(np.argmax(far)))
 
 
 def lane_path(

@@ -215,9 +215,22 @@ def route_events(points: np.ndarray, scenario: Scenario, graph: LaneGraph) -> Ro
 
 
 def _first_lines(points: np.ndarray, lines: list[StopLine], k: int) -> tuple[np.ndarray, ...]:
-    """The first ``k`` of ``lines`` along each route [A, P, 2]: ``_first_k`` of their arcs."""
-    passed = [_passes(points, line) for line in lines]
-    return _first_k([p[1] for p in passed], [p[0] for p in passed], k, len(points))
+    """The first ``k`` of ``lines`` along each route [A, P, 2]: ``_first_k`` of their arcs.
+
+    A line is tested only on the routes whose bounding box, widened by
+    ``STOP_MATCH_DISTANCE``, holds its point (no other route comes that near it)."""
+    a = len(points)
+    lo = points.min(1) - STOP_MATCH_DISTANCE  # [A, 2]
+    hi = points.max(1) + STOP_MATCH_DISTANCE
+    arcs, hits = [], []
+    for line in lines:
+        near = np.flatnonzero(((line.point >= lo) & (line.point <= hi)).all(-1))
+        ok, arc = np.zeros(a, bool), np.full(a, np.inf)
+        if len(near):
+            ok[near], arc[near] = _passes(points[near], line)
+        arcs.append(arc)
+        hits.append(ok)
+    return _first_k(arcs, hits, k, a)
 
 
 def _crosswalk_entries(points: np.ndarray, polygons: np.ndarray) -> tuple[np.ndarray, ...]:
