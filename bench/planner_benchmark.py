@@ -47,7 +47,7 @@ DEFAULT_DATA = Path(os.environ.get("TBSIM_WOMD_DIR", REPO.parent / "shared" / "d
 
 STAGES = {
     "reset": [("reset", "parallel_env.py"), ("_start", "batch.py")],
-    "step": [("step", "parallel_env.py"), ("__call__", "compiled.py")],
+    "step": [("step", "parallel_env.py"), ("advance", "batch.py")],
     "act": [("act", "planner.py"), ("act_batch", "planner.py")],
     "score": [("score_record", "score.py")],
 }

@@ -93,7 +93,7 @@ def test_the_benchmark_runs_batches_and_gives_the_same_json(scenes, monkeypatch)
     together = run_benchmark(
         scenes, BenchmarkSettings("idm", traffic, batch_size=3), progress=False
     )
-    assert batches == [3, 3]  # the first three scenes under each mode; the last runs alone
+    assert batches == [3, 3, 1, 1]  # three scenes under each mode, then the fourth
     assert [(r.scenario_id, r.traffic) for r in together] == [
         (r.scenario_id, r.traffic) for r in alone
     ]

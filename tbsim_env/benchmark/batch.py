@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -58,16 +58,27 @@ def batchable(spec: EpisodeSpec, planner: Any) -> bool:
 
 @dataclass
 class _Run:
-    """The batch's simulation and what it has recorded so far (one list entry a state)."""
+    """The batch's simulation and what it has recorded so far (one list entry a state).
+
+    Attributes:
+        specs, names: the batch's episodes and their egos' agent names.
+        state: the simulation now; step_fn: its step; policy: the NPC policy (acting when
+            ``has_npc``, with ``generator``, as ``TrafficEnv`` steps it).
+        pose, speed, valid, offroad, progress: what ``Trace`` is made of, per state.
+    """
 
     specs: Sequence[EpisodeSpec]
-    state: ep.EpisodeState
     names: list[str]
-    pose: list[torch.Tensor]
-    speed: list[torch.Tensor]
-    valid: list[torch.Tensor]
-    offroad: list[torch.Tensor]
-    progress: list[torch.Tensor]
+    state: ep.EpisodeState
+    step_fn: StepFunction
+    policy: Any
+    has_npc: bool
+    generator: torch.Generator = field(default_factory=torch.Generator)
+    pose: list[torch.Tensor] = field(default_factory=list)
+    speed: list[torch.Tensor] = field(default_factory=list)
+    valid: list[torch.Tensor] = field(default_factory=list)
+    offroad: list[torch.Tensor] = field(default_factory=list)
+    progress: list[torch.Tensor] = field(default_factory=list)
 
     def record(self, state: ep.EpisodeState, metrics: Any) -> None:
         """Keep the states of every slot and the egos' infos of ``state``."""
@@ -81,6 +92,17 @@ class _Run:
         self.offroad.append(infos["offroad_distance"][:, 0].double())
         self.progress.append(infos["progress"][:, 0].double())
         self.state = state
+
+    def advance(self, action: np.ndarray) -> None:
+        """One step (0.1 s): the egos' actions [B, 2], the NPCs' from their policy; recorded."""
+        state, npc = self.state, None
+        act = torch.zeros(state.batch_size, state.setup.query.shape[1], 2)
+        act[:, 0] = torch.from_numpy(action)
+        if self.has_npc:
+            npc, policy_state = ep.npc_actions(self.policy, state, self.generator)
+            state = dataclasses.replace(state, policy_state=policy_state)
+        state, out = self.step_fn(state, act, npc)
+        self.record(state, out.metrics)
 
 
 def _inputs(run: _Run, step: int, t0: int) -> BatchInput:
@@ -126,8 +148,8 @@ def _checked(action: Any, x: BatchInput) -> tuple[np.ndarray, dict[int, str]]:
     return np.where(np.isfinite(a), a, 0.0).astype(np.float32), failed
 
 
-def _start(specs: Sequence[EpisodeSpec], config: EnvConfig) -> tuple[_Run, Any, Any]:
-    """The batch's first state (recorded), its step function and its NPC policy."""
+def _start(specs: Sequence[EpisodeSpec], config: EnvConfig) -> _Run:
+    """The batch's simulation at its first state (recorded)."""
     first = specs[0]
     kwargs = None if first.npc_checkpoint is None else {"checkpoint": first.npc_checkpoint}
     policy = make_npc_policy(first.traffic, kwargs, torch.device("cpu"))
@@ -136,16 +158,29 @@ def _start(specs: Sequence[EpisodeSpec], config: EnvConfig) -> tuple[_Run, Any, 
     exact = bool(getattr(policy, "exact_replay", False))
     bank = ep.build_bank(sel.scenarios, sel.queries, exact, step_config, torch.device("cpu"))
     state, metrics = ep.start(bank, torch.arange(len(specs)))
-    if bool(state.setup.npc.any()):  # as ``TrafficEnv``: NPCs act through the policy
+    has_npc = bool(state.setup.npc.any())
+    if has_npc:  # as ``TrafficEnv``: NPCs act through the policy
         rows = {}
         if first.traffic != "log_replay":  # each row seeded as its scene's env alone
             rows["generators"] = [torch.Generator().manual_seed(int(s.seed)) for s in specs]
         start = policy.initial_state(state.sim, sel.scenarios, torch.Generator(), **rows)
         state = dataclasses.replace(state, policy_state=start)
     names = [agent_name(sc.tracks.id[q[0]]) for sc, q in zip(sel.scenarios, sel.queries)]
-    run = _Run(specs, state, names, [], [], [], [], [])
+    run = _Run(specs, names, state, StepFunction(step_config, False), policy, has_npc)
     run.record(state, metrics)
-    return run, StepFunction(step_config, False), policy
+    return run
+
+
+def _act(planner: Any, x: BatchInput) -> tuple[np.ndarray, dict[int, str]]:
+    """The planner's actions [B, 2] (zero in failed rows) and {row: why it failed}: the
+    malformed rows, or every row when the planner raised."""
+    try:
+        return _checked(planner.act_batch(x), x)
+    except Exception as err:  # the planner's own failure, reported, not raised
+        why = f"planner raised {type(err).__name__}: {err}"
+        failed = {k: f"scene {s}, agent {x.agents[k]}, step {x.step}: {why}"
+                  for k, s in enumerate(x.scenario_ids)}  # fmt: skip
+        return np.zeros((len(x.agents), 2), np.float32), failed
 
 
 def _traces(run: _Run, ends: Sequence[int]) -> list[Trace]:
@@ -181,36 +216,21 @@ def run_batch(
     up to it); a planner that raises fails every row of the batch."""
     never = EnvConfig(termination=TerminationConfig(collision=False, goal=False))
     with torch_threads(torch_thread_count), torch.inference_mode():
-        run, step_fn, policy = _start(specs, never)
+        run = _start(specs, never)
         reset = getattr(planner, "reset_batch", None)
         if callable(reset):
             reset([s.scenario for s in specs], run.names, [s.seed for s in specs])
         t0 = never.start_step
         errors: dict[int, str] = {}
         ends = [never.last_step - t0] * len(specs)
-        generator, has_npc = torch.Generator(), bool(run.state.setup.npc.any())
         for i, step in enumerate(range(t0, never.last_step)):
-            x = _inputs(run, step, t0)
-            try:
-                action, failed = _checked(planner.act_batch(x), x)
-            except Exception as err:  # the planner's own failure, reported, not raised
-                why = f"planner raised {type(err).__name__}: {err}"
-                failed = {k: f"scene {s}, agent {x.agents[k]}, step {step}: {why}"
-                          for k, s in enumerate(x.scenario_ids)}  # fmt: skip
-                action = np.zeros((len(specs), 2), np.float32)
+            action, failed = _act(planner, _inputs(run, step, t0))
             for k, why in failed.items():
                 if k not in errors:
                     errors[k], ends[k] = str(PlannerError(why)), i
             if len(errors) == len(specs):
                 break
-            act = torch.zeros(len(specs), run.state.setup.query.shape[1], 2)
-            act[:, 0] = torch.from_numpy(action)
-            state, npc = run.state, None
-            if has_npc:
-                npc, ps = ep.npc_actions(policy, state, generator)
-                state = dataclasses.replace(state, policy_state=ps)
-            state, out = step_fn(state, act, npc)
-            run.record(state, out.metrics)
+            run.advance(action)
     traces = _traces(run, ends)
     return [
         make_record(

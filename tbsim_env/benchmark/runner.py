@@ -105,17 +105,18 @@ def run_benchmark(
                                 settings.npc_checkpoint)
                     for k in ks
                 ]  # fmt: skip
-                for k, records in zip(ks, _episodes(specs, make)):
+                for k, records in zip(ks, _episodes(specs, make, size)):
                     done[k, traffic] = [score_record(r, lanes[k], settings.config)
                                         for r in records]  # fmt: skip
                     bar.update()
     return [r for k in range(len(scenarios)) for t in settings.traffic for r in done[k, t]]
 
 
-def _episodes(specs: Sequence[EpisodeSpec], make: Callable[[], Any]) -> list[list]:
-    """Each spec's episode records: together (``batch.run_batch``) where ``batch.batchable``
-    allows it, else one scene at a time."""
-    if len(specs) > 1 and batch_eligible(specs[0]):
+def _episodes(specs: Sequence[EpisodeSpec], make: Callable[[], Any], size: int) -> list[list]:
+    """Each spec's episode records: together (``batch.run_batch``, a last group of one
+    included) where batches are asked for (``size`` > 1) and ``batch.batchable`` allows it,
+    else one scene at a time."""
+    if size > 1 and batch_eligible(specs[0]):
         planner = make()
         if batchable(specs[0], planner):
             return [[r] for r in run_batch(specs, planner)]
