@@ -104,7 +104,7 @@ def test_the_benchmark_runs_batches_and_gives_the_same_json(scenes, monkeypatch)
 def test_learned_traffic_and_per_agent_planners_run_one_scene_at_a_time(scenes):
     spec = EpisodeSpec(scenes[0], "log_replay")
     idm = load_planner("idm")
-    assert not batchable(EpisodeSpec(scenes[0], "trafficbots"), idm)  # draws every step
+    assert not batchable(EpisodeSpec(scenes[0], "trafficbots"), idm)  # padding would round
     assert not batchable(EpisodeSpec(scenes[0], "log_replay", "tracks_to_predict"), idm)
     assert not batchable(spec, FunctionPlanner(lambda x: (0.0, 0.0)))
 
