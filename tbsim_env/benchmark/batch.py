@@ -29,6 +29,7 @@ from tbsim_env.benchmark.episode import (
     PlannerError,
     Trace,
     make_record,
+    slot_fields,
 )
 from tbsim_env.benchmark.planner import BatchInput, BatchPlanner
 from tbsim_env.core.config import EnvConfig, TerminationConfig
@@ -196,12 +197,9 @@ def _traces(run: _Run, ends: Sequence[int]) -> list[Trace]:
                 pose=pose[k, :t, :n],
                 speed=speed[k, :t, :n],
                 valid=valid[k, :t, :n],
-                size=agents.size[k, :n, :2].double().numpy(),
-                object_type=agents.object_type[k, :n].numpy().copy(),
-                track_id=agents.track_id[k, :n].numpy().copy(),
-                track_index=agents.track_index[k, :n].numpy().copy(),
                 offroad=offroad[k, :t],
                 progress=progress[k, :t],
+                **slot_fields(agents, k, n),
             )
         )
     return out

@@ -245,6 +245,18 @@ class Trace:
     progress: np.ndarray
 
 
+def slot_fields(agents: Any, row: int, n: int | None = None) -> dict[str, np.ndarray]:
+    """The ``Trace`` fields of batch row ``row``'s first ``n`` agent slots (every slot by
+    default) of a ``SimState.agents``: size, object type, track id and track index."""
+    cut = slice(None, n)
+    return {
+        "size": agents.size[row, cut, :2].double().numpy(),
+        "object_type": agents.object_type[row, cut].numpy().copy(),
+        "track_id": agents.track_id[row, cut].numpy().copy(),
+        "track_index": agents.track_index[row, cut].numpy().copy(),
+    }
+
+
 def make_record(
     spec: EpisodeSpec, name: str, slot: int, trace: Trace, config: EnvConfig, error: str | None
 ) -> EpisodeRecord:
@@ -288,17 +300,13 @@ def _record(
 ) -> EpisodeRecord:
     """The record of agent ``name`` from the per-step states and info metrics."""
     slot = int(env.episode.setup.query[0, env.agent_columns[name]])
-    agents = env.sim_state.agents
     trace = Trace(
         pose=np.stack([s[0] for s in states]),
         speed=np.stack([s[1] for s in states]),
         valid=np.stack([s[2] for s in states]),
-        size=agents.size[0, :, :2].double().numpy(),
-        object_type=agents.object_type[0].numpy().copy(),
-        track_id=agents.track_id[0].numpy().copy(),
-        track_index=agents.track_index[0].numpy().copy(),
         offroad=np.array([m[name][0] for m in metrics]),
         progress=np.array([m[name][1] for m in metrics]),
+        **slot_fields(env.sim_state.agents, 0),
     )
     return make_record(spec, name, slot, trace, env.config, error)
 
@@ -310,6 +318,7 @@ __all__ = [
     "Trace",
     "make_record",
     "run_episode",
+    "slot_fields",
 ]
 
 
@@ -339,30 +348,13 @@ def log_record(scenario: Scenario, track: int, traffic: str = "log") -> EpisodeR
     offroad = box_offroad_distance(corners, sim.road_edges)[0][0].double()
     world = pose.clone()
     world[..., :2] += sim.origin[0].double()
-    others_valid = valid.clone()
-    others_valid[:, slot] = False
-    arc = logged_arc(scenario, track)
-    expert, length = _expert_span(scenario, track, start, end)
-    agents = sim.agents
-    return EpisodeRecord(
-        scenario_id=scenario.scenario_id,
-        traffic=traffic,
-        agent=f"track_{int(scenario.tracks.id[track])}",
-        slot=slot,
-        ego_pose=world[:, slot].numpy(),
-        ego_speed=speed[:, slot].numpy(),
-        ego_size=size[slot].double().numpy(),
-        ego_type=int(agents.object_type[0, slot]),
-        others_pose=world.numpy(),
-        others_speed=speed.numpy(),
-        others_valid=others_valid.numpy(),
-        others_size=size.double().numpy(),
-        others_type=agents.object_type[0].numpy(),
-        others_id=agents.track_id[0].numpy(),
-        track_index=agents.track_index[0].numpy(),
-        offroad_distance=offroad.numpy(),
-        progress=arc[start : end + 1],
-        expert_progress=expert,
-        route_length=length,
-        dt=0.1,
+    trace = Trace(
+        pose=world.numpy(),
+        speed=speed.numpy(),
+        valid=valid.numpy(),
+        offroad=offroad.numpy(),
+        progress=logged_arc(scenario, track)[start : end + 1],
+        **slot_fields(sim.agents, 0),
     )
+    name = f"track_{int(scenario.tracks.id[track])}"
+    return make_record(EpisodeSpec(scenario, traffic), name, slot, trace, cfg, None)
