@@ -24,7 +24,8 @@ from tbsim_env.data.loader import load_scenarios
 from tests.test_benchmark import road
 from tests.test_preprocess_support import Agent, make_scenario
 
-pytestmark = pytest.mark.usefixtures("torch_one_thread")
+# Batched against one-scene floats: CI runs it on both kernel paths.
+pytestmark = [pytest.mark.usefixtures("torch_one_thread"), pytest.mark.float_sensitive]
 
 
 def _close(a, b, path: str = "") -> None:

@@ -392,6 +392,7 @@ def test_lane_links_inferred_from_geometry_are_the_protos_own(womd_dir):
     assert gpudrive.links_inferred and sum(len(s) for s in gpudrive.successors) > 20
 
 
+@pytest.mark.float_sensitive  # an exact comparison of float geometry
 def test_lane_matching_through_the_grid_equals_testing_every_segment(one_scenario_path):
     """``match_lanes`` reads only the segments listed in a position's grid cell: the lanes
     and arcs it finds are those of a test against every segment of the map."""
@@ -419,6 +420,7 @@ def test_lane_matching_through_the_grid_equals_testing_every_segment(one_scenari
     np.testing.assert_allclose(arc[ok], want[ok], atol=1e-9)
 
 
+@pytest.mark.float_sensitive  # an exact comparison of float geometry
 def test_thinning_keeps_each_logged_position_far_enough_from_the_last_kept_one():
     rng = np.random.default_rng(3)
     steps = rng.normal(0.0, 0.6, (400, 2)) * (rng.random((400, 1)) < 0.6)  # stands, creeps
