@@ -190,6 +190,22 @@ def test_free_road_reaches_the_desired_speed_without_overshoot():
     assert abs(speed[-1] - 10.0) < 0.5
 
 
+def test_a_log_that_ends_off_the_lane_centre_joins_its_lane_without_a_kink():
+    # The logged path runs 0.4 m beside the lane's centre line; past the log's end the route
+    # follows the lane. Joined directly, the 0.4 m step is a bend whose curvature caps the
+    # speed near 6 m/s, and a fast car brakes for it from the start.
+    beside = line((-150.0, 0.4), (400.0, 0.4))
+    sc = scene([(beside, 0.0, 25.0)], STRAIGHT)
+    plan = IDMPolicy(speed_spread=0.0, headway_spread=0.0).plan(sc, NOW, 0, None)
+    assert plan.speed_cap[0].min() >= 25.0
+    points = plan.routes.points[0]
+    assert (
+        abs(points[0, 1] - 0.4) < 1e-6 and abs(points[-1, 1]) < 1e-6
+    )  # from the log onto the lane
+    speed = drive(sc, STEPS - 1 - NOW)["speed"][:, 0]
+    assert np.abs(speed - 25.0).max() < 0.5
+
+
 def test_stops_behind_a_stopped_leader_at_the_standstill_gap():
     sc = scene([(EAST, 0.0, 10.0), (EAST, 70.0, 0.0)], STRAIGHT)
     out = drive(sc, 250)

@@ -38,6 +38,13 @@ BRANCH_SAMPLE = 20.0
 CURVATURE_BASE = 1
 """Route segments of the chords a bend's curvature is measured over (one: 2.5 m; over 10 m,
 vehicles kept more speed into sharp bends and one left the road on the real samples)."""
+JOIN_BLEND_MIN = 20.0
+"""m: the shortest stretch over which a logged path's continuation along its lane fades from
+the log's end onto the lane's centre line (``blend_onto_lane``)."""
+JOIN_BLEND_TIME = 4.0
+"""s: that stretch is the distance covered at the log's end speed in this time when longer
+(a highway vehicle 0.3 m off its lane's centre would otherwise meet a kink whose curvature
+caps its speed near 7 m/s, and brake for it from the start)."""
 MAX_LANES_PER_ROUTE = 256
 """Lanes walked at most per route (a guard against cycles of zero-length lanes)."""
 
@@ -221,6 +228,7 @@ class _Agent:
     log: np.ndarray  # [k, 2] thinned logged path from the first step (k >= 1)
     logged: bool  # the log holds the agent at some step after the first
     vehicle: bool
+    end_speed: float = 0.0  # m/s at the last logged step
 
 
 def _route(agent: _Agent, graph: LaneGraph, mode: Route, rng: np.random.Generator) -> tuple:
@@ -243,8 +251,19 @@ def _route(agent: _Agent, graph: LaneGraph, mode: Route, rng: np.random.Generato
     more, dead_end = lane_path(
         graph, int(lane[0]), float(arc[0]), length, fork_chooser(graph, None, rng)
     )
-    full = _joined([path, more])
+    blend = max(JOIN_BLEND_MIN, JOIN_BLEND_TIME * agent.end_speed)
+    full = _joined([path, blend_onto_lane(more, path[-1], blend)])
     return full, _path_length(full) if dead_end else np.inf
+
+
+def blend_onto_lane(lane: np.ndarray, start: np.ndarray, length: float) -> np.ndarray:
+    """``lane`` [n, 2] (a path along the lane graph) shifted to begin at ``start`` [2] (where
+    the logged path ends, off the lane's centre line), the shift fading out by a smoothstep
+    over the first ``length`` m: the joined route has no kink, whose curvature would cap
+    the speed (``speed_caps``) of an agent that drives straight on."""
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(lane, axis=0), axis=1))])
+    w = np.clip(1.0 - arc / length, 0.0, 1.0)
+    return lane + (w * w * (3.0 - 2.0 * w))[:, None] * (start - lane[0])
 
 
 def _path_length(path: np.ndarray) -> float:
@@ -295,7 +314,17 @@ def build_routes(
         vehicle = kind not in (int(ObjectType.PEDESTRIAN), int(ObjectType.CYCLIST))
         log = _log_points(scenario, k, first[k])
         logged = bool(t.valid[k, first[k] + 1 :].any())
-        agent = _Agent(xy[k], float(yaw[k]), int(lane[k]), float(arc[k]), log, logged, vehicle)
+        last = first[k] + int(np.flatnonzero(t.valid[k, first[k] :])[-1])
+        agent = _Agent(
+            xy[k],
+            float(yaw[k]),
+            int(lane[k]),
+            float(arc[k]),
+            log,
+            logged,
+            vehicle,
+            float(np.linalg.norm(t.velocity[k, last])),
+        )
         backward[k] = len(log) > 1 and (log[1] - log[0]) @ [np.cos(yaw[k]), np.sin(yaw[k])] < 0
         path, end[k] = _route(agent, graph, mode, rng)
         points[k], _ = resample(path, float(yaw[k]))
@@ -307,6 +336,7 @@ def build_routes(
 
 __all__ = [
     "RoutePlan",
+    "blend_onto_lane",
     "build_routes",
     "fork_chooser",
     "lane_path",
