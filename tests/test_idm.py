@@ -17,6 +17,7 @@ from policies import make_policy, make_rollout_fn
 from policies.idm import IDMConfig, IDMPolicy
 from policies.idm.lanes import infer_successors, lane_graph, match_lanes
 from policies.idm.params import LANE_MATCH_COS, LANE_MATCH_DISTANCE
+from policies.idm.plan import PARAM_FIELDS
 from policies.idm.routes import LOG_POINT_SPACING, thin
 from tbsim_env.cli import app as cli
 from tbsim_env.core.config import EnvConfig, TerminationConfig
@@ -206,6 +207,45 @@ def test_a_log_that_ends_off_the_lane_centre_joins_its_lane_without_a_kink():
     assert np.abs(speed - 25.0).max() < 0.5
 
 
+def test_centimetres_of_jitter_in_a_straight_log_do_not_cap_a_fast_cars_speed():
+    x = np.arange(-150.0, 400.0, 3.0)  # a position every 0.1 s at 30 m/s
+    jittery = np.stack([x, 0.03 * (-1.0) ** np.arange(len(x))], -1)
+    sc = scene([(jittery, 0.0, 30.0)], STRAIGHT)
+    plan = IDMPolicy(speed_spread=0.0, headway_spread=0.0).plan(sc, NOW, 0, None)
+    assert plan.speed_cap[0].min() >= 30.0
+    bend = scene(
+        [
+            (
+                np.concatenate(
+                    [line((-40.0, 0.0), (0.0, 0.0)), arc((0.0, 20.0), 20.0, -np.pi / 2, 0.0)]
+                ),
+                0.0,
+                10.0,
+            )
+        ],
+        STRAIGHT,
+    )
+    cap = IDMPolicy(speed_spread=0.0, headway_spread=0.0).plan(bend, NOW, 0, None).speed_cap[0]
+    assert cap.min() == pytest.approx(np.sqrt(IDMConfig().lateral_accel * 20.0), rel=0.15)
+
+
+def test_a_car_that_follows_closely_at_the_start_keeps_its_gap_instead_of_braking():
+    # 15 m/s, 10.5 m behind a leader at 15 m/s (0.7 s): the IDM's 1 s headway would have it
+    # brake hard at once; its headway is lowered to what the gap allows (0.3 s at least).
+    sc = scene([(EAST, 0.0, 15.0), (EAST, 15.0, 15.0)], STRAIGHT)
+    column = PARAM_FIELDS.index("time_headway")
+    fitted = IDMPolicy(speed_spread=0.0, headway_spread=0.0)
+    kept = IDMPolicy(speed_spread=0.0, headway_spread=0.0, min_headway=1.0)
+    state = build_sim_state([sc], start_step=NOW)
+    headway = fitted.initial_state(state, [sc], torch.Generator()).params[0, :, column]
+    assert headway.tolist() == pytest.approx([0.3, IDMConfig().vehicle.time_headway])
+    first = drive(sc, 1, policy=fitted)["action"][0, 0, 0]
+    assert -1.0 < first < 0.0  # mild: the free-road term is spent at the desired speed
+    assert drive(sc, 1, policy=kept)["action"][0, 0, 0] < -3.0
+    out = drive(sc, STEPS - 1 - NOW, policy=fitted)
+    assert out["speed"][:, 0].min() > 12.0 and not overlaps(out["pose"]).any()
+
+
 def test_stops_behind_a_stopped_leader_at_the_standstill_gap():
     sc = scene([(EAST, 0.0, 10.0), (EAST, 70.0, 0.0)], STRAIGHT)
     out = drive(sc, 250)
@@ -334,6 +374,8 @@ def test_bad_parameters_are_refused_with_one_clear_error():
         IDMPolicy(headway=1.0)
     with pytest.raises(ValueError, match="speed_spread"):
         IDMConfig(speed_spread=1.5)
+    with pytest.raises(ValueError, match="min_headway is out of range: -0.1"):
+        IDMConfig(min_headway=-0.1)
 
 
 # ----------------------------------------------------------------------------- real data

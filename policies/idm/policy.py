@@ -28,6 +28,8 @@ from policies.idm.lanes import LaneGraph, lane_graph
 from policies.idm.leaders import Agents, Leader, corridor, find_leaders
 from policies.idm.params import (
     CROSSWALK_VERTICES,
+    HEADWAY_FIT_SHARE,
+    HEADWAY_FIT_SPEED,
     HORIZON_BASE,
     HORIZON_TIME,
     LEADER_PERIOD,
@@ -253,7 +255,7 @@ class IDMPolicy:
         f["params"][..., headway] *= 1.0 + cfg.headway_spread * u[1]
         stops = f["sign_arc"].shape
         inf = torch.full((b, n), float("inf"), device=dev)
-        return IDMState(
+        start = IDMState(
             progress=torch.zeros(b, n, device=dev),
             sign_stopped=torch.zeros(stops, dtype=torch.bool, device=dev),
             sign_cleared=torch.zeros(stops, dtype=torch.bool, device=dev),
@@ -263,6 +265,39 @@ class IDMPolicy:
             lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
             **f,
         )
+        return self._start_headway(state, start)
+
+    def _start_headway(self, state: SimState, ps: IDMState) -> IDMState:
+        """``ps`` with the time headway T of each agent that follows a leader at the start
+        lowered to what its gap there allows, no lower than ``IDMConfig.min_headway``.
+
+        With v its speed, v0 its desired speed, s and v_l its leader's gap and speed, the
+        fitted T makes the IDM's desired gap s* = s0 + v T + v (v - v_l) / (2 sqrt(a b)) equal
+        rho s, rho^2 = max(1 - (v / v0)^delta, ``HEADWAY_FIT_SHARE``): the agent keeps its
+        logged gap in equilibrium (zero acceleration) instead of braking at once. Agents
+        slower than ``HEADWAY_FIT_SPEED`` or with no leader keep their drawn T.
+        """
+        agent = (state.valid & ps.valid).flatten().nonzero()[:, 0]
+        if agent.numel() == 0:
+            return ps
+        params = ps.params.flatten(0, 1).index_select(0, agent)
+        terms = IDMTerms(*(params[:, PARAM_FIELDS.index(f)] for f in _TERMS))
+        speed = state.speed.flatten().index_select(0, agent)
+        desired = ps.desired_speed.flatten().index_select(0, agent)
+        progress = ps.progress.flatten().index_select(0, agent)
+        leader, _ = self._leaders(state, ps, agent, (progress, desired >= MIN_DESIRED_SPEED), terms)
+        v = speed.clamp_min(HEADWAY_FIT_SPEED)
+        free = 1.0 - (v / desired.clamp_min(MIN_DESIRED_SPEED)) ** terms.exponent
+        rho = free.clamp_min(HEADWAY_FIT_SHARE).sqrt()
+        closing = v * (v - leader.speed) / (2.0 * (terms.max_accel * terms.comfort_decel).sqrt())
+        fit = (rho * leader.gap - terms.standstill_gap - closing) / v
+        fitted = (speed >= HEADWAY_FIT_SPEED) & torch.isfinite(leader.gap)
+        headway = terms.time_headway
+        lowered = torch.minimum(headway, fit.clamp_min(self.config.min_headway))
+        column = PARAM_FIELDS.index("time_headway")
+        flat = ps.params.flatten(0, 1).clone()
+        flat[agent, column] = torch.where(fitted, lowered, headway)
+        return dataclasses.replace(ps, params=flat.view_as(ps.params))
 
     # ------------------------------------------------------------------ acting
     def act(

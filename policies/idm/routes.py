@@ -35,9 +35,12 @@ BRANCH_MATCH = 2.5
 """m: a fork branch matches the logged future when its points lie this near it (median)."""
 BRANCH_SAMPLE = 20.0
 """m of a branch lane compared with the logged future."""
-CURVATURE_BASE = 1
-"""Route segments of the chords a bend's curvature is measured over (one: 2.5 m; over 10 m,
-vehicles kept more speed into sharp bends and one left the road on the real samples)."""
+CURVATURE_BASES = (1, 2)
+"""Route segments of the chords a bend's curvature is measured over (2.5 m and 5 m): the
+smaller of the two counts. A bend turns the chords of both alike, while the jitter of logged
+positions (centimetres) turns 2.5 m chords about four times as much as 5 m ones: alone, it
+caps a fast car's speed on a straight logged path. (Over 10 m, vehicles kept more speed
+into sharp bends and one left the road on the real samples.)"""
 JOIN_BLEND_MIN = 20.0
 """m: the shortest stretch over which a logged path's continuation along its lane fades from
 the log's end onto the lane's centre line (``blend_onto_lane``)."""
@@ -187,8 +190,8 @@ def _branch_distance(poly: np.ndarray, future: np.ndarray) -> float:
 def speed_caps(points: np.ndarray, lateral_accel: float, decel: np.ndarray) -> np.ndarray:
     """The speed each route point allows: sqrt(lateral_accel / curvature) in bends, lowered
     ahead of a bend so that braking at ``decel`` reaches it. The curvature at a point is the
-    turn between the chords ``CURVATURE_BASE`` points before and after it over their midpoints'
-    distance.
+    turn between the chords k points before and after it over their midpoints' distance, the
+    least over k in ``CURVATURE_BASES``.
 
     Args:
         points: [A, P, 2] routes, ``ROUTE_SPACING`` apart.
@@ -198,16 +201,21 @@ def speed_caps(points: np.ndarray, lateral_accel: float, decel: np.ndarray) -> n
     Returns:
         [A, P] m/s.
     """
-    k = CURVATURE_BASE
-    d = points[:, k:] - points[:, :-k]  # [A, P - k, 2] chords of k segments
-    heading = np.arctan2(d[..., 1], d[..., 0])
-    turn = np.abs(wrap_angle_np(heading[:, k:] - heading[:, :-k])) / (k * ROUTE_SPACING)
-    curv = np.pad(turn, ((0, 0), (k, k)), mode="edge")  # [A, P] curvature at every point
+    curv = np.minimum.reduce([_curvature(points, k) for k in CURVATURE_BASES])
     cap = np.sqrt(lateral_accel / np.maximum(curv, 1e-6))
     out = cap.copy()
     for k in range(points.shape[1] - 2, -1, -1):  # braking ahead of bends
         out[:, k] = np.minimum(cap[:, k], np.sqrt(out[:, k + 1] ** 2 + 2 * decel * ROUTE_SPACING))
     return out
+
+
+def _curvature(points: np.ndarray, k: int) -> np.ndarray:
+    """[A, P] 1/m: the turn between the chords of k segments before and after each point of
+    ``points`` [A, P, 2] over their midpoints' distance (the ends repeat their neighbours')."""
+    d = points[:, k:] - points[:, :-k]  # [A, P - k, 2] chords of k segments
+    heading = np.arctan2(d[..., 1], d[..., 0])
+    turn = np.abs(wrap_angle_np(heading[:, k:] - heading[:, :-k])) / (k * ROUTE_SPACING)
+    return np.pad(turn, ((0, 0), (k, k)), mode="edge")
 
 
 def _log_points(scenario: Scenario, track: int, first: int) -> np.ndarray:
