@@ -16,8 +16,7 @@ import torch
 from policies import make_policy, make_rollout_fn
 from policies.idm import IDMConfig, IDMPolicy
 from policies.idm.lanes import infer_successors, lane_graph, match_lanes
-from policies.idm.params import LANE_MATCH_COS, LANE_MATCH_DISTANCE
-from policies.idm.plan import PARAM_FIELDS
+from policies.idm.params import HEADWAY_RELAX_TIME, LANE_MATCH_COS, LANE_MATCH_DISTANCE
 from policies.idm.routes import LOG_POINT_SPACING, thin
 from tbsim_env.cli import app as cli
 from tbsim_env.core.config import EnvConfig, TerminationConfig
@@ -231,14 +230,18 @@ def test_centimetres_of_jitter_in_a_straight_log_do_not_cap_a_fast_cars_speed():
 
 def test_a_car_that_follows_closely_at_the_start_keeps_its_gap_instead_of_braking():
     # 15 m/s, 10.5 m behind a leader at 15 m/s (0.7 s): the IDM's 1 s headway would have it
-    # brake hard at once; its headway is lowered to what the gap allows (0.3 s at least).
+    # brake hard at once; its headway is lowered to what the gap allows (0.3 s at least),
+    # and the cut shrinks back with time constant HEADWAY_RELAX_TIME.
     sc = scene([(EAST, 0.0, 15.0), (EAST, 15.0, 15.0)], STRAIGHT)
-    column = PARAM_FIELDS.index("time_headway")
     fitted = IDMPolicy(speed_spread=0.0, headway_spread=0.0)
     kept = IDMPolicy(speed_spread=0.0, headway_spread=0.0, min_headway=1.0)
     state = build_sim_state([sc], start_step=NOW)
-    headway = fitted.initial_state(state, [sc], torch.Generator()).params[0, :, column]
-    assert headway.tolist() == pytest.approx([0.3, IDMConfig().vehicle.time_headway])
+    ps = fitted.initial_state(state, [sc], torch.Generator())
+    assert ps.headway_cut[0].tolist() == pytest.approx([IDMConfig().vehicle.time_headway - 0.3, 0])
+    cut = ps.headway_cut[0, 0].item()
+    for _ in range(40):  # 4 s
+        _, ps = fitted.act(state, ps, torch.Generator())
+    assert ps.headway_cut[0, 0].item() == pytest.approx(cut * np.exp(-4.0 / HEADWAY_RELAX_TIME))
     first = drive(sc, 1, policy=fitted)["action"][0, 0, 0]
     assert -1.0 < first < 0.0  # mild: the free-road term is spent at the desired speed
     assert drive(sc, 1, policy=kept)["action"][0, 0, 0] < -3.0

@@ -17,6 +17,7 @@ the type's limits, so every agent obeys one dynamics.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ from policies.idm.params import (
     CROSSWALK_VERTICES,
     HEADWAY_FIT_SHARE,
     HEADWAY_FIT_SPEED,
+    HEADWAY_RELAX_TIME,
     HORIZON_BASE,
     HORIZON_TIME,
     LEADER_PERIOD,
@@ -57,6 +59,8 @@ _TERMS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "expon
 BRANCH_VARIANTS = 4
 """Route variants per scene: a rollout draws one (its random fork branches), so that a scene's
 routes are built at most this many times however many rollouts start from it."""
+HEADWAY_RELAX_STEP = math.exp(-DT / HEADWAY_RELAX_TIME)
+"""The factor a step leaves of ``IDMState.headway_cut``."""
 CACHE_SCENES = 256
 """Scene plans kept (least recently used dropped first)."""
 
@@ -83,6 +87,9 @@ class IDMState:
             since (+inf: none); lead_speed: [B, N] float32 m/s, that leader's speed.
         yield_gap: [B, N] float32 m to the crossing yielded to (+inf: none), likewise.
         lead_known: [B, N] bool, the agent has searched for leaders since the start.
+        headway_cut: [B, N] float32 s taken off the drawn time headway now: the cut that lets
+            an agent follow its leader at the start at its logged gap (``_start_headway``),
+            shrinking by ``HEADWAY_RELAX_TIME``.
         crosswalk_arc: [B, N, Kc] float32 m (+inf padding); crosswalk_row: [B, N, Kc] int64
             row of ``crosswalks`` (-1 padding).
         crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
@@ -105,6 +112,7 @@ class IDMState:
     lead_speed: torch.Tensor
     yield_gap: torch.Tensor
     lead_known: torch.Tensor
+    headway_cut: torch.Tensor
     crosswalk_arc: torch.Tensor
     crosswalk_row: torch.Tensor
     crosswalks: torch.Tensor
@@ -263,19 +271,23 @@ class IDMPolicy:
             lead_speed=torch.zeros(b, n, device=dev),
             yield_gap=inf.clone(),
             lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
+            headway_cut=torch.zeros(b, n, device=dev),
             **f,
         )
         return self._start_headway(state, start)
 
     def _start_headway(self, state: SimState, ps: IDMState) -> IDMState:
-        """``ps`` with the time headway T of each agent that follows a leader at the start
-        lowered to what its gap there allows, no lower than ``IDMConfig.min_headway``.
+        """``ps`` with the ``headway_cut`` of each agent that follows a leader at the start
+        closer than its time headway T allows: the cut that lowers T to what its gap there
+        allows, no lower than ``IDMConfig.min_headway``.
 
         With v its speed, v0 its desired speed, s and v_l its leader's gap and speed, the
-        fitted T makes the IDM's desired gap s* = s0 + v T + v (v - v_l) / (2 sqrt(a b)) equal
-        rho s, rho^2 = max(1 - (v / v0)^delta, ``HEADWAY_FIT_SHARE``): the agent keeps its
-        logged gap in equilibrium (zero acceleration) instead of braking at once. Agents
-        slower than ``HEADWAY_FIT_SPEED`` or with no leader keep their drawn T.
+        lowered T makes the IDM's desired gap s* = s0 + v T + v (v - v_l) / (2 sqrt(a b))
+        equal rho s, rho^2 = max(1 - (v / v0)^delta, ``HEADWAY_FIT_SHARE``): the agent keeps
+        its logged gap in equilibrium (zero acceleration) instead of braking at once; the cut
+        then shrinks by ``HEADWAY_RELAX_TIME`` (the headway relaxation of Schakel, Knoop &
+        van Arem 2012), so that later conflicts, a merge say, meet its own headway. Agents
+        slower than ``HEADWAY_FIT_SPEED`` or with no leader get no cut.
         """
         agent = (state.valid & ps.valid).flatten().nonzero()[:, 0]
         if agent.numel() == 0:
@@ -292,12 +304,10 @@ class IDMPolicy:
         closing = v * (v - leader.speed) / (2.0 * (terms.max_accel * terms.comfort_decel).sqrt())
         fit = (rho * leader.gap - terms.standstill_gap - closing) / v
         fitted = (speed >= HEADWAY_FIT_SPEED) & torch.isfinite(leader.gap)
-        headway = terms.time_headway
-        lowered = torch.minimum(headway, fit.clamp_min(self.config.min_headway))
-        column = PARAM_FIELDS.index("time_headway")
-        flat = ps.params.flatten(0, 1).clone()
-        flat[agent, column] = torch.where(fitted, lowered, headway)
-        return dataclasses.replace(ps, params=flat.view_as(ps.params))
+        cut = (terms.time_headway - fit.clamp_min(self.config.min_headway)).clamp_min(0.0)
+        cut = torch.where(fitted, cut, torch.zeros_like(cut))
+        flat = ps.headway_cut.flatten().index_copy(0, agent, cut)
+        return dataclasses.replace(ps, headway_cut=flat.view_as(ps.headway_cut))
 
     # ------------------------------------------------------------------ acting
     def act(
@@ -317,7 +327,7 @@ class IDMPolicy:
         pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
         progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
-        terms = IDMTerms(a, decel, headway, s0, delta)
+        terms = IDMTerms(a, decel, headway - take(ps.headway_cut), s0, delta)
         stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
         crowd = crowding(speed, stand + s0, torch.zeros_like(speed), terms, cfg.min_gap)
         desired = take(ps.desired_speed)
@@ -347,6 +357,7 @@ class IDMPolicy:
             lead_speed=put(ps.lead_speed, leader.speed),
             yield_gap=put(ps.yield_gap, leader.crossing),
             lead_known=put(ps.lead_known, known),
+            headway_cut=ps.headway_cut * HEADWAY_RELAX_STEP,
         )
         return action, nxt
 
