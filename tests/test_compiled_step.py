@@ -124,6 +124,15 @@ def test_points_the_edge_grid_cannot_vouch_for_are_recomputed_or_redone(scenes, 
     torch.testing.assert_close(got.offroad_distance, want.offroad_distance, rtol=0, atol=0)
 
 
+def test_the_recompute_budget_follows_the_corner_count():
+    from tbsim_env.sim.offroad import recompute_budget
+
+    assert recompute_budget(4) == 4  # every corner of a batch of one
+    assert recompute_budget(256) == C.OFFROAD_RECOMPUTE_MIN  # the SDC of 64 scenes
+    assert recompute_budget(1024) == 1024 // C.OFFROAD_RECOMPUTE_SHARE
+    assert recompute_budget(64 * 257 * 4) == C.OFFROAD_RECOMPUTE_BUDGET  # every slot
+
+
 def test_compiled_batched_env_equals_eager_through_restarts(scenes):
     from tbsim_env.env.vector_env import BatchedTrafficEnv
 

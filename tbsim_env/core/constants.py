@@ -279,7 +279,16 @@ COMPILE_CPU_MAX_OBSERVERS = 64
 """Controlled agents of a batch up to which ``compile=True`` takes the graph on the CPU (see
 ``COMPILE_CPU_MAX_BATCH``)."""
 OFFROAD_RECOMPUTE_BUDGET = 256
-"""Box corners per step a compiled graph recomputes over every road-edge segment when the grid
-cannot vouch for them (eagerly: all of them). A step with more is redone eagerly."""
+"""Box corners per step a compiled graph recomputes at most over every road-edge segment when
+the grid cannot vouch for them (eagerly: all of them); a step with more is redone eagerly.
+Below that, one corner in ``OFFROAD_RECOMPUTE_SHARE`` and at least ``OFFROAD_RECOMPUTE_MIN``:
+the grid vouches for all but a few (eagerly, 200 steps of B = 64: at most 37 of 21,504 corners
+with every agent controlled, 22 of 256 with the SDC; none on the real samples with the SDC),
+and each recomputed corner costs every segment of its scene (a fixed budget of 256 was half of
+a compiled SDC step at B = 64 on the real samples)."""
+OFFROAD_RECOMPUTE_SHARE = 8
+"""See ``OFFROAD_RECOMPUTE_BUDGET``."""
+OFFROAD_RECOMPUTE_MIN = 32
+"""See ``OFFROAD_RECOMPUTE_BUDGET``."""
 NO_EDGE_DISTANCE = -1.0e10
 """m, off-road distance reported when a scenario has no road edge (always on-road)."""

@@ -76,8 +76,8 @@ def grid_exact_signed_distance(
     """Signed road-edge distance of points [B, K, 2] through the edges' grid.
 
     The points the grid cannot vouch for are recomputed over every segment of their scenario:
-    eagerly all of them; under ``torch.compile`` (no data-dependent shapes) a fixed budget of
-    ``OFFROAD_RECOMPUTE_BUDGET`` points, the stale ones first. ``rows`` (eager only): point
+    eagerly all of them; under ``torch.compile`` (no data-dependent shapes) a budget of points
+    fixed by their count (``recompute_budget``), the stale ones first. ``rows`` (eager only): point
     row b lies in the scenario of edge row ``rows[b]`` (``edge_grid.grid_signed_distance``).
 
     Returns:
@@ -96,11 +96,19 @@ def grid_exact_signed_distance(
         return out, torch.zeros_like(stale)
     k = points.shape[1]
     flat = stale.reshape(-1)
-    budget = min(C.OFFROAD_RECOMPUTE_BUDGET, flat.numel())
+    budget = recompute_budget(flat.numel())
     pick = torch.topk(flat.to(points.dtype), budget, sorted=False).indices
     exact = _recompute(points, edges, pick // k, pick % k)
     out = out.reshape(-1).scatter(0, pick, exact).view_as(out)
     return out, flat.scatter(0, pick, False).view_as(stale)
+
+
+def recompute_budget(points: int) -> int:
+    """Points of ``points`` a compiled step recomputes over every segment: one in
+    ``OFFROAD_RECOMPUTE_SHARE``, at least ``OFFROAD_RECOMPUTE_MIN``, at most
+    ``OFFROAD_RECOMPUTE_BUDGET`` (and ``points``)."""
+    share = max(C.OFFROAD_RECOMPUTE_MIN, points // C.OFFROAD_RECOMPUTE_SHARE)
+    return min(points, C.OFFROAD_RECOMPUTE_BUDGET, share)
 
 
 def _recompute(
