@@ -266,15 +266,16 @@ env in a test session) reuses them (~50 ms each for a real scene)."""
 EDGE_SIMPLIFY_TOLERANCE = 0.02
 """m, road-edge polylines are simplified (Douglas-Peucker) to within this distance for the
 environment's off-road check (about 10x fewer segments; the WOSAC metric uses them as logged)."""
-COMPILE_CPU_MAX_BATCH = 16
+COMPILE_CPU_MAX_BATCH = 64
 """Scenarios per batch up to which ``compile=True`` steps through the ``torch.compile`` graph on
 the CPU (and ``COMPILE_CPU_MAX_OBSERVERS`` controlled agents at most); larger batches step
 eagerly (``compile="always"`` forces the graph). The graph cannot take the eager step's
 shortcuts (near pairs, valid slots, the grid's map pieces), so it wins only where per-operation
 overhead dominates. Compiled / eager agent steps/s on the 2-core AMD EPYC machine (one thread,
-real samples, log replay, indexed observations; ``bench/vector_env.py --compile``): SDC
-controlled 3.07x at B = 1, 2.41x at B = 4, 1.37x at B = 16, 0.78x at B = 64; all agents controlled
-(~50 a scene) 1.13x at B = 1, 0.51x at B = 16, 0.42x at B = 64, 0.38x at B = 256."""
+log replay, indexed observations; ``bench/vector_env.py --compile``), SDC controlled, real
+samples: 2.52x at B = 1, 2.28x at B = 16, 1.36x at B = 64, 0.90x at B = 256 (generated: 2.94x,
+1.80x, 1.32x, 0.89x); all agents controlled (~50 a scene, real) 1.13x at B = 1, 0.51x at
+B = 16, 0.42x at B = 64."""
 COMPILE_CPU_MAX_OBSERVERS = 64
 """Controlled agents of a batch up to which ``compile=True`` takes the graph on the CPU (see
 ``COMPILE_CPU_MAX_BATCH``)."""

@@ -14,11 +14,11 @@ recomputed over every segment. The graph recomputes a bounded number of such cor
 reports the rest in ``StepOutput.stale``; ``StepFunction`` then redoes the step eagerly (rare:
 a corner far from the map, or in a cell crowded with edges).
 
-The graph is the faster path where per-operation overhead dominates: a batch of one scenario
-on the CPU (3x eager with the SDC controlled), or a GPU. For larger CPU batches the eager step's
-shortcuts win (all agents controlled: 0.4-0.5x from B = 16), so ``compile=True`` steps them
-eagerly and says so in a warning (``COMPILE_CPU_MAX_BATCH``, ``COMPILE_CPU_MAX_OBSERVERS``);
-``compile="always"`` forces the graph.
+The graph is the faster path where per-operation overhead dominates: few controlled agents
+on the CPU (2.5x eager with the SDC controlled at B = 1, 1.4x at B = 64), or a GPU. With more
+the eager step's shortcuts win (all agents controlled: 0.4-0.5x from B = 16), so
+``compile=True`` steps them eagerly and says so in a warning (``COMPILE_CPU_MAX_BATCH``,
+``COMPILE_CPU_MAX_OBSERVERS``); ``compile="always"`` forces the graph.
 
 Compiled results equal the eager ones up to float rounding (inductor fuses and reorders
 arithmetic: observations differ by ~1e-7). Compiling takes ~15 s on the first step (and again,
@@ -44,8 +44,9 @@ class StepFunction:
         config: the step's constants (they become constants of the graph).
         compile: ``False``: eager. ``True``: one ``torch.compile`` graph (``fullgraph=True``)
             where it is the faster path: on a GPU, or on the CPU for batches of at most
-            ``COMPILE_CPU_MAX_BATCH`` scenarios (larger CPU batches step eagerly, with a
-            warning that says so). ``"always"``: the graph whatever the batch.
+            ``COMPILE_CPU_MAX_BATCH`` scenarios and ``COMPILE_CPU_MAX_OBSERVERS`` controlled
+            agents (larger CPU batches step eagerly, with a warning that says so).
+            ``"always"``: the graph whatever the batch.
         batch_size: scenarios per batch (None: unknown, taken as 1).
         observers: controlled agent slots of the whole batch (None: one per scenario).
         device: where the steps run.
