@@ -229,7 +229,8 @@ class IDMConfig:
             shrinking back (``HEADWAY_RELAX_TIME``; ``IDMPolicy._start_headway``): real
             drivers keep 0.5-1 s where the IDM's 1 s would brake them at once. 0.3 on the
             real validation split (57 scenes, 32 rollouts): minADE 3.29 -> 3.20 m, the
-            meta-metric the same (0.763); 0.5 and 0.2 did no better.
+            meta-metric the same (0.763); 0.5 s and 0.2 s (tried without the relaxation) did
+            no better.
         pedestrian_gaps: pedestrians keep IDM gaps to other pedestrians. Off by default:
             people walk in groups, shoulder to shoulder, and WOMD's pedestrian boxes overlap
             there (logged pedestrians "collide" with each other in many real scenes); a
