@@ -17,8 +17,8 @@ the type's limits, so every agent obeys one dynamics.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -51,6 +51,7 @@ from policies.idm.yielding import (
     signal_distance,
 )
 from tbsim_env.core.constants import DT, ObjectType
+from tbsim_env.core.lru import LRU
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.idm import MIN_DESIRED_SPEED, IDMTerms, acceleration, crowding
 from tbsim_env.sim.state import SimState
@@ -159,6 +160,11 @@ def _row_draws(
     return variant, u
 
 
+def _rows(x: torch.Tensor, agent: torch.Tensor) -> torch.Tensor:
+    """The rows ``agent`` [L] (flat slot indices b * N + n) of ``x`` [B, N, ...]: [L, ...]."""
+    return x.flatten(0, 1).index_select(0, agent)
+
+
 class IDMPolicy:
     """Rule-based reactive traffic: IDM along a route, pure-pursuit steering (see the module
     docstring and ``policies/idm/__init__``).
@@ -183,8 +189,8 @@ class IDMPolicy:
         if unknown:
             raise ValueError(f"unknown IDM setting(s) {sorted(unknown)}")
         self.config = dataclasses.replace(cfg, **fields) if fields else cfg
-        self._graphs: OrderedDict[int, tuple[Scenario, LaneGraph]] = OrderedDict()
-        self._plans: OrderedDict[tuple, tuple[Scenario, ScenePlan]] = OrderedDict()
+        self._graphs: LRU[int, tuple[Scenario, LaneGraph]] = LRU(CACHE_SCENES)
+        self._plans: LRU[tuple, tuple[Scenario, ScenePlan]] = LRU(CACHE_SCENES)
 
     # ------------------------------------------------------------------ planning
     def lane_graph(self, scenario: Scenario) -> LaneGraph:
@@ -192,10 +198,7 @@ class IDMPolicy:
         key = id(scenario)
         hit = self._graphs.get(key)
         if hit is None or hit[0] is not scenario:
-            hit = self._graphs[key] = (scenario, lane_graph(scenario.road_map))
-        self._graphs.move_to_end(key)
-        while len(self._graphs) > CACHE_SCENES:
-            self._graphs.popitem(last=False)
+            hit = self._graphs.put(key, (scenario, lane_graph(scenario.road_map)))
         return hit[1]
 
     def plan(
@@ -218,10 +221,7 @@ class IDMPolicy:
                 mask[list(only)] = True
             graph = self.lane_graph(scenario)
             built = scene_plan(scenario, graph, start, self.config, rng, mask)
-            hit = self._plans[key] = (scenario, built)
-        self._plans.move_to_end(key)
-        while len(self._plans) > CACHE_SCENES:
-            self._plans.popitem(last=False)
+            hit = self._plans.put(key, (scenario, built))
         return hit[1]
 
     def initial_state(
@@ -292,11 +292,10 @@ class IDMPolicy:
         agent = (state.valid & ps.valid).flatten().nonzero()[:, 0]
         if agent.numel() == 0:
             return ps
-        params = ps.params.flatten(0, 1).index_select(0, agent)
+        params = _rows(ps.params, agent)
         terms = IDMTerms(*(params[:, PARAM_FIELDS.index(f)] for f in _TERMS))
-        speed = state.speed.flatten().index_select(0, agent)
-        desired = ps.desired_speed.flatten().index_select(0, agent)
-        progress = ps.progress.flatten().index_select(0, agent)
+        speed, desired = _rows(state.speed, agent), _rows(ps.desired_speed, agent)
+        progress = _rows(ps.progress, agent)
         leader, _ = self._leaders(state, ps, agent, (progress, desired >= MIN_DESIRED_SPEED), terms)
         v = speed.clamp_min(HEADWAY_FIT_SPEED)
         free = 1.0 - (v / desired.clamp_min(MIN_DESIRED_SPEED)) ** terms.exponent
@@ -323,7 +322,7 @@ class IDMPolicy:
         # stop-sign flags and leaders nothing reads; about half the agents of real scenes.
         parked = (ps.desired_speed < MIN_DESIRED_SPEED) & (state.speed == 0.0)
         agent = (state.valid & ps.valid & ~parked).flatten().nonzero()[:, 0]
-        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        take = functools.partial(_rows, agent=agent)
         pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
         progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
@@ -373,7 +372,7 @@ class IDMPolicy:
         agents whose turn it is (``LEADER_PERIOD``) or that never searched, carried on from
         the last search for the others. Returns (leaders, ``lead_known`` [L])."""
         progress, follow = now
-        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        take = functools.partial(_rows, agent=agent)
         speed, n = take(state.speed), state.num_agents
         gap = take(ps.lead_gap) - (speed - take(ps.lead_speed)) * DT
         lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
@@ -411,7 +410,7 @@ class IDMPolicy:
         agents ``agent`` at progress [L] with sizes [L, 3]."""
         cfg = self.config
         progress, size = where
-        take = lambda x: x.flatten(0, 1).index_select(0, agent)  # noqa: E731
+        take = functools.partial(_rows, agent=agent)
         speed = take(state.speed)
         row = agent // state.num_agents
         front = (progress + 0.5 * size[:, 0]).unsqueeze(-1)

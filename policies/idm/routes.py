@@ -236,7 +236,7 @@ class _Agent:
     log: np.ndarray  # [k, 2] thinned logged path from the first step (k >= 1)
     logged: bool  # the log holds the agent at some step after the first
     vehicle: bool
-    end_speed: float = 0.0  # m/s at the last logged step
+    end_speed: float  # m/s at the last logged step
 
 
 def _route(agent: _Agent, graph: LaneGraph, mode: Route, rng: np.random.Generator) -> tuple:

@@ -26,7 +26,6 @@ import dataclasses
 import json
 import multiprocessing as mp
 import re
-from collections import OrderedDict
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +39,7 @@ from tqdm import tqdm
 from tbsim_env.core.config import TokenConfig
 from tbsim_env.core.constants import NUM_STEPS
 from tbsim_env.core.errors import TbsimError
+from tbsim_env.core.lru import LRU
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.data.tokens import SceneTokens
 
@@ -252,7 +252,7 @@ class TokenCache:
             raise CacheError(f"{path}: format {self.manifest.get('format')!r}, expected {FORMAT}")
         counts = [s["count"] for s in self.manifest["shards"]]
         self._starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._loaded: OrderedDict[int, list[SceneTokens]] = OrderedDict()
+        self._loaded: LRU[int, list[SceneTokens]] = LRU(self.max_shards)
 
     def __len__(self) -> int:
         return int(self._starts[-1])
@@ -270,12 +270,7 @@ class TokenCache:
         k = self.shard_of(index)
         shard = self._loaded.get(k)
         if shard is None:
-            shard = read_shard(self.root / self.manifest["shards"][k]["file"])
-            self._loaded[k] = shard
-            if self.max_shards is not None and len(self._loaded) > self.max_shards:
-                self._loaded.popitem(last=False)
-        else:
-            self._loaded.move_to_end(k)
+            shard = self._loaded.put(k, read_shard(self.root / self.manifest["shards"][k]["file"]))
         return shard[index - int(self._starts[k])]
 
 

@@ -20,12 +20,12 @@ is a segment of length zero).
 from __future__ import annotations
 
 import hashlib
-from collections import OrderedDict
 
 import numpy as np
 import torch
 
 from tbsim_env.core import constants as C
+from tbsim_env.core.lru import LRU
 from tbsim_env.core.torch_utils import cast, const, gather_rows, row_offsets, scalar, select_rows
 from tbsim_env.sim.geometry import segment_projection_xy
 from tbsim_env.sim.state import CellLists, EdgeGrid, RoadEdges, Shared
@@ -56,15 +56,12 @@ def scene_edge_grid(
     key = (digest.digest(), float(cell), int(count), float(margin), tiling)
     grid = _GRIDS.get(key)
     if grid is None:
-        grid = _GRIDS[key] = _scene_edge_grid(start, end, cell, count, margin)
-        while len(_GRIDS) > C.EDGE_GRID_CACHE_SCENES:
-            _GRIDS.popitem(last=False)
-    _GRIDS.move_to_end(key)
+        grid = _GRIDS.put(key, _scene_edge_grid(start, end, cell, count, margin))
     return {k: v.copy() for k, v in grid.items()}
 
 
-_GRIDS: OrderedDict[tuple, dict[str, np.ndarray]] = OrderedDict()
-"""``scene_edge_grid``'s kept grids, least recently used first."""
+_GRIDS: LRU[tuple, dict[str, np.ndarray]] = LRU(C.EDGE_GRID_CACHE_SCENES)
+"""``scene_edge_grid``'s kept grids."""
 
 
 def forget_grids() -> None:
