@@ -91,13 +91,16 @@ def candidate_pairs(
         cols = torch.arange(valid.shape[1], device=valid.device).expand_as(valid)
         asks = cols
     take = lambda x, c: x.gather(1, c)  # noqa: E731  [B, C]
-    x, y, ok, reach = (take(v, cols) for v in (xy[..., 0], xy[..., 1], valid, reach))
-    q = take(query, asks)
+    # Invalid columns sit at +inf (never near); a row that does not ask has no radius.
+    far = torch.full_like(xy[..., 0], float("inf"))
+    x, y = (take(torch.where(valid, v, far), cols) for v in (xy[..., 0], xy[..., 1]))
+    reach = take(reach, cols)
     cx, cy, r = (take(disc[..., k], asks) for k in range(3))
+    r = torch.where(take(query, asks), r, float("-inf"))
     dx = x.unsqueeze(1) - cx.unsqueeze(2)  # [B, Ci, Cj]
     dy = y.unsqueeze(1) - cy.unsqueeze(2)
-    r = r.unsqueeze(2) + reach.unsqueeze(1)
-    near = (dx * dx + dy * dy < r * r) & ok.unsqueeze(1) & q.unsqueeze(2)
+    r = (r.unsqueeze(2) + reach.unsqueeze(1)).clamp_min(0.0)
+    near = dx * dx + dy * dy < r * r
     row, qi, cj = near.nonzero(as_tuple=True)
     i, j = asks[row, qi], cols[row, cj]
     keep = i != j
@@ -129,18 +132,24 @@ def _others(agents: Agents, fj: torch.Tensor) -> torch.Tensor:
     return torch.stack([*cols, *agents.size.unbind(-1)], -1).flatten(0, 1)[fj]
 
 
-def _near_corridor(chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor) -> torch.Tensor:
+def _quarter_discs(lanes: Corridor, half_width: torch.Tensor) -> torch.Tensor:
+    """[L, M / 2, 3] (centre x, y, radius) m of discs that hold the corridor's quarters:
+    chords 2k and 2k + 1 lie within their length of the start of chord 2k + 1, the corridor
+    within its half width ``half_width`` [L] m more."""
+    radius = lanes.length[:, 0::2] + half_width.unsqueeze(-1)
+    return torch.cat([lanes.origin[:, 1::2], radius.unsqueeze(-1)], -1)
+
+
+def _near_corridor(discs: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
     """[Q] bool: j's path over the crossing horizon comes near i's corridor: within one of
-    the discs around the corridor's quarters (chords 2k, 2k + 1 lie within their length of
-    the start of chord 2k + 1) widened by the corridor's and j's half sizes.
+    the discs around the corridor's quarters (``_quarter_discs``) widened by j's half
+    diagonal.
 
     Args:
-        chords: [Q, M, 6] i's chords (origin x, y, direction x, y, length, offset).
+        discs: [Q, M / 2, 3] i's quarter discs (centre x, y, radius) m.
         other: [Q, 7] j (``_others``).
-        mine: [Q, 3] i's (length, half corridor width, speed).
     """
-    centre = chords[:, 1::2, :2]  # [Q, M / 2, 2]
-    radius = chords[:, 0::2, 4] + mine[:, 1:2]
+    centre, radius = discs[..., :2], discs[..., 2]
     xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))
     travel = vj * CROSSING_HORIZON  # j's centre moves along (cj, sj) by this
     rx, ry = centre[..., 0] - xj, centre[..., 1] - yj
@@ -158,7 +167,9 @@ def _chord_gaps(
     ``pair_gaps``).
 
     Args:
-        chords, other, mine: as ``_near_corridor`` ([Q, M, 6], [Q, 7], [Q, 3]).
+        chords: [Q, M, 6] i's chords (origin x, y, direction x, y, length, offset).
+        other: [Q, 7] j (``_others``).
+        mine: [Q, 3] i's (length, half corridor width, speed).
         horizon: s ahead j's path is tested (0: its box now only).
 
     Returns:
@@ -224,16 +235,17 @@ def pair_gaps(
     other = _others(agents, fj)  # [Q, 7]
     table = torch.cat(
         [lanes.origin, lanes.direction, lanes.length.unsqueeze(-1), lanes.offset.unsqueeze(-1)], -1
-    )
-    chords, mine = table[li], own[li]  # [Q, M, 6], [Q, 3]
+    )  # [L, M, 6]
     gap = torch.full_like(other[:, 0], float("inf"))
     lead, ghost = torch.zeros_like(gap), gap.clone()
-    near = _near_corridor(chords, other, mine)
+    near = _near_corridor(_quarter_discs(lanes, own[:, 1]).index_select(0, li), other)
     moving = other[:, 4].abs() > MOVING_SPEED
     for part, horizon in ((near & ~moving, 0.0), (near & moving, CROSSING_HORIZON)):
         k = part.nonzero()[:, 0]
         if k.numel():
-            out = _chord_gaps(chords[k], other[k], mine[k], horizon)
+            lk = li.index_select(0, k)  # only the pairs near the corridor read the chords
+            chords, mine = table.index_select(0, lk), own.index_select(0, lk)
+            out = _chord_gaps(chords, other.index_select(0, k), mine, horizon)
             for dst, src in zip((gap, lead, ghost), out):
                 dst[k] = src
     return gap, lead, ghost
