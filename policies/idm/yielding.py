@@ -119,16 +119,20 @@ def crosswalks_occupied(
     row, slot = walkers
     if row.numel() == 0:
         return count.view(b, w) > 0
-    poly = polygons[row]  # [P, W, V, 2]
-    nxt = poly.roll(-1, dims=2)
-    p = xy[row, slot][:, None, None, :]  # [P, 1, 1, 2]
+    # Only the (walker, crosswalk) pairs inside the crosswalk's bounding box are tested.
+    p = xy[row, slot].unsqueeze(1)  # [P, 1, 2]
+    box = torch.cat([polygons.amin(2), polygons.amax(2)], -1)[row]  # [P, W, 4]
+    inbox = ((p >= box[..., :2]) & (p <= box[..., 2:])).all(-1)  # [P, W]
+    k, c = inbox.nonzero(as_tuple=True)
+    poly = polygons.flatten(0, 1).index_select(0, row[k] * w + c)  # [K, V, 2]
+    nxt = poly.roll(-1, dims=1)
+    px, py = p[k, :, 0], p[k, :, 1]  # [K, 1]
     ay, by = poly[..., 1], nxt[..., 1]
-    crosses = (ay > p[..., 1]) != (by > p[..., 1])
+    crosses = (ay > py) != (by > py)
     dy = torch.where(by == ay, torch.full_like(ay, 1e-9), by - ay)
-    x_at = poly[..., 0] + (p[..., 1] - ay) * (nxt[..., 0] - poly[..., 0]) / dy
-    inside = ((crosses & (p[..., 0] < x_at)).sum(-1) % 2) == 1  # [P, W]
-    index = (row.unsqueeze(1) * w + torch.arange(w, device=row.device)).flatten()
-    count.index_add_(0, index, inside.flatten().to(torch.int32))
+    x_at = poly[..., 0] + (py - ay) * (nxt[..., 0] - poly[..., 0]) / dy
+    inside = ((crosses & (px < x_at)).sum(-1) % 2) == 1  # [K]
+    count.index_add_(0, row[k] * w + c, inside.to(torch.int32))
     return count.view(b, w) > 0
 
 
