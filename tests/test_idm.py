@@ -327,6 +327,33 @@ def test_a_slow_car_near_a_crossing_waits_until_it_can_clear_it():
     assert out["pose"][-1, 0, 0] > 3.0  # it crossed once the other had passed
 
 
+def test_crosswalk_occupancy_is_the_point_in_polygon_test_of_every_walker():
+    """Against shapely on random walkers around concave, convex and padding polygons: a
+    walker inside a crosswalk's bounding box but outside its outline leaves it free."""
+    from shapely.geometry import Point, Polygon
+
+    from policies.idm.yielding import crosswalks_occupied
+
+    rng = np.random.default_rng(0)
+    ell = [(0, 0), (6, 0), (6, 2), (2, 2), (2, 6), (0, 6), (0, 0), (0, 0)]  # an L, concave
+    quad = [(10, 10), (14, 11), (13, 15), (9, 14), (9, 14), (9, 14), (9, 14), (9, 14)]
+    polygons = torch.zeros(2, 3, 8, 2)  # the last polygon of each row is padding
+    polygons[0, 0], polygons[0, 1] = torch.tensor(ell), torch.tensor(quad)
+    polygons[1, 0], polygons[1, 1] = torch.tensor(quad) - 5.0, torch.tensor(ell) + 3.0
+    xy = torch.from_numpy(rng.uniform(-2.0, 16.0, (2, 200, 2))).float()
+    xy[0, 0] = torch.tensor([4.0, 4.0])  # in the L's bounding box, outside the L
+    shapes = [[Polygon(polygons[b, w].tolist()) for w in range(2)] for b in range(2)]
+    inside = 0
+    for b, n in np.ndindex(2, 200):  # one walker at a time: its own crosswalks only
+        got = crosswalks_occupied(polygons, (torch.tensor([b]), torch.tensor([n])), xy)
+        want = [shapes[b][w].contains(Point(*xy[b, n].tolist())) for w in range(2)]
+        assert got[b, :2].tolist() == want and not got[b, 2] and not got[1 - b].any()
+        inside += sum(want)
+    assert inside > 20
+    everyone = crosswalks_occupied(polygons, torch.ones(2, 200).nonzero(as_tuple=True), xy)
+    assert everyone[:, :2].all() and not everyone[:, 2].any()
+
+
 def _with_types(sc: Scenario, kinds: list[int]) -> Scenario:
     t = dataclasses.replace(sc.tracks, object_type=np.array(kinds, np.int8))
     t = dataclasses.replace(
