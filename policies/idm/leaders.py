@@ -160,7 +160,7 @@ def _near_corridor(discs: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
 
 
 def _chord_gaps(
-    chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor, horizon: float
+    chords: torch.Tensor, other: torch.Tensor, mine: torch.Tensor, horizon: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The corridor test of j's box now, and of the first time within ``horizon`` s that
     j's box, moving at constant velocity across i's route, enters i's corridor (see
@@ -170,7 +170,7 @@ def _chord_gaps(
         chords: [Q, M, 6] i's chords (origin x, y, direction x, y, length, offset).
         other: [Q, 7] j (``_others``).
         mine: [Q, 3] i's (length, half corridor width, speed).
-        horizon: s ahead j's path is tested (0: its box now only).
+        horizon: [Q, 1] s ahead j's path is tested (0: its box now only).
 
     Returns:
         (gap now [Q] m, lead speed [Q] m/s, gap to the crossing yielded to [Q] m).
@@ -187,8 +187,6 @@ def _chord_gaps(
     gap = torch.where(inside, offset + along - half_along - half_len_i, float("inf"))
     now, m = gap.min(-1)
     lead = (vj[:, 0] * cos_rel.gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
-    if horizon <= 0.0:
-        return now, lead, torch.full_like(now, float("inf"))
     # The time j's box starts to overlap the corridor across: |across + rate t| < reach.
     rate = vj * sin_rel
     crossing = sin_rel.abs() > CROSSING_SIN
@@ -239,15 +237,15 @@ def pair_gaps(
     gap = torch.full_like(other[:, 0], float("inf"))
     lead, ghost = torch.zeros_like(gap), gap.clone()
     near = _near_corridor(_quarter_discs(lanes, own[:, 1]).index_select(0, li), other)
-    moving = other[:, 4].abs() > MOVING_SPEED
-    for part, horizon in ((near & ~moving, 0.0), (near & moving, CROSSING_HORIZON)):
-        k = part.nonzero()[:, 0]
-        if k.numel():
-            lk = li.index_select(0, k)  # only the pairs near the corridor read the chords
-            chords, mine = table.index_select(0, lk), own.index_select(0, lk)
-            out = _chord_gaps(chords, other.index_select(0, k), mine, horizon)
-            for dst, src in zip((gap, lead, ghost), out):
-                dst[k] = src
+    k = near.nonzero()[:, 0]
+    if k.numel():
+        lk = li.index_select(0, k)  # only the pairs near the corridor read the chords
+        chords, mine, near_j = table.index_select(0, lk), own.index_select(0, lk), other[k]
+        # Standing agents' paths are not tested ahead in time: a horizon of 0 s.
+        moving = near_j[:, 4].abs() > MOVING_SPEED
+        horizon = torch.where(moving, CROSSING_HORIZON, 0.0).unsqueeze(-1)
+        for dst, src in zip((gap, lead, ghost), _chord_gaps(chords, near_j, mine, horizon)):
+            dst[k] = src
     return gap, lead, ghost
 
 

@@ -328,13 +328,15 @@ class IDMPolicy:
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
         terms = IDMTerms(a, decel, headway - take(ps.headway_cut), s0, delta)
         stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
-        crowd = crowding(speed, stand + s0, torch.zeros_like(speed), terms, cfg.min_gap)
         desired = take(ps.desired_speed)
         follow = desired >= MIN_DESIRED_SPEED  # held agents need no leader
         leader, known = self._leaders(state, ps, agent, (progress, follow), terms)
+        # The stand line, the leader and the crossing yielded to, in one [L, 3] evaluation.
         zero = torch.zeros_like(speed)
-        crowd = torch.maximum(crowd, crowding(speed, leader.gap, leader.speed, terms, cfg.min_gap))
-        crowd = torch.maximum(crowd, crowding(speed, leader.crossing, zero, terms, cfg.min_gap))
+        gaps = torch.stack([stand + s0, leader.gap, leader.crossing], -1)
+        leads = torch.stack([zero, leader.speed, zero], -1)
+        each = IDMTerms(*(getattr(terms, f).unsqueeze(-1) for f in _TERMS))
+        crowd = crowding(speed.unsqueeze(-1), gaps, leads, each, cfg.min_gap).amax(-1)
         cap_index = (progress / ROUTE_SPACING).round().long().clamp(0, ps.speed_cap.shape[-1] - 1)
         cap = ps.speed_cap.view(-1).index_select(0, agent * ps.speed_cap.shape[-1] + cap_index)
         acc = acceleration(speed, torch.minimum(desired, cap), crowd, terms)
