@@ -3,8 +3,10 @@
 Each measurement steps B scenario slots with zero actions for a fixed number of batched
 steps (autoreset included: finished slots restart from the scenario bank), full observations
 and metrics, and reports agent steps/s = (active controlled agents summed over steps) / s and
-batched env steps/s. Scenarios are the real WOMD samples when found, else the embedded
-generated scenes.
+batched env steps/s. The rows of one B are timed in interleaved rounds (``--rounds``, each
+rate the median over rounds), so that a machine whose speed drifts between runs (a shared
+one) slows every row alike and the ratios between rows hold. Scenarios are the real WOMD
+samples when found, else the embedded generated scenes.
 
     python bench/vector_env.py [--npc-policy log_replay constant_velocity idm] \
         [--batch-sizes 1 16 64] [--controlled sdc] [--steps 200] [--threads N] [--device cpu]
@@ -16,7 +18,7 @@ and prints the speed-up of running on the rows the scenario bank uses. Each row 
 the observation bytes per agent step of its layout (``--obs-layout dense indexed``), and the
 ratio of its batched steps/s to the first row of the same policy and B ("x first") and of its
 agent steps/s to the first policy's row of the same B and layout ("x 1st policy": e.g. ``idm``
-against ``log_replay``, measured in the same run). ``--stages`` adds,
+against ``log_replay``, measured in the same rounds). ``--stages`` adds,
 under each eager row, the share of the step spent per stage (NPC policy, dynamics, collision,
 off-road, the rest of the metrics, rewards, history, observations, densify, autoreset, glue).
 
@@ -30,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -99,10 +102,8 @@ class Result:
     split: str
 
 
-def bench(scenarios: list, case: Case, stages: bool = False) -> Result:
-    """The figures of ``case.steps`` batched steps after a warm-up; the split ("" unless
-    ``stages``) and the operation count are measured in further runs (the timers and the
-    profiler cost time of their own)."""
+def make_env(scenarios: list, case: Case) -> BatchedTrafficEnv:
+    """The case's environment, reset and warmed up (5 steps)."""
     env = BatchedTrafficEnv(
         scenarios,
         case.batch,
@@ -115,22 +116,45 @@ def bench(scenarios: list, case: Case, stages: bool = False) -> Result:
         obs_layout=case.obs_layout,
         compile="always" if case.compile else False,  # the graph itself, at every B
     )
-    obs, _ = env.reset(seed=0)
-    obs_bytes = sum(v.numel() * v.element_size() for v in obs.values()) / max(
-        1, int(env.agent_mask.sum())
-    )
+    env.reset(seed=0)
     zeros = torch.zeros(case.batch, env.num_agents, 2, device=env.device)
     for _ in range(5):
         env.step(zeros)
-    agent_steps, dt = _run(env, zeros, case.steps)
-    split = ""
-    if stages and not case.compile:
-        totals: dict[str, float] = {}
-        with stage_times(totals):
-            _, wall = _run(env, zeros, case.steps)
-        split = format_split(totals, wall)
-    ops = 0.0 if case.compile else aten_op_count(lambda: env.step(zeros), 10)
-    return Result(agent_steps / dt, case.steps / dt, obs_bytes, ops, split)
+    return env
+
+
+def bench(envs: list[BatchedTrafficEnv], cases: list[Case], rounds: int, stages: bool) -> list:
+    """The figures of every case: ``rounds`` rounds that each time ``case.steps`` batched
+    steps of every env in turn (the rates are the medians over rounds, so that a machine
+    whose speed drifts slows every case alike); the split ("" unless ``stages``) and the
+    operation count are measured in further runs (the timers and the profiler cost time of
+    their own)."""
+    timed: list[list[tuple[int, float]]] = [[] for _ in envs]
+    for _ in range(rounds):
+        for k, (env, case) in enumerate(zip(envs, cases)):
+            timed[k].append(_run(env, _zeros(env), case.steps))
+    results = []
+    for env, case, runs in zip(envs, cases, timed):
+        agent_rate = statistics.median(a / dt for a, dt in runs)
+        env_rate = statistics.median(case.steps / dt for _, dt in runs)
+        obs, _ = env.reset(seed=0)
+        obs_bytes = sum(v.numel() * v.element_size() for v in obs.values()) / max(
+            1, int(env.agent_mask.sum())
+        )
+        split = ""
+        if stages and not case.compile:
+            totals: dict[str, float] = {}
+            with stage_times(totals):
+                _, wall = _run(env, _zeros(env), case.steps)
+            split = format_split(totals, wall)
+        ops = 0.0 if case.compile else aten_op_count(lambda e=env: e.step(_zeros(e)), 10)
+        results.append(Result(agent_rate, env_rate, obs_bytes, ops, split))
+    return results
+
+
+def _zeros(env: BatchedTrafficEnv) -> torch.Tensor:
+    """[B, N, 2] zero actions of ``env``."""
+    return torch.zeros(env.batch_size, env.num_agents, 2, device=env.device)
 
 
 def _run(env: BatchedTrafficEnv, actions: torch.Tensor, steps: int) -> tuple[int, float]:
@@ -160,7 +184,13 @@ def main() -> None:
     p.add_argument("--npc-checkpoint", default=None, help="TrafficBots checkpoint (optional)")
     p.add_argument("--batch-sizes", type=int, nargs="+", default=[1, 16, 64])
     p.add_argument("--controlled", default="sdc", help="sdc | tracks_to_predict | all")
-    p.add_argument("--steps", type=int, default=200, help="batched steps per measurement")
+    p.add_argument("--steps", type=int, default=200, help="batched steps per round")
+    p.add_argument(
+        "--rounds",
+        type=int,
+        default=3,
+        help="interleaved rounds of every row at a B (each rate: the median over rounds)",
+    )
     p.add_argument("--threads", type=int, default=1, help="torch intra-op threads of the env")
     p.add_argument("--device", default="cpu")
     p.add_argument(
@@ -191,45 +221,55 @@ def main() -> None:
         f"{'env steps/s':>12} {'ops/step':>9} {'obs B/agent':>12} {'x first':>8} "
         f"{'x 1st policy':>13}"
     )
-    base: dict[tuple[int, str], float] = {}  # the first policy's agent steps/s per (B, layout)
-    for policy in args.npc_policy:
-        kwargs = {"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else {}
-        # TrafficBots runs on the token rows the bank uses; its padded run is the reference.
-        variants = [(policy, kwargs, layout, False) for layout in args.obs_layout]
-        if args.compile:
-            variants += [(f"{policy} (compiled)", kwargs, lay, True) for lay in args.obs_layout]
-        if policy == "trafficbots":
-            variants.append(("trafficbots (padded)", {**kwargs, "trim": False}, "dense", False))
-        try:
-            for b in args.batch_sizes:
-                rates = []
-                for label, kw, layout, compiled in variants:
-                    case = Case(
-                        b,
-                        policy,
-                        args.controlled,
-                        args.steps,
-                        args.device,
-                        args.threads,
-                        kw,
-                        layout,
-                        compiled,
-                    )
-                    r = bench(scenarios, case, args.stages)
-                    rates.append(r.env_rate)
-                    ratio = f"{r.env_rate / rates[0]:>8.2f}" if len(rates) > 1 else " " * 8
-                    ops = f"{r.ops:>9,.0f}" if r.ops else f"{'graph':>9}"
-                    first = base.setdefault((b, layout), r.agent_rate)
-                    print(
-                        f"{label:<20} {layout:<8} {b:>4} {r.agent_rate:>14,.0f} "
-                        f"{r.agent_rate / machine.core_rate:>8.4f} {r.env_rate:>12,.1f} "
-                        f"{ops} {r.obs_bytes:>12,.0f} {ratio} {r.agent_rate / first:>13.2f}",
-                        flush=True,
-                    )
-                    if r.split:
-                        print(f"    stages: {r.split}", flush=True)
-        except FileNotFoundError as e:  # e.g. TrafficBots without weights: the next policy
-            print(f"{policy:<20} skipped: {e}")
+    for b in args.batch_sizes:
+        rows, cases, envs = [], [], []
+        for policy in args.npc_policy:
+            for label, kw, layout, compiled in _variants(policy, args):
+                fields = (args.controlled, args.steps, args.device, args.threads, kw)
+                case = Case(b, policy, *fields, layout, compiled)
+                try:
+                    envs.append(make_env(scenarios, case))
+                except FileNotFoundError as e:  # e.g. TrafficBots without weights
+                    print(f"{label:<20} skipped: {e}")
+                    break
+                rows.append(label)
+                cases.append(case)
+        results = bench(envs, cases, args.rounds, args.stages)
+        del envs
+        _print_rows(rows, cases, results, machine.core_rate)
+
+
+def _variants(policy: str, args: argparse.Namespace) -> list[tuple[str, dict, str, bool]]:
+    """(row label, NPC keyword arguments, layout, compiled) of each row of ``policy``."""
+    kwargs = {"checkpoint": args.npc_checkpoint} if args.npc_checkpoint else {}
+    # TrafficBots runs on the token rows the bank uses; its padded run is the reference.
+    variants = [(policy, kwargs, layout, False) for layout in args.obs_layout]
+    if args.compile:
+        variants += [(f"{policy} (compiled)", kwargs, lay, True) for lay in args.obs_layout]
+    if policy == "trafficbots":
+        variants.append(("trafficbots (padded)", {**kwargs, "trim": False}, "dense", False))
+    return variants
+
+
+def _print_rows(rows: list[str], cases: list[Case], results: list[Result], core: float) -> None:
+    """One line per measurement: "x first" against the policy's first row, "x 1st policy"
+    against the first policy's row of the same layout."""
+    first_env: dict[str, float] = {}
+    first_agent: dict[str, float] = {}
+    for label, case, r in zip(rows, cases, results):
+        later = case.npc_policy in first_env
+        own = first_env.setdefault(case.npc_policy, r.env_rate)
+        ratio = f"{r.env_rate / own:>8.2f}" if later else " " * 8
+        ops = f"{r.ops:>9,.0f}" if r.ops else f"{'graph':>9}"
+        first = first_agent.setdefault(case.obs_layout, r.agent_rate)
+        print(
+            f"{label:<20} {case.obs_layout:<8} {case.batch:>4} {r.agent_rate:>14,.0f} "
+            f"{r.agent_rate / core:>8.4f} {r.env_rate:>12,.1f} "
+            f"{ops} {r.obs_bytes:>12,.0f} {ratio} {r.agent_rate / first:>13.2f}",
+            flush=True,
+        )
+        if r.split:
+            print(f"    stages: {r.split}", flush=True)
 
 
 if __name__ == "__main__":
