@@ -442,6 +442,13 @@ def test_valid_order_lists_each_rows_valid_slots_in_order_then_the_others():
     slots = valid_order(valid)
     assert slots.tolist() == [[1, 3, 4], [0, 5, 1]]  # C = 3; row 1 pads with invalid slots
     assert valid_order(torch.zeros(2, 4, dtype=torch.bool)).shape == (2, 1)  # never empty
+    g = torch.Generator().manual_seed(0)
+    for n in (1, 7, 257):  # every row: its valid slots in order, then its others in order
+        many = torch.rand(9, n, generator=g) < torch.rand(9, 1, generator=g)
+        got = valid_order(many)
+        for row, mask in zip(got.tolist(), many.tolist()):
+            ranked = [k for k in range(n) if mask[k]] + [k for k in range(n) if not mask[k]]
+            assert row == ranked[: len(row)] and len(row) == max(int(many.sum(1).max()), 1)
     # Worth it from VALID_FIRST_MIN_QUERIES query agents per row.
     assert valid_first(valid, C.VALID_FIRST_MIN_QUERIES - 1) is None
     assert torch.equal(valid_first(valid, C.VALID_FIRST_MIN_QUERIES), slots)

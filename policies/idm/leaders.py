@@ -296,7 +296,7 @@ def find_leaders(
     asks = torch.zeros(b * n, dtype=torch.bool, device=valid.device)
     asks[agent] = True
     size = agents.size
-    reach = 0.5 * torch.linalg.vector_norm(size, dim=-1) + agents.speed.abs() * CROSSING_HORIZON
+    reach = 0.5 * torch.hypot(size[..., 0], size[..., 1]) + agents.speed.abs() * CROSSING_HORIZON
     discs = (asks.view(b, n), disc.view(b, n, 3), reach)
     row, i, j = candidate_pairs(agents.pose[..., :2], valid, *discs)
     if agents.pedestrian is not None:  # groups of pedestrians keep no gaps between them

@@ -120,19 +120,22 @@ def crosswalks_occupied(
     if row.numel() == 0:
         return count.view(b, w) > 0
     # Only the (walker, crosswalk) pairs inside the crosswalk's bounding box are tested.
-    p = xy[row, slot].unsqueeze(1)  # [P, 1, 2]
-    box = torch.cat([polygons.amin(2), polygons.amax(2)], -1)[row]  # [P, W, 4]
-    inbox = ((p >= box[..., :2]) & (p <= box[..., 2:])).all(-1)  # [P, W]
+    n = xy.shape[1]
+    p = xy.reshape(-1, 2).index_select(0, row * n + slot)  # [P, 2]
+    x, y = p[:, 0:1], p[:, 1:2]  # [P, 1]
+    lo, hi = polygons.amin(2), polygons.amax(2)  # [B, W, 2]
+    box = torch.stack([lo[..., 0], lo[..., 1], hi[..., 0], hi[..., 1]]).index_select(1, row)
+    inbox = (x >= box[0]) & (y >= box[1]) & (x <= box[2]) & (y <= box[3])  # [P, W]
     k, c = inbox.nonzero(as_tuple=True)
-    poly = polygons.flatten(0, 1).index_select(0, row[k] * w + c)  # [K, V, 2]
+    poly = polygons.flatten(0, 1).index_select(0, row.index_select(0, k) * w + c)  # [K, V, 2]
     nxt = poly.roll(-1, dims=1)
-    px, py = p[k, :, 0], p[k, :, 1]  # [K, 1]
+    px, py = x.index_select(0, k), y.index_select(0, k)  # [K, 1]
     ay, by = poly[..., 1], nxt[..., 1]
     crosses = (ay > py) != (by > py)
     dy = torch.where(by == ay, torch.full_like(ay, 1e-9), by - ay)
     x_at = poly[..., 0] + (py - ay) * (nxt[..., 0] - poly[..., 0]) / dy
     inside = ((crosses & (px < x_at)).sum(-1) % 2) == 1  # [K]
-    count.index_add_(0, row[k] * w + c, inside.to(torch.int32))
+    count.index_add_(0, row.index_select(0, k) * w + c, inside.to(torch.int32))
     return count.view(b, w) > 0
 
 

@@ -200,8 +200,15 @@ def valid_order(valid: torch.Tensor) -> torch.Tensor:
     """[B, C] int64 slots: each row's valid slots in order, then its others, C the most valid
     slots of any row (at least 1; eager only: C depends on the data). Columns past a row's
     count hold its invalid slots."""
-    count = max(int(valid.sum(1).max()), 1) if len(valid) else 1
-    return torch.argsort((~valid).to(torch.uint8), dim=1, stable=True)[:, :count]
+    b, n = valid.shape
+    before = valid.cumsum(1, dtype=torch.int32)  # valid slots up to and including each slot
+    total = before[:, -1:]
+    count = max(int(total.max()), 1) if b else 1
+    # A valid slot goes to its rank among the valid ones, an invalid one after all of them.
+    slot = cached_arange(n, valid.device, torch.int32)
+    place = torch.where(valid, before - 1, total + slot - before).long()
+    order = torch.empty(b, n, dtype=torch.long, device=valid.device)
+    return order.scatter_(1, place, cached_arange(n, valid.device).expand(b, n))[:, :count]
 
 
 def valid_first(valid: torch.Tensor, queries: int) -> torch.Tensor | None:
