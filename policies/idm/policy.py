@@ -45,7 +45,6 @@ from policies.idm.yielding import (
     crosswalk_distance,
     crosswalks_occupied,
     junction_clear,
-    line_points,
     sign_distance,
     sign_progress,
     signal_distance,
@@ -424,9 +423,8 @@ class IDMPolicy:
         cleared_before = take(ps.sign_cleared)
         stopped = sign_progress(sign_gap, take(ps.sign_stopped), cleared_before, speed)
         waiting = stopped & ~cleared_before & torch.isfinite(sign_arc)
-        line = line_points(ps.route, agent, sign_arc)
         others = (state.pose[..., :2], state.speed, state.valid)
-        clear = junction_clear(waiting, line, agent, others, cfg.junction_radius)
+        clear = junction_clear(waiting, (ps.route, sign_arc), agent, others, cfg.junction_radius)
         cleared = cleared_before | (waiting & clear)
         d_sign = sign_distance(sign_gap, cleared)
         walker = state.valid & (state.agents.object_type == int(ObjectType.PEDESTRIAN))

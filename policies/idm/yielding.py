@@ -68,7 +68,7 @@ def sign_progress(
 
 def junction_clear(
     waiting: torch.Tensor,
-    line: torch.Tensor,
+    lines: tuple[torch.Tensor, torch.Tensor],
     agent: torch.Tensor,
     others: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
     radius: float,
@@ -78,7 +78,8 @@ def junction_clear(
 
     Args:
         waiting: [L, K] bool, stopped at the line and not yet cleared.
-        line: [L, K, 2] m, the stop lines.
+        lines: (route [B, N, P, 2] m of every slot, arc [L, K] m of each stop line along the
+            agent's route; +inf padding); only the lines waited at are looked up.
         agent: [L] int64 flat slot indices (b * N + n) of the L agents.
         others: (xy [B, N, 2] m, speed [B, N] m/s, valid [B, N] bool) of every slot.
         radius: m.
@@ -89,8 +90,10 @@ def junction_clear(
     xy, speed, valid = others
     n = valid.shape[1]
     li, k = waiting.nonzero(as_tuple=True)
+    route, arc = lines
+    line = points_at(route, agent[li], arc[li, k].clamp(max=1e6).unsqueeze(-1))  # [W, 1, 2]
     b, i = agent[li] // n, agent[li] % n
-    d = xy[b] - line[li, k].unsqueeze(1)  # [W, N, 2]
+    d = xy[b] - line  # [W, N, 2]
     near = (d * d).sum(-1) < radius * radius
     moving = valid[b] & (speed[b].abs() > MOVING_SPEED)
     moving[torch.arange(b.shape[0], device=b.device), i] = False
@@ -154,16 +157,10 @@ def crosswalk_distance(
     return torch.where(busy & (entry_gap > 0.0), entry_gap, float("inf")).amin(-1)
 
 
-def line_points(route: torch.Tensor, agent: torch.Tensor, arc: torch.Tensor) -> torch.Tensor:
-    """[L, K, 2] the route points at arc lengths [L, K] (+inf padding clamped)."""
-    return points_at(route, agent, arc.clamp(max=1e6))
-
-
 __all__ = [
     "crosswalk_distance",
     "crosswalks_occupied",
     "junction_clear",
-    "line_points",
     "sign_distance",
     "sign_progress",
     "signal_distance",
