@@ -208,9 +208,9 @@ def pair_gaps(
     agents: Agents,
     lanes: Corridor,
     own: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Bumper gap along i's route to j and j's speed along it, and the gap to where j will
-    cross i's route, of every pair.
+    cross i's route, of the pairs whose j comes near i's corridor.
 
     Besides j's box now, when j moves and crosses i's route (more than 30 deg off the
     route's direction, ``CROSSING_SIN``) its path over the next ``CROSSING_HORIZON`` s
@@ -226,27 +226,23 @@ def pair_gaps(
         own: [L, 3] (length m, half the corridor's width m, speed m/s) of the L agents.
 
     Returns:
-        (gap [Q] m, +inf where j is not in i's corridor; lead speed [Q] m/s, >= 0; gap [Q] m
-        to j's crossing, +inf where none is yielded to).
+        (near [K] int64: the pairs tested, indices into the Q pairs; gap [K] m, +inf where j
+        is not in i's corridor; lead speed [K] m/s, >= 0; gap [K] m to j's crossing, +inf
+        where none is yielded to).
     """
     li, fj = pairs
     other = _others(agents, fj)  # [Q, 7]
     table = torch.cat(
         [lanes.origin, lanes.direction, lanes.length.unsqueeze(-1), lanes.offset.unsqueeze(-1)], -1
     )  # [L, M, 6]
-    gap = torch.full_like(other[:, 0], float("inf"))
-    lead, ghost = torch.zeros_like(gap), gap.clone()
     near = _near_corridor(_quarter_discs(lanes, own[:, 1]).index_select(0, li), other)
     k = near.nonzero()[:, 0]
-    if k.numel():
-        lk = li.index_select(0, k)  # only the pairs near the corridor read the chords
-        chords, mine, near_j = table.index_select(0, lk), own.index_select(0, lk), other[k]
-        # Standing agents' paths are not tested ahead in time: a horizon of 0 s.
-        moving = near_j[:, 4].abs() > MOVING_SPEED
-        horizon = torch.where(moving, CROSSING_HORIZON, 0.0).unsqueeze(-1)
-        for dst, src in zip((gap, lead, ghost), _chord_gaps(chords, near_j, mine, horizon)):
-            dst[k] = src
-    return gap, lead, ghost
+    lk = li.index_select(0, k)  # only the pairs near the corridor read the chords
+    chords, mine, near_j = table.index_select(0, lk), own.index_select(0, lk), other[k]
+    # Standing agents' paths are not tested ahead in time: a horizon of 0 s.
+    moving = near_j[:, 4].abs() > MOVING_SPEED
+    horizon = torch.where(moving, CROSSING_HORIZON, 0.0).unsqueeze(-1)
+    return k, *_chord_gaps(chords, near_j, mine, horizon)
 
 
 @dataclass(frozen=True)
@@ -299,16 +295,17 @@ def find_leaders(
     reach = 0.5 * torch.hypot(size[..., 0], size[..., 1]) + agents.speed.abs() * CROSSING_HORIZON
     discs = (asks.view(b, n), disc.view(b, n, 3), reach)
     row, i, j = candidate_pairs(agents.pose[..., :2], valid, *discs)
-    if agents.pedestrian is not None:  # groups of pedestrians keep no gaps between them
-        ped = agents.pedestrian.flatten()
-        keep = ~(ped[row * n + i] & ped[row * n + j])
-        row, i, j = row[keep], i[keep], j[keep]
     index = torch.full((b * n,), -1, dtype=torch.long, device=valid.device)
     index[agent] = torch.arange(agent.shape[0], device=valid.device)
-    li = index[row * n + i]
+    li, fj = index.index_select(0, row * n + i), row * n + j
     speed = agents.speed.flatten()[agent]
     own = torch.stack([flat_size[agent, 0], half_width, speed], -1)
-    gap, lead, ghost = pair_gaps((li, row * n + j), agents, lanes, own)
+    near, gap, lead, ghost = pair_gaps((li, fj), agents, lanes, own)
+    li = li.index_select(0, near)
+    if agents.pedestrian is not None:  # groups of pedestrians keep no gaps between them
+        ped = agents.pedestrian.flatten()
+        keep = ~(ped.index_select(0, agent.index_select(0, li)) & ped.index_select(0, fj[near]))
+        li, gap, lead, ghost = li[keep], gap[keep], lead[keep], ghost[keep]
     pick = lambda x: x[li] if isinstance(x, torch.Tensor) else x  # noqa: E731
     pair_terms = IDMTerms(*(pick(getattr(terms, f)) for f in _TERM_FIELDS))
     ratio = crowding(speed[li], gap, lead, pair_terms, cfg.min_gap)
