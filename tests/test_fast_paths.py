@@ -442,6 +442,8 @@ def test_valid_order_lists_each_rows_valid_slots_in_order_then_the_others():
     slots = valid_order(valid)
     assert slots.tolist() == [[1, 3, 4], [0, 5, 1]]  # C = 3; row 1 pads with invalid slots
     assert valid_order(torch.zeros(2, 4, dtype=torch.bool)).shape == (2, 1)  # never empty
+    assert valid_order(torch.zeros(0, 4, dtype=torch.bool)).shape == (0, 1)
+    assert valid_order(torch.zeros(2, 0, dtype=torch.bool)).shape == (2, 0)
     g = torch.Generator().manual_seed(0)
     for n in (1, 7, 257):  # every row: its valid slots in order, then its others in order
         many = torch.rand(9, n, generator=g) < torch.rand(9, 1, generator=g)

@@ -201,9 +201,11 @@ def valid_order(valid: torch.Tensor) -> torch.Tensor:
     slots of any row (at least 1; eager only: C depends on the data). Columns past a row's
     count hold its invalid slots."""
     b, n = valid.shape
+    if b == 0 or n == 0:
+        return torch.zeros(b, min(n, 1), dtype=torch.long, device=valid.device)
     before = valid.cumsum(1, dtype=torch.int32)  # valid slots up to and including each slot
     total = before[:, -1:]
-    count = max(int(total.max()), 1) if b else 1
+    count = max(int(total.max()), 1)
     # A valid slot goes to its rank among the valid ones, an invalid one after all of them.
     slot = cached_arange(n, valid.device, torch.int32)
     place = torch.where(valid, before - 1, total + slot - before).long()
