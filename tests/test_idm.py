@@ -1,5 +1,6 @@
 """The ``idm`` policy (issue 40): behaviour on small hand-made scenes (free road, a stopped
-leader, a red light turning green, a stop sign, a cut-in by a controlled agent, a fork), every
+leader, a red light turning green, a stop sign, a crosswalk with and without a pedestrian, a
+cut-in by a controlled agent, a fork), every
 real format of the shared data, road keeping on the real samples, refused parameters, frame
 invariance, and lane links inferred from geometry against the protos' own."""
 
@@ -57,9 +58,10 @@ def arc(centre: tuple[float, float], radius: float, a0: float, a1: float) -> np.
     return np.stack([centre[0] + radius * np.cos(t), centre[1] + radius * np.sin(t)], -1)
 
 
-def road_map(lanes: dict, signs: tuple = ()) -> RoadMap:
+def road_map(lanes: dict, signs: tuple = (), crosswalks: tuple = ()) -> RoadMap:
     """A map of lanes {id: (polyline [n, 2], exit ids)} (10 m/s limits), stop signs
-    ((id, xy, controlled lane ids), ...) and road edges 6 m beside the lanes' box."""
+    ((id, xy, controlled lane ids), ...), crosswalks ((id, outline [n, 2]), ...) and road
+    edges 6 m beside the lanes' box."""
     ids, kinds, polys, exits, ctrl = [], [], [], [], []
     for k, (poly, out) in lanes.items():
         ids.append(k), kinds.append(MapFeatureType.LANE), polys.append(poly)
@@ -67,6 +69,9 @@ def road_map(lanes: dict, signs: tuple = ()) -> RoadMap:
     for k, xy, controlled in signs:
         ids.append(k), kinds.append(MapFeatureType.STOP_SIGN), polys.append(np.array([xy], float))
         exits.append(np.zeros(0, np.int64)), ctrl.append(np.array(controlled, np.int64))
+    for k, outline in crosswalks:
+        ids.append(k), kinds.append(MapFeatureType.CROSSWALK), polys.append(np.asarray(outline))
+        exits.append(np.zeros(0, np.int64)), ctrl.append(np.zeros(0, np.int64))
     allxy = np.concatenate([p for p in polys])
     lo, hi = allxy.min(0) - 6.0, allxy.max(0) + 6.0
     box = [(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1]), (lo[0], lo[1])]
@@ -105,7 +110,9 @@ def along(path: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return xy, np.arctan2(d[:, 1], d[:, 0])
 
 
-def scene(agents: list[tuple], lanes: dict, signs: tuple = (), signals=None) -> Scenario:
+def scene(
+    agents: list[tuple], lanes: dict, signs: tuple = (), signals=None, crosswalks: tuple = ()
+) -> Scenario:
     """A validated scene of agents (path [n, 2], arc along it at the current step m, speed
     m/s) moving at constant speed along their paths over all 91 steps; track ids 100 + row."""
     s = [a[1] + a[2] * DT * (np.arange(STEPS) - NOW) for a in agents]
@@ -128,7 +135,7 @@ def scene(agents: list[tuple], lanes: dict, signs: tuple = (), signals=None) -> 
         timestamps=np.arange(STEPS) * DT,
         current_index=NOW,
         tracks=tracks,
-        road_map=road_map(lanes, signs),
+        road_map=road_map(lanes, signs, crosswalks),
         signals=signals if signals is not None else TrafficSignals.empty(STEPS),
         sdc_index=0,
         tracks_to_predict=np.zeros(0, np.int64),
@@ -352,6 +359,33 @@ def test_crosswalk_occupancy_is_the_point_in_polygon_test_of_every_walker():
     assert inside > 20
     everyone = crosswalks_occupied(polygons, torch.ones(2, 200).nonzero(as_tuple=True), xy)
     assert everyone[:, :2].all() and not everyone[:, 2].any()
+
+
+@pytest.mark.parametrize("on_it", [True, False])
+def test_stops_before_a_crosswalk_with_a_pedestrian_on_it_and_passes_an_empty_one(on_it):
+    """A car at 10 m/s, 40 m before a crosswalk across its lane; a pedestrian stands on the
+    crosswalk beside the car's corridor (never its leader), or 3 m beyond the crosswalk's
+    end: the car stops before the crosswalk, or drives over it."""
+    walk = np.array([[30.0, -6.0], [34.0, -6.0], [34.0, 6.0], [30.0, 6.0], [30.0, -6.0]])
+    stand = line((32.0, 5.0 if on_it else 9.0), (32.0, 12.0))
+    ped = int(ObjectType.PEDESTRIAN)
+    sc = scene(
+        [(STRAIGHT[1][0], 140.0 - 2.25, 10.0), (stand, 0.0, 0.0)],
+        STRAIGHT,
+        crosswalks=((500, walk),),
+    )
+    t = sc.tracks
+    sizes = t.size.copy()
+    sizes[1] = [0.6, 0.6, 1.7]
+    t = dataclasses.replace(t, object_type=np.array([int(ObjectType.VEHICLE), ped], np.int8))
+    sc = dataclasses.replace(sc, tracks=dataclasses.replace(t, size=sizes)).validate()
+    out = drive(sc, 80)
+    front = out["pose"][:, 0, 0] + 0.5 * CAR[0]
+    if on_it:
+        assert front.max() < 30.0  # never onto the crosswalk
+        assert out["speed"][-1, 0] < 0.5 and front[-1] > 26.0  # stopped close to it
+    else:
+        assert out["pose"][-1, 0, 0] > 40.0
 
 
 def _with_types(sc: Scenario, kinds: list[int]) -> Scenario:
