@@ -1,8 +1,8 @@
 """The ``idm`` policy (issue 40): behaviour on small hand-made scenes (free road, a stopped
 leader, a red light turning green, a stop sign, a crosswalk with and without a pedestrian, a
-cut-in by a controlled agent, a fork), every
-real format of the shared data, road keeping on the real samples, refused parameters, frame
-invariance, and lane links inferred from geometry against the protos' own."""
+cut-in by a controlled agent, a fork), every real format of the shared data, road keeping on
+the real samples, refused parameters, frame invariance, and lane links inferred from geometry
+against the protos' own."""
 
 from __future__ import annotations
 
