@@ -34,7 +34,6 @@ from policies.idm.params import (
     HEADWAY_RELAX_TIME,
     HORIZON_BASE,
     HORIZON_TIME,
-    LEADER_PERIOD,
     ROUTE_SPACING,
     SCENE_CROSSWALKS,
     IDMConfig,
@@ -370,15 +369,16 @@ class IDMPolicy:
         terms: IDMTerms,
     ) -> tuple[Leader, torch.Tensor]:
         """The L agents' leaders: searched anew (``leaders.find_leaders``) for the following
-        agents whose turn it is (``LEADER_PERIOD``) or that never searched, carried on from
-        the last search for the others. Returns (leaders, ``lead_known`` [L])."""
+        agents whose turn it is (``IDMConfig.leader_period``) or that never searched, carried
+        on from the last search for the others. Returns (leaders, ``lead_known`` [L])."""
         progress, follow = now
         take = functools.partial(_rows, agent=agent)
         speed, n = take(state.speed), state.num_agents
         gap = take(ps.lead_gap) - (speed - take(ps.lead_speed)) * DT
         lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
         known = take(ps.lead_known)
-        turn = (agent % n + state.step.index_select(0, agent // n)) % LEADER_PERIOD == 0
+        period = self.config.leader_period
+        turn = (agent % n + state.step.index_select(0, agent // n)) % period == 0
         search = (follow & (turn | ~known)).nonzero()[:, 0]
         if search.numel() == 0:
             return lead, known

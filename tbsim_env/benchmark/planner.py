@@ -228,12 +228,14 @@ class IDMPlanner:
     route (or its logged path), keeping its gap, stopping for signals, stop signs and
     crossing agents. It reads the simulator state (``PlannerInput.sim``), as an NPC does,
     with the type's parameters as they are: no per-agent spread of desired speed or headway
-    (that spread makes NPC rollouts differ; a planner baseline drives as designed)."""
+    (that spread makes NPC rollouts differ; a planner baseline drives as designed), and it
+    looks for its leader every step (``leader_period`` 1: NPCs search every third step to
+    save time, one agent has none to save)."""
 
     def __init__(self, route: str = "lanes") -> None:
         from policies.idm import IDMPolicy
 
-        self.policy = IDMPolicy(route=route, speed_spread=0.0, headway_spread=0.0)
+        self.policy = IDMPolicy(route=route, speed_spread=0.0, headway_spread=0.0, leader_period=1)
         self.name = "idm" if route == "lanes" else f"idm_{route}"
         self._scenario: Scenario | None = None
         self._scenarios: list[Scenario] = []
