@@ -442,8 +442,10 @@ def test_bad_parameters_are_refused_with_one_clear_error():
         IDMConfig(speed_spread=1.5)
     with pytest.raises(ValueError, match="min_headway is out of range: -0.1"):
         IDMConfig(min_headway=-0.1)
-    with pytest.raises(ValueError, match="leader_period is out of range: 0"):
-        IDMConfig(leader_period=0)
+    for period in (0, 1.5, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="leader_period is out of range"):
+            IDMConfig(leader_period=period)
+    assert IDMConfig(leader_period=2.0).leader_period == 2
 
 
 # ----------------------------------------------------------------------------- real data

@@ -279,13 +279,13 @@ class IDMConfig:
             "junction_radius": self.junction_radius > 0.0,
             "cruise_speed": self.cruise_speed >= 0.0,
             "min_headway": self.min_headway >= 0.0,
-            "leader_period": self.leader_period >= 1
-            and self.leader_period == int(self.leader_period),
+            "leader_period": float(self.leader_period).is_integer() and self.leader_period >= 1,
         }
         for name, ok in checks.items():
             value = getattr(self, name)
             if not ok or value != value or value == float("inf"):
                 raise ValueError(f"IDM setting {name} is out of range: {value}")
+        object.__setattr__(self, "leader_period", int(self.leader_period))
 
 
 __all__ = [
