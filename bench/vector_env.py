@@ -102,8 +102,9 @@ class Result:
     split: str
 
 
-def make_env(scenarios: list, case: Case) -> BatchedTrafficEnv:
-    """The case's environment, reset and warmed up (5 steps)."""
+def make_env(scenarios: list, case: Case) -> tuple[BatchedTrafficEnv, float]:
+    """The case's environment, reset and warmed up (5 steps), and the observation bytes per
+    agent step of its first observation."""
     env = BatchedTrafficEnv(
         scenarios,
         case.batch,
@@ -116,31 +117,31 @@ def make_env(scenarios: list, case: Case) -> BatchedTrafficEnv:
         obs_layout=case.obs_layout,
         compile="always" if case.compile else False,  # the graph itself, at every B
     )
-    env.reset(seed=0)
-    zeros = torch.zeros(case.batch, env.num_agents, 2, device=env.device)
+    obs, _ = env.reset(seed=0)
+    obs_bytes = sum(v.numel() * v.element_size() for v in obs.values()) / max(
+        1, int(env.agent_mask.sum())
+    )
     for _ in range(5):
-        env.step(zeros)
-    return env
+        env.step(_zeros(env))
+    return env, obs_bytes
 
 
-def bench(envs: list[BatchedTrafficEnv], cases: list[Case], rounds: int, stages: bool) -> list:
-    """The figures of every case: ``rounds`` rounds that each time ``case.steps`` batched
-    steps of every env in turn (the rates are the medians over rounds, so that a machine
-    whose speed drifts slows every case alike); the split ("" unless ``stages``) and the
-    operation count are measured in further runs (the timers and the profiler cost time of
-    their own)."""
+def bench(
+    envs: list[tuple[BatchedTrafficEnv, float]], cases: list[Case], rounds: int, stages: bool
+) -> list:
+    """The figures of every case (``envs``: ``make_env``'s (env, observation bytes) of each):
+    ``rounds`` rounds that each time ``case.steps`` batched steps of every env in turn (the
+    rates are the medians over rounds, so that a machine whose speed drifts slows every case
+    alike); the split ("" unless ``stages``) and the operation count are measured in further
+    runs (the timers and the profiler cost time of their own)."""
     timed: list[list[tuple[int, float]]] = [[] for _ in envs]
     for _ in range(rounds):
-        for k, (env, case) in enumerate(zip(envs, cases)):
+        for k, ((env, _), case) in enumerate(zip(envs, cases)):
             timed[k].append(_run(env, _zeros(env), case.steps))
     results = []
-    for env, case, runs in zip(envs, cases, timed):
+    for (env, obs_bytes), case, runs in zip(envs, cases, timed):
         agent_rate = statistics.median(a / dt for a, dt in runs)
         env_rate = statistics.median(case.steps / dt for _, dt in runs)
-        obs, _ = env.reset(seed=0)
-        obs_bytes = sum(v.numel() * v.element_size() for v in obs.values()) / max(
-            1, int(env.agent_mask.sum())
-        )
         split = ""
         if stages and not case.compile:
             totals: dict[str, float] = {}

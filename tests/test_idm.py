@@ -350,6 +350,16 @@ def test_crosswalk_occupancy_is_the_point_in_polygon_test_of_every_walker():
     xy = torch.from_numpy(rng.uniform(-2.0, 16.0, (2, 200, 2))).float()
     xy[0, 0] = torch.tensor([4.0, 4.0])  # in the L's bounding box, outside the L
     shapes = [[Polygon(polygons[b, w].tolist()) for w in range(2)] for b in range(2)]
+    # Every walker lies > 1 mm from every outline: float32 rounding cannot move it across.
+    assert (
+        min(
+            p.exterior.distance(Point(*q))
+            for b in range(2)
+            for p in shapes[b]
+            for q in xy[b].tolist()
+        )
+        > 1e-3
+    )
     inside = 0
     for b, n in np.ndindex(2, 200):  # one walker at a time: its own crosswalks only
         got = crosswalks_occupied(polygons, (torch.tensor([b]), torch.tensor([n])), xy)

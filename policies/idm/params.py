@@ -68,7 +68,7 @@ validation split, each back to the collision rate without the cut, 0.020, where 
 cut for good gave 0.021)."""
 HEADWAY_FIT_SHARE = 0.25
 """The least share of the maximum acceleration that a leader at the start takes away from an
-agent whose headway is fitted to its gap (``start_headway``: where the free-road term
+agent whose headway is fitted to its gap (``IDMPolicy._start_headway``: where the free-road term
 leaves less, e.g. an agent at or above its desired speed)."""
 MAX_SIGNAL_STOPS = 4
 """Signal-controlled stop lines kept per route (the first along it)."""

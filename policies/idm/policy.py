@@ -50,8 +50,15 @@ from policies.idm.yielding import (
 )
 from tbsim_env.core.constants import DT, ObjectType
 from tbsim_env.core.lru import LRU
+from tbsim_env.core.torch_utils import select_rows
 from tbsim_env.data.scenario import Scenario
-from tbsim_env.sim.idm import MIN_DESIRED_SPEED, IDMTerms, acceleration, crowding
+from tbsim_env.sim.idm import (
+    MIN_DESIRED_SPEED,
+    IDMTerms,
+    acceleration,
+    approach_gap,
+    crowding,
+)
 from tbsim_env.sim.state import SimState
 
 _TERMS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "exponent")
@@ -160,7 +167,7 @@ def _row_draws(
 
 def _rows(x: torch.Tensor, agent: torch.Tensor) -> torch.Tensor:
     """The rows ``agent`` [L] (flat slot indices b * N + n) of ``x`` [B, N, ...]: [L, ...]."""
-    return x.flatten(0, 1).index_select(0, agent)
+    return select_rows(x, agent).view(agent.shape[0], *x.shape[2:])
 
 
 class IDMPolicy:
@@ -298,7 +305,7 @@ class IDMPolicy:
         v = speed.clamp_min(HEADWAY_FIT_SPEED)
         free = 1.0 - (v / desired.clamp_min(MIN_DESIRED_SPEED)) ** terms.exponent
         rho = free.clamp_min(HEADWAY_FIT_SHARE).sqrt()
-        closing = v * (v - leader.speed) / (2.0 * (terms.max_accel * terms.comfort_decel).sqrt())
+        closing = approach_gap(v, leader.speed, terms)
         fit = (rho * leader.gap - terms.standstill_gap - closing) / v
         fitted = (speed >= HEADWAY_FIT_SPEED) & torch.isfinite(leader.gap)
         cut = (terms.time_headway - fit.clamp_min(self.config.min_headway)).clamp_min(0.0)

@@ -91,8 +91,9 @@ def junction_clear(
     n = valid.shape[1]
     li, k = waiting.nonzero(as_tuple=True)
     route, arc = lines
-    line = points_at(route, agent[li], arc[li, k].clamp(max=1e6).unsqueeze(-1))  # [W, 1, 2]
-    b, i = agent[li] // n, agent[li] % n
+    slot = agent.index_select(0, li)
+    line = points_at(route, slot, arc[li, k].clamp(max=1e6).unsqueeze(-1))  # [W, 1, 2]
+    b, i = slot // n, slot % n
     d = xy[b] - line  # [W, N, 2]
     near = (d * d).sum(-1) < radius * radius
     moving = valid[b] & (speed[b].abs() > MOVING_SPEED)

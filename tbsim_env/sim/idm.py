@@ -51,8 +51,19 @@ def desired_gap(speed: torch.Tensor, lead_speed: torch.Tensor, p: IDMTerms) -> t
         p: the follower's parameters.
     """
     v = speed.clamp_min(0.0)
-    brake = 2.0 * (p.max_accel * p.comfort_decel) ** 0.5
-    return p.standstill_gap + (v * p.time_headway + v * (v - lead_speed) / brake).clamp_min(0.0)
+    return p.standstill_gap + (v * p.time_headway + approach_gap(v, lead_speed, p)).clamp_min(0.0)
+
+
+def approach_gap(speed: torch.Tensor, lead_speed: torch.Tensor, p: IDMTerms) -> torch.Tensor:
+    """The dynamic part of the desired gap, v (v - v_lead) / (2 sqrt(a b)), metres (negative
+    when the leader is faster).
+
+    Args:
+        speed: [...] v, m/s (>= 0).
+        lead_speed: [...] the leader's speed along the follower's path, m/s.
+        p: the follower's parameters.
+    """
+    return speed * (speed - lead_speed) / (2.0 * (p.max_accel * p.comfort_decel) ** 0.5)
 
 
 def crowding(
@@ -102,6 +113,7 @@ __all__ = [
     "MIN_DESIRED_SPEED",
     "IDMTerms",
     "acceleration",
+    "approach_gap",
     "crowding",
     "desired_gap",
     "interaction",
