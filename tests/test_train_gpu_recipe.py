@@ -88,3 +88,23 @@ def test_validation_loss_is_deterministic_and_refuses_empty_data(recipe_env, tmp
     assert not model.training  # the mode is restored
     with pytest.raises(ValueError, match="no scenes"):
         validation_loss(model, [])
+
+
+@pytest.mark.parametrize(("smi", "want"), [(None, "64"), ("81559", "64"), ("143771", "128")])
+def test_batch_follows_the_gpu_memory(tmp_path, smi, want):
+    """128 on an H200-sized GPU (143,771 MiB), 64 on an H100 (81,559 MiB) or where
+    nvidia-smi fails (no driver); $BATCH wins over both."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    fake = bin_dir / "nvidia-smi"  # a stand-in answering the memory query
+    fake.write_text("#!/bin/sh\nexit 9\n" if smi is None else f"#!/bin/sh\necho {smi}\n")
+    fake.chmod(0o755)
+    env = {k: v for k, v in os.environ.items() if k != "BATCH"}
+    env["PATH"] = f"{bin_dir}:/usr/bin:/bin"
+    got = subprocess.run(["bash", str(SCRIPT), "batch"], env=env, capture_output=True, text=True)
+    assert got.returncode == 0, got.stderr
+    assert got.stdout.strip() == want
+    forced = subprocess.run(
+        ["bash", str(SCRIPT), "batch"], env={**env, "BATCH": "7"}, capture_output=True, text=True
+    )
+    assert forced.stdout.strip() == "7"
