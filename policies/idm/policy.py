@@ -385,7 +385,7 @@ class IDMPolicy:
         lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
         known = take(ps.lead_known)
         period = self.config.leader_period
-        turn = (agent % n + state.step.index_select(0, agent // n)) % period == 0
+        turn = state.step.index_select(0, agent // n) % period == 0  # a row's agents at once
         search = (follow & (turn | ~known)).nonzero()[:, 0]
         if search.numel() == 0:
             return lead, known
