@@ -17,7 +17,12 @@ import torch
 from policies import make_policy, make_rollout_fn
 from policies.idm import IDMConfig, IDMPolicy
 from policies.idm.lanes import infer_successors, lane_graph, match_lanes
-from policies.idm.params import HEADWAY_RELAX_TIME, LANE_MATCH_COS, LANE_MATCH_DISTANCE
+from policies.idm.params import (
+    HEADWAY_RELAX_TIME,
+    LANE_MATCH_COS,
+    LANE_MATCH_DISTANCE,
+    LEADER_PERIOD,
+)
 from policies.idm.routes import LOG_POINT_SPACING, thin
 from tbsim_env.cli import app as cli
 from tbsim_env.core.config import EnvConfig, TerminationConfig
@@ -600,6 +605,37 @@ def test_rollouts_differ_and_repeat_with_the_seed(one_scenario_path):
     assert torch.equal(a.x, b.x)
     spread = (a.x[:, :, -1] - a.x[:, :, -1].mean(0)).abs().amax(0)
     assert (spread > 0.5).sum() >= 5  # per-agent desired speeds and headways differ
+
+
+def test_a_rows_agents_search_for_leaders_together_on_its_period(one_scenario_path, monkeypatch):
+    """Searches run at a row's first act and on its steps that are multiples of
+    ``leader_period``, for all its following agents at once; agents appearing in between (the
+    real sample has several) wait for the next one, so the other steps search nobody."""
+    import policies.idm.policy as idm_policy
+
+    find, now = idm_policy.find_leaders, [0]
+    searched: list[tuple[int, int]] = []  # (step, agents searching)
+
+    def spy(agents, followers, *args):
+        searched.append((now[0], followers[1].numel()))
+        return find(agents, followers, *args)
+
+    monkeypatch.setattr(idm_policy, "find_leaders", spy)
+    env = BatchedTrafficEnv([_load(one_scenario_path)], 2, npc_policy="idm", seed=0)
+    env.reset()
+    zeros = torch.zeros(2, env.num_agents, 2)
+    first = int(env.sim_state.step[0])
+    searched.clear()  # the start-headway fit at reset searches every agent once
+    appeared = 0
+    for _ in range(12):
+        now[0] = int(env.sim_state.step[0])
+        before = env.sim_state.valid
+        env.step(zeros)
+        appeared += int((env.sim_state.valid & ~before).sum())
+    steps = [t for t, _ in searched]
+    assert steps[0] == first and all(t % LEADER_PERIOD == 0 for t in steps[1:])
+    assert len(steps) == 1 + sum(t % LEADER_PERIOD == 0 for t in range(first + 1, first + 12))
+    assert appeared > 0 and min(k for _, k in searched) > 50  # whole rows, never a few
 
 
 # ----------------------------------------------------------------------------- entry points

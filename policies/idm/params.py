@@ -46,11 +46,14 @@ takes half the IDM's acceleration."""
 LEADER_PERIOD = 3
 """Default of ``IDMConfig.leader_period``: steps between two leader searches of an agent (0.3
 s, a reaction time); in between, the gap to the leader found is carried on at the speeds
-then. A row's agents search together, on its steps that are multiples of the period (a new
-agent at once): one search of all of them costs about the tensor operations of a search of
-a third, so the searches of two steps in three are saved whole (on the validation scenes
-this scored as staggered searches, a third of the agents each step: meta +0.0002 [-0.0005,
-+0.0008], collisions +0.0004 [-0.0009, +0.0019]). On the validation scenes 3 scores as 2 did
+then. A row's agents search together, on its steps that are multiples of the period and at
+its first act; an agent that appears later waits for the row's next search (at most 0.2 s).
+One search of all of them costs about the tensor operations of a search of a few, so two
+steps in three skip the search whole (on the validation scenes this scored as staggered
+searches, a third of the agents each step and a new agent at once: meta +0.0002 [-0.0005,
++0.0008], collisions +0.0004 [-0.0009, +0.0019]; on the validation scenes in
+``BatchedTrafficEnv``, 1,145 vehicles appearing after the start, as many collide either way).
+On the validation scenes 3 scores as 2 did
 (meta -0.0003 [-0.0010, +0.0004], collisions +0.0005 [-0.0006, +0.0020], 90% paired
 intervals) with a third less searching; 4 raised collisions (+0.0034 [+0.0004, +0.0077])."""
 CROSSING_HORIZON = 2.0

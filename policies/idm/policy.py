@@ -376,8 +376,8 @@ class IDMPolicy:
         terms: IDMTerms,
     ) -> tuple[Leader, torch.Tensor]:
         """The L agents' leaders: searched anew (``leaders.find_leaders``) for the following
-        agents whose turn it is (``IDMConfig.leader_period``) or that never searched, carried
-        on from the last search for the others. Returns (leaders, ``lead_known`` [L])."""
+        agents whose row's turn it is (``IDMConfig.leader_period``), carried on from the last
+        search for the others (none: no leader). Returns (leaders, ``lead_known`` [L])."""
         progress, follow = now
         take = functools.partial(_rows, agent=agent)
         speed, n = take(state.speed), state.num_agents
@@ -385,8 +385,12 @@ class IDMPolicy:
         lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
         known = take(ps.lead_known)
         period = self.config.leader_period
-        turn = state.step.index_select(0, agent // n) % period == 0  # a row's agents at once
-        search = (follow & (turn | ~known)).nonzero()[:, 0]
+        # A row's agents search together, on its steps that are multiples of the period and
+        # at its first act (nobody has searched yet); an agent appearing later waits for the
+        # row's next search (one search of a few agents costs the operations of one of all).
+        first = ~ps.lead_known.any(1)  # [B]
+        turn = (state.step % period == 0) | first
+        search = (follow & turn.index_select(0, agent // n)).nonzero()[:, 0]
         if search.numel() == 0:
             return lead, known
         speed_now = speed.index_select(0, search).clamp_min(0.0)
