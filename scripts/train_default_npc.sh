@@ -27,10 +27,11 @@
 #      warm-up, 5e-5 after step 1000, EMA of the weights (decay 0.98). The shipped weights are
 #      the EMA at step 1200, chosen among the EMAs of steps 175-1300 on the 27 real validation
 #      scenes (16 rollouts each); the held-out scenes took no part in any choice.
-#   5. One H200 GPU (scripts/train_gpu.sh, 7 minutes, then 3 more resumed): a fine-tune of
-#      stage 4's result on the 172 real training scenes of real_splits.json alone; batch 64,
-#      full 91-step rollouts, AMP, lr 1e-4 with a 20-step warm-up, EMA (decay 0.99). The
-#      shipped weights are the EMA at step 143, the lowest validation loss (57 real
+#   5. One H200 GPU (scripts/train_gpu.sh, four segments, each resumed from the last: 7 and
+#      3 minutes at batch 64, steps 1-143; 7 and 4.6 minutes at batch 128, steps 144-289): a
+#      fine-tune of stage 4's result on the 172 real training scenes of real_splits.json
+#      alone; full 91-step rollouts, AMP, lr 1e-4 with a 20-step warm-up, EMA (decay 0.99).
+#      The shipped weights are the EMA at step 289, the lowest validation loss (57 real
 #      validation scenes); paired WOSAC scores on the validation scenes confirmed them.
 #
 #   bash scripts/train_default_npc.sh [OUT_DIR] [STAGE]     # STAGE: all (default), 1, 2, 3, 4 or 5
@@ -125,10 +126,11 @@ fi
 
 if [[ $STAGE == all || $STAGE == 5 ]]; then
   # On the GPU machine (see scripts/train_gpu.sh for what to carry there); gpu_data/ made on
-  # the CPU beforehand. The 3-minute segment resumed the 7-minute one.
+  # the CPU beforehand. Each segment resumes the last from the run folder.
   bash scripts/train_gpu.sh prepare "$W"
-  INIT="$OUT/small_v4/shipped" bash scripts/train_gpu.sh train "$OUT/small_v5" 7
-  INIT="$OUT/small_v4/shipped" bash scripts/train_gpu.sh train "$OUT/small_v5" 3
+  for seg in 64:7 64:3 128:7 128:4.6; do
+    INIT="$OUT/small_v4/shipped" BATCH=${seg%%:*} bash scripts/train_gpu.sh train "$OUT/small_v5" "${seg##*:}"
+  done
   for f in safetensors json; do cp "$OUT/small_v5/best.$f" "$OUT/small_v5/shipped.$f"; done
 fi
 
