@@ -608,19 +608,25 @@ def test_rollouts_differ_and_repeat_with_the_seed(one_scenario_path):
 
 
 def test_a_rows_agents_search_for_leaders_together_on_its_period(one_scenario_path, monkeypatch):
-    """Searches run at a row's first act and on its steps that are multiples of
-    ``leader_period``, for all its following agents at once; agents appearing in between (the
-    real sample has several) wait for the next one, so the other steps search nobody."""
+    """Leaders and stand lines are looked up at a row's first act and on its steps that are
+    multiples of ``leader_period``, for all its agents at once; agents appearing in between
+    (the real sample has several) wait for the next one, so the other steps look up nothing."""
     import policies.idm.policy as idm_policy
 
-    find, now = idm_policy.find_leaders, [0]
+    find, lines, now = idm_policy.find_leaders, idm_policy.signal_distance, [0]
     searched: list[tuple[int, int]] = []  # (step, agents searching)
+    looked: list[int] = []  # steps of stand-line lookups
 
     def spy(agents, followers, *args):
         searched.append((now[0], followers[1].numel()))
         return find(agents, followers, *args)
 
+    def spy_lines(*args):
+        looked.append(now[0])
+        return lines(*args)
+
     monkeypatch.setattr(idm_policy, "find_leaders", spy)
+    monkeypatch.setattr(idm_policy, "signal_distance", spy_lines)
     env = BatchedTrafficEnv([_load(one_scenario_path)], 2, npc_policy="idm", seed=0)
     env.reset()
     zeros = torch.zeros(2, env.num_agents, 2)
@@ -636,6 +642,7 @@ def test_a_rows_agents_search_for_leaders_together_on_its_period(one_scenario_pa
     assert steps[0] == first and all(t % LEADER_PERIOD == 0 for t in steps[1:])
     assert len(steps) == 1 + sum(t % LEADER_PERIOD == 0 for t in range(first + 1, first + 12))
     assert appeared > 0 and min(k for _, k in searched) > 50  # whole rows, never a few
+    assert looked == steps
 
 
 # ----------------------------------------------------------------------------- entry points

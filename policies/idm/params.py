@@ -46,16 +46,18 @@ takes half the IDM's acceleration."""
 LEADER_PERIOD = 3
 """Default of ``IDMConfig.leader_period``: steps between two leader searches of an agent (0.3
 s, a reaction time); in between, the gap to the leader found is carried on at the speeds
-then. A row's agents search together, on its steps that are multiples of the period and at
-its first act; an agent that appears later waits for the row's next search (at most 0.2 s).
-One search of all of them costs about the tensor operations of a search of a few, so two
-steps in three skip the search whole (on the validation scenes this scored as staggered
-searches, a third of the agents each step and a new agent at once: meta +0.0002 [-0.0005,
-+0.0008], collisions +0.0004 [-0.0009, +0.0019]; on the validation scenes in
-``BatchedTrafficEnv``, 1,145 vehicles appearing after the start, as many collide either way).
-On the validation scenes 3 scores as 2 did
-(meta -0.0003 [-0.0010, +0.0004], collisions +0.0005 [-0.0006, +0.0020], 90% paired
-intervals) with a third less searching; 4 raised collisions (+0.0034 [+0.0004, +0.0077])."""
+then. The stop line that holds the agent (signals, stop signs, crosswalks) is looked up on
+the same steps and its arc along the route carried on. A row's agents do both together, on
+its steps that are multiples of the period and at its first act; an agent that appears later
+waits for the row's next search (at most 0.2 s). A search of a few agents costs about the
+tensor operations of a search of all, so two steps in three skip both whole.
+
+On the validation scenes (90% paired intervals): a period of 3 scores as 2 did (meta -0.0003
+[-0.0010, +0.0004], collisions +0.0005 [-0.0006, +0.0020]); 4 raised collisions (+0.0034
+[+0.0004, +0.0077]); a row's agents at once scored as a third of them each step (meta +0.0002
+[-0.0005, +0.0008], collisions +0.0004 [-0.0009, +0.0019]; in ``BatchedTrafficEnv``, of the
+1,145 vehicles appearing after the start, as many collide either way); stop lines on the
+period as every step (meta +0.0001 [-0.0001, +0.0003], collisions and off-road unchanged)."""
 CROSSING_HORIZON = 2.0
 """s: a crossing agent's path this far ahead in time (constant velocity) is tested too: the
 first time its box enters the corridor."""

@@ -93,6 +93,9 @@ class IDMState:
             since (+inf: none); lead_speed: [B, N] float32 m/s, that leader's speed.
         yield_gap: [B, N] float32 m to the crossing yielded to (+inf: none), likewise.
         lead_known: [B, N] bool, the agent has searched for leaders since the start.
+        stand_arc: [B, N] float32 m, arc length along the route where the agent must stand (the
+            nearest stop line that holds it, or its route's end; +inf: none) as of its row's
+            last search, carried on in between (``IDMConfig.leader_period``).
         headway_cut: [B, N] float32 s taken off the drawn time headway now: the cut that lets
             an agent follow its leader at the start at its logged gap (``_start_headway``),
             shrinking by ``HEADWAY_RELAX_TIME``.
@@ -119,6 +122,7 @@ class IDMState:
     yield_gap: torch.Tensor
     lead_known: torch.Tensor
     headway_cut: torch.Tensor
+    stand_arc: torch.Tensor
     crosswalk_arc: torch.Tensor
     crosswalk_row: torch.Tensor
     crosswalks: torch.Tensor
@@ -277,6 +281,7 @@ class IDMPolicy:
             yield_gap=inf.clone(),
             lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
             headway_cut=torch.zeros(b, n, device=dev),
+            stand_arc=inf.clone(),
             **f,
         )
         return self._start_headway(state, start)
@@ -301,7 +306,8 @@ class IDMPolicy:
         terms = IDMTerms(*(params[:, PARAM_FIELDS.index(f)] for f in _TERMS))
         speed, desired = _rows(state.speed, agent), _rows(ps.desired_speed, agent)
         progress = _rows(ps.progress, agent)
-        leader, _ = self._leaders(state, ps, agent, (progress, desired >= MIN_DESIRED_SPEED), terms)
+        asking = desired >= MIN_DESIRED_SPEED
+        leader, _ = self._leaders(state, ps, agent, (progress, asking), terms)
         v = speed.clamp_min(HEADWAY_FIT_SPEED)
         free = 1.0 - (v / desired.clamp_min(MIN_DESIRED_SPEED)) ** terms.exponent
         rho = free.clamp_min(HEADWAY_FIT_SHARE).sqrt()
@@ -332,13 +338,19 @@ class IDMPolicy:
         progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
         terms = IDMTerms(a, decel, headway - take(ps.headway_cut), s0, delta)
-        stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
+        # Stand lines and leaders are looked for by a row's agents together, on its steps
+        # that are multiples of ``leader_period`` and at its first act (nobody has searched),
+        # and carried on in between: one search of a few agents costs the tensor operations
+        # of a search of all, so two steps in three skip both whole.
+        turn = (state.step % cfg.leader_period == 0) | ~ps.lead_known.any(1)  # [B]
+        turn = turn.index_select(0, agent // n)  # [L]
+        stand_arc, stopped, cleared = self._stand_lines(state, ps, agent, (progress, size, turn))
         desired = take(ps.desired_speed)
         follow = desired >= MIN_DESIRED_SPEED  # held agents need no leader
-        leader, known = self._leaders(state, ps, agent, (progress, follow), terms)
+        leader, known = self._leaders(state, ps, agent, (progress, follow & turn), terms)
         # The stand line, the leader and the crossing yielded to, in one [L, 3] evaluation.
         zero = torch.zeros_like(speed)
-        gaps = torch.stack([stand + s0, leader.gap, leader.crossing], -1)
+        gaps = torch.stack([stand_arc - progress + s0, leader.gap, leader.crossing], -1)
         leads = torch.stack([zero, leader.speed, zero], -1)
         each = IDMTerms(*(getattr(terms, f).unsqueeze(-1) for f in _TERMS))
         crowd = crowding(speed.unsqueeze(-1), gaps, leads, each, cfg.min_gap).amax(-1)
@@ -364,6 +376,7 @@ class IDMPolicy:
             yield_gap=put(ps.yield_gap, leader.crossing),
             lead_known=put(ps.lead_known, known),
             headway_cut=ps.headway_cut * HEADWAY_RELAX_STEP,
+            stand_arc=put(ps.stand_arc, stand_arc),
         )
         return action, nxt
 
@@ -375,22 +388,16 @@ class IDMPolicy:
         now: tuple[torch.Tensor, torch.Tensor],
         terms: IDMTerms,
     ) -> tuple[Leader, torch.Tensor]:
-        """The L agents' leaders: searched anew (``leaders.find_leaders``) for the following
-        agents whose row's turn it is (``IDMConfig.leader_period``), carried on from the last
-        search for the others (none: no leader). Returns (leaders, ``lead_known`` [L])."""
-        progress, follow = now
+        """The L agents' leaders: searched anew (``leaders.find_leaders``) for the agents
+        ``asking`` [L] bool (``now`` = (progress [L] m, asking)), carried on from the last search
+        for the others (none: no leader). Returns (leaders, ``lead_known`` [L])."""
+        progress, asking = now
         take = functools.partial(_rows, agent=agent)
-        speed, n = take(state.speed), state.num_agents
+        speed = take(state.speed)
         gap = take(ps.lead_gap) - (speed - take(ps.lead_speed)) * DT
         lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
         known = take(ps.lead_known)
-        period = self.config.leader_period
-        # A row's agents search together, on its steps that are multiples of the period and
-        # at its first act (nobody has searched yet); an agent appearing later waits for the
-        # row's next search (one search of a few agents costs the operations of one of all).
-        first = ~ps.lead_known.any(1)  # [B]
-        turn = (state.step % period == 0) | first
-        search = (follow & turn.index_select(0, agent // n)).nonzero()[:, 0]
+        search = asking.nonzero()[:, 0]
         if search.numel() == 0:
             return lead, known
         speed_now = speed.index_select(0, search).clamp_min(0.0)
@@ -409,6 +416,34 @@ class IDMPolicy:
             crossing=lead.crossing.index_copy(0, search, found.crossing),
         )
         return lead, known.index_fill(0, search, True)
+
+    def _stand_lines(
+        self,
+        state: SimState,
+        ps: IDMState,
+        agent: torch.Tensor,
+        where: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    ) -> tuple[torch.Tensor, ...]:
+        """(``stand_arc`` [L] m, ``sign_stopped``, ``sign_cleared`` [L, Kt]) of the L agents
+        at progress [L] m with sizes [L, 3] (``where`` = (progress, size, turn)): looked up
+        anew (``_stand_distance``) for the agents whose ``turn`` [L] bool it is, carried on for
+        the others."""
+        progress, size, turn = where
+        if bool(turn.all()):
+            stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
+            return progress + stand, stopped, cleared
+        take = functools.partial(_rows, agent=agent)
+        carried = (take(ps.stand_arc), take(ps.sign_stopped), take(ps.sign_cleared))
+        due = turn.nonzero()[:, 0]
+        if due.numel() == 0:
+            return carried
+        now = (progress.index_select(0, due), size.index_select(0, due))
+        stand, stopped, cleared = self._stand_distance(state, ps, agent.index_select(0, due), now)
+        return (
+            carried[0].index_copy(0, due, now[0] + stand),
+            carried[1].index_copy(0, due, stopped),
+            carried[2].index_copy(0, due, cleared),
+        )
 
     def _stand_distance(
         self,
