@@ -645,6 +645,31 @@ def test_a_rows_agents_search_for_leaders_together_on_its_period(one_scenario_pa
     assert looked == steps
 
 
+def test_candidate_disc_test_keeps_every_near_pair_far_from_the_origin():
+    """The leader search's product-form disc test (``leaders._near_discs``) keeps every pair
+    the direct test |c - p| < r + reach keeps, and none beyond the radius plus ``DISC_SLACK``,
+    in a world 5 km from the origin, with absent columns (+inf) and rows that ask nothing."""
+    from policies.idm.leaders import _near_discs
+    from policies.idm.params import DISC_SLACK
+
+    g = torch.Generator().manual_seed(0)
+    b, ci, cj = 6, 20, 50
+    shift = torch.tensor([5000.0, -4000.0])
+    p = torch.rand(b, cj, 2, generator=g) * 300.0 + shift
+    c = torch.rand(b, ci, 2, generator=g) * 300.0 + shift
+    r = torch.rand(b, ci, generator=g) * 40.0
+    reach = torch.rand(b, cj, generator=g) * 20.0
+    p[:, -5:] = float("inf")  # absent agents
+    r[-1] = float("-inf")  # a row that asks nothing
+    got = _near_discs((p[..., 0], p[..., 1], reach), (c[..., 0], c[..., 1], r))
+    d = torch.cdist(c.double(), torch.nan_to_num(p.double(), posinf=1e9))
+    limit = (r.double().unsqueeze(2) + reach.double().unsqueeze(1)).clamp_min(0.0)
+    inside, beyond = d < limit - 1e-3, d > limit + DISC_SLACK + 1e-3
+    assert inside.sum() > 100 and beyond.sum() > 1000
+    assert got[inside].all() and not got[beyond].any()
+    assert not got[-1].any() and not got[..., -5:].any()
+
+
 # ----------------------------------------------------------------------------- entry points
 def test_batched_env_cli_and_planner_use(one_scenario_path, tmp_path):
     sc = _load(one_scenario_path)

@@ -58,6 +58,13 @@ On the validation scenes (90% paired intervals): a period of 3 scores as 2 did (
 [-0.0005, +0.0008], collisions +0.0004 [-0.0009, +0.0019]; in ``BatchedTrafficEnv``, of the
 1,145 vehicles appearing after the start, as many collide either way); stop lines on the
 period as every step (meta +0.0001 [-0.0001, +0.0003], collisions and off-road unchanged)."""
+DISC_SLACK = 1.0
+"""m added to the leader search's candidate discs (``leaders.candidate_pairs``): the product
+form of the disc test rounds, and a superset is harmless (the corridor tests that follow are
+exact; the corridor lies > 0.5 m inside each disc)."""
+FAR_AWAY = 1.0e6
+"""m, the coordinate that stands for an absent agent in the candidate disc test (finite, so
+that its products stay finite)."""
 CROSSING_HORIZON = 2.0
 """s: a crossing agent's path this far ahead in time (constant velocity) is tested too: the
 first time its box enters the corridor."""
