@@ -61,6 +61,8 @@ def track_summary(scenario: Scenario) -> dict:
     t = scenario.tracks
     exact = hashlib.sha256()
     for a in (t.valid, t.object_type, t.id):
+        # Only exact data is hashed: a digest of floats would change with the CPU's kernels.
+        assert a.dtype.kind in "biu", f"track_summary hashes exact fields only, got {a.dtype}"
         exact.update(np.ascontiguousarray(a).tobytes())
     heading = t.heading.astype(np.float64)[..., None]
     fields = np.concatenate(

