@@ -16,7 +16,7 @@ import torch
 
 from tbsim_env.core import constants as C
 from tbsim_env.core.boxes import box_corners
-from tbsim_env.core.torch_utils import gather_rows, valid_first, valid_order
+from tbsim_env.core.torch_utils import gather_rows, true_index, valid_first, valid_order
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
@@ -454,6 +454,21 @@ def test_valid_order_lists_each_rows_valid_slots_in_order_then_the_others():
     # Worth it from VALID_FIRST_MIN_QUERIES query agents per row.
     assert valid_first(valid, C.VALID_FIRST_MIN_QUERIES - 1) is None
     assert torch.equal(valid_first(valid, C.VALID_FIRST_MIN_QUERIES), slots)
+
+
+def test_true_index_lists_the_flat_positions_of_every_true_entry_in_order():
+    """numpy's flatnonzero on the CPU: the flat indices ATen's nonzero gives, int64, for any
+    shape, an empty mask or one with no True entry, and a non-contiguous view."""
+    g = torch.Generator().manual_seed(0)
+    masks = [
+        torch.rand(*shape, generator=g) < 0.3 for shape in ((0,), (5, 0, 3), (1,), (64, 57, 153))
+    ]
+    masks += [torch.zeros(4, 6, dtype=torch.bool), (torch.rand(7, 9, generator=g) < 0.5).t()]
+    for mask in masks:
+        got = true_index(mask)
+        assert got.dtype == torch.int64 and got.shape == (int(mask.sum()),)
+        assert torch.equal(got, mask.reshape(-1).nonzero()[:, 0])
+    assert true_index(torch.tensor([False, True, True, False, True])).tolist() == [1, 2, 4]
 
 
 def test_gather_columns_reads_each_column_of_the_table_rows():

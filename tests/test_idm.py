@@ -670,6 +670,68 @@ def test_candidate_disc_test_keeps_every_near_pair_far_from_the_origin():
     assert not got[-1].any() and not got[..., -5:].any()
 
 
+def test_quarter_chords_give_the_gaps_of_every_chord():
+    """``pair_gaps`` tests only the chords of the corridor quarters each agent's path comes
+    near: on random bent corridors and agents (standing, slow, fast, reversing, crossing) it
+    gives the gaps, lead speeds and crossing gaps of testing all ``CHORDS`` chords of every
+    pair, and no pair it leaves out has a finite gap or crossing in any chord."""
+    from policies.idm.leaders import Agents, Corridor, _chord_gaps, _others, pair_gaps
+    from policies.idm.params import CHORDS, CROSSING_HORIZON, MOVING_SPEED
+
+    g = torch.Generator().manual_seed(0)
+    n_lanes, n_agents = 40, 120
+    turn = (torch.rand(n_lanes, CHORDS, generator=g) - 0.5) * 1.2  # rad per chord
+    heading = torch.rand(n_lanes, 1, generator=g) * 6.283 + turn.cumsum(1)
+    length = 2.0 + torch.rand(n_lanes, CHORDS, generator=g) * 6.0
+    direction = torch.stack([heading.cos(), heading.sin()], -1)
+    start = (torch.rand(n_lanes, 1, 2, generator=g) - 0.5) * 60.0
+    steps = direction * length.unsqueeze(-1)
+    origin = start + torch.cat([torch.zeros(n_lanes, 1, 2), steps.cumsum(1)[:, :-1]], 1)
+    offset = torch.cat([torch.zeros(n_lanes, 1), length.cumsum(1)[:, :-1]], 1)
+    lanes = Corridor(origin, direction, length, offset)
+    pose = torch.cat(
+        [
+            (torch.rand(1, n_agents, 2, generator=g) - 0.5) * 100.0,
+            torch.rand(1, n_agents, 1, generator=g) * 6.283,
+        ],
+        -1,
+    )
+    speed = torch.rand(1, n_agents, generator=g) * 20.0 - 4.0
+    speed[0, :20] = 0.0
+    size = torch.stack(
+        [
+            3.0 + 3.0 * torch.rand(1, n_agents, generator=g),
+            1.5 + torch.rand(1, n_agents, generator=g),
+        ],
+        -1,
+    )
+    agents = Agents(pose, speed, size)
+    own = torch.stack(
+        [
+            4.5 * torch.ones(n_lanes),
+            1.3 * torch.ones(n_lanes),
+            10.0 * torch.rand(n_lanes, generator=g),
+        ],
+        -1,
+    )
+    li = torch.arange(n_lanes).repeat_interleave(n_agents)
+    fj = torch.arange(n_agents).repeat(n_lanes)
+    k, gap, lead, ghost = pair_gaps((li, fj), agents, lanes, own)
+    table = torch.cat([origin, direction, length.unsqueeze(-1), offset.unsqueeze(-1)], -1)
+    other = _others(agents, fj)
+    moving = other[:, 4].abs() > MOVING_SPEED
+    horizon = torch.where(moving, CROSSING_HORIZON, 0.0).unsqueeze(-1)
+    all_gap, all_lead, all_ghost = _chord_gaps(table[li], other, own[li], horizon)
+    found = torch.isfinite(all_gap) | torch.isfinite(all_ghost)
+    assert found.sum() > 50 and torch.isfinite(all_ghost).sum() > 10
+    left_out = torch.ones(li.shape[0], dtype=torch.bool)
+    left_out[k] = False
+    assert not found[left_out].any()
+    assert torch.equal(gap, all_gap[k]) and torch.equal(ghost, all_ghost[k])
+    finite = torch.isfinite(gap)
+    assert torch.equal(lead[finite], all_lead[k][finite])
+
+
 # ----------------------------------------------------------------------------- entry points
 def test_batched_env_cli_and_planner_use(one_scenario_path, tmp_path):
     sc = _load(one_scenario_path)

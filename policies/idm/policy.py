@@ -50,7 +50,7 @@ from policies.idm.yielding import (
 )
 from tbsim_env.core.constants import DT, ObjectType
 from tbsim_env.core.lru import LRU
-from tbsim_env.core.torch_utils import select_rows
+from tbsim_env.core.torch_utils import select_rows, true_index
 from tbsim_env.data.scenario import Scenario
 from tbsim_env.sim.idm import (
     MIN_DESIRED_SPEED,
@@ -299,7 +299,7 @@ class IDMPolicy:
         van Arem 2012), so that later conflicts, a merge say, meet its own headway. Agents
         slower than ``HEADWAY_FIT_SPEED`` or with no leader get no cut.
         """
-        agent = (state.valid & ps.valid).flatten().nonzero()[:, 0]
+        agent = true_index(state.valid & ps.valid)
         if agent.numel() == 0:
             return ps
         params = _rows(ps.params, agent)
@@ -332,7 +332,7 @@ class IDMPolicy:
         # move again in this rollout) and standing, whose action is zero and whose progress,
         # stop-sign flags and leaders nothing reads; about half the agents of real scenes.
         parked = (ps.desired_speed < MIN_DESIRED_SPEED) & (state.speed == 0.0)
-        agent = (state.valid & ps.valid & ~parked).flatten().nonzero()[:, 0]
+        agent = true_index(state.valid & ps.valid & ~parked)
         take = functools.partial(_rows, agent=agent)
         pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
         progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])
@@ -397,7 +397,7 @@ class IDMPolicy:
         gap = take(ps.lead_gap) - (speed - take(ps.lead_speed)) * DT
         lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
         known = take(ps.lead_known)
-        search = asking.nonzero()[:, 0]
+        search = true_index(asking)
         if search.numel() == 0:
             return lead, known
         speed_now = speed.index_select(0, search).clamp_min(0.0)
@@ -434,7 +434,7 @@ class IDMPolicy:
             return progress + stand, stopped, cleared
         take = functools.partial(_rows, agent=agent)
         carried = (take(ps.stand_arc), take(ps.sign_stopped), take(ps.sign_cleared))
-        due = turn.nonzero()[:, 0]
+        due = true_index(turn)
         if due.numel() == 0:
             return carried
         now = (progress.index_select(0, due), size.index_select(0, due))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 
+import numpy as np
 import torch
 
 from tbsim_env.core import constants as C
@@ -194,6 +195,19 @@ def _flat(x: torch.Tensor, rows: int) -> torch.Tensor:
     one dim): a view where ``x`` is contiguous, else a copy (``reshape``)."""
     shape = (rows,) if rows == -1 else (rows, *x.shape[2:])
     return x.view(shape) if x.is_contiguous() else x.reshape(shape)
+
+
+def true_index(mask: torch.Tensor) -> torch.Tensor:
+    """[K] int64 flat (row-major) indices of the True entries of ``mask`` (any shape), in
+    order: ``mask.flatten().nonzero()[:, 0]``.
+
+    On the CPU, eagerly, numpy's ``flatnonzero`` on the same memory: 2-5x faster than ATen's
+    ``nonzero`` on one thread (0.14 vs 0.75 ms for a [64, 57, 153] mask of leader candidates,
+    17 vs 49 us for 30,000 entries). Elsewhere (a GPU, a compiled graph) ATen's.
+    """
+    if mask.device.type != "cpu" or torch.compiler.is_compiling():
+        return mask.reshape(-1).nonzero()[:, 0]
+    return torch.from_numpy(np.flatnonzero(mask.numpy()))
 
 
 def valid_order(valid: torch.Tensor) -> torch.Tensor:
