@@ -129,31 +129,44 @@ class IDMState:
     valid: torch.Tensor
 
 
-def _pad(x: np.ndarray, n: int, value: float = 0.0) -> np.ndarray:
-    """``x`` [A, ...] padded with ``value`` to [n, ...]."""
-    return np.concatenate([x, np.full((n - len(x), *x.shape[1:]), value, x.dtype)])
+_PAD = {"end": np.inf, "params": 1.0, "signal_arc": np.inf, "signal_row": -1}
+_PAD |= {"sign_arc": np.inf, "crosswalk_arc": np.inf, "crosswalk_row": -1}
+"""The value of the slots (and crosswalk rows) past a scene's own, per field (others: 0)."""
 
 
-def _row(plan: ScenePlan, origin: np.ndarray, n: int) -> dict[str, np.ndarray]:
-    """One batch row's fields (numpy, state frame, N slots) of a scene plan."""
+def _row(plan: ScenePlan, origin: np.ndarray) -> dict[str, np.ndarray]:
+    """One batch row's fields of a scene plan, in the state's frame, unpadded: [A, ...] per
+    agent, crosswalks [W, V, 2]."""
     r, e = plan.routes, plan.events
-    cw = np.zeros((SCENE_CROSSWALKS, CROSSWALK_VERTICES, 2))
-    cw[: len(plan.crosswalks)] = plan.crosswalks - origin
     return {
-        "route": _pad(r.points - origin, n).astype(np.float32),
-        "speed_cap": _pad(plan.speed_cap, n).astype(np.float32),
-        "end": _pad(r.end, n, np.inf).astype(np.float32),
-        "desired_speed": _pad(plan.desired_speed, n).astype(np.float32),
-        "params": _pad(plan.params, n, 1.0).astype(np.float32),
-        "obeys": _pad(plan.obeys, n, False),
-        "signal_arc": _pad(e.signal_arc, n, np.inf).astype(np.float32),
-        "signal_row": _pad(e.signal_row, n, -1),
-        "sign_arc": _pad(e.sign_arc, n, np.inf).astype(np.float32),
-        "crosswalk_arc": _pad(e.crosswalk_arc, n, np.inf).astype(np.float32),
-        "crosswalk_row": _pad(e.crosswalk_row, n, -1),
-        "crosswalks": cw.astype(np.float32),
-        "valid": _pad(r.valid, n, False),
+        "route": r.points - origin,
+        "speed_cap": plan.speed_cap,
+        "end": r.end,
+        "desired_speed": plan.desired_speed,
+        "params": plan.params,
+        "obeys": plan.obeys,
+        "signal_arc": e.signal_arc,
+        "signal_row": e.signal_row,
+        "sign_arc": e.sign_arc,
+        "crosswalk_arc": e.crosswalk_arc,
+        "crosswalk_row": e.crosswalk_row,
+        "crosswalks": plan.crosswalks.reshape(-1, CROSSWALK_VERTICES, 2) - origin,
+        "valid": r.valid,
     }
+
+
+def _batch(rows: Sequence[dict[str, np.ndarray]], n: int) -> dict[str, torch.Tensor]:
+    """The rows' fields as [B, N, ...] tensors (crosswalks [B, ``SCENE_CROSSWALKS``, V, 2]),
+    float32 for floats, padded with ``_PAD``: each written once into its batch array."""
+    out = {}
+    for name, first in rows[0].items():
+        size = SCENE_CROSSWALKS if name == "crosswalks" else n
+        dtype = np.float32 if first.dtype.kind == "f" else first.dtype
+        batch = np.full((len(rows), size, *first.shape[1:]), _PAD.get(name, 0), dtype)
+        for k, row in enumerate(rows):
+            batch[k, : len(row[name])] = row[name]
+        out[name] = torch.from_numpy(batch)
+    return out
 
 
 def _row_draws(
@@ -259,12 +272,11 @@ class IDMPolicy:
             _row(
                 self.plan(sc, steps[k], variant[k], None if tracks is None else tracks[k]),
                 origins[k],
-                n,
             )
             for k, sc in enumerate(scenarios)
         ]
         dev = state.device
-        f = {k: torch.from_numpy(np.stack([r[k] for r in rows])).to(dev) for k in rows[0]}
+        f = {k: v.to(dev) for k, v in _batch(rows, n).items()}
         u = u.to(dev) * 2.0 - 1.0
         cfg = self.config
         f["desired_speed"] = f["desired_speed"] * (1.0 + cfg.speed_spread * u[0])

@@ -367,7 +367,8 @@ class BatchedTrafficEnv:
         policy_state = state.policy_state
         if self._has_npc:
             started = self._policy_start(fresh.sim, ks)
-            policy_state = with_rows(policy_state, rows, started, strict=False)
+            # Every slot restarted in order: the new state is the batch's (no row copies).
+            policy_state = started if every else with_rows(policy_state, rows, started, False)
         elif bool(self.bank.setup.npc[ks].any()):
             # No slot had NPCs so far: start the policy on the whole batch.
             self._has_npc = True
