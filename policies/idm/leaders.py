@@ -340,16 +340,16 @@ def find_leaders(
     """
     valid, agent = followers
     b, n = valid.shape
-    flat_size = agents.size.flatten(0, 1)
-    half_width = 0.5 * flat_size[agent, 1] + cfg.lateral_margin
+    length, width = agents.size.flatten(0, 1).index_select(0, agent).unbind(-1)  # [L]
+    half_width = 0.5 * width + cfg.lateral_margin
     # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead; j's
     # boxes (now and ahead in time) within its half diagonal plus its travel of its centre.
     horizon = lanes.offset[:, -1] * CHORDS / (CHORDS - 1)
     radius = 0.5 * horizon + half_width + 0.5
     disc = torch.zeros(b * n, 3, device=valid.device, dtype=agents.speed.dtype)
-    disc[agent] = torch.cat([lanes.origin[:, CHORDS // 2], radius.unsqueeze(-1)], -1)
+    disc.index_copy_(0, agent, torch.cat([lanes.origin[:, CHORDS // 2], radius.unsqueeze(-1)], -1))
     asks = torch.zeros(b * n, dtype=torch.bool, device=valid.device)
-    asks[agent] = True
+    asks.index_fill_(0, agent, True)
     # j's box over its path of the crossing horizon (``_near_quarters``) lies within a disc
     # around the path's midpoint: half its length plus the half diagonal.
     size, yaw = agents.size, agents.pose[..., 2]
@@ -359,16 +359,19 @@ def find_leaders(
     discs = (asks.view(b, n), disc.view(b, n, 3), reach)
     row, i, j = candidate_pairs(mid, valid, *discs)
     index = torch.full((b * n,), -1, dtype=torch.long, device=valid.device)
-    index[agent] = torch.arange(agent.shape[0], device=valid.device)
+    index.index_copy_(0, agent, torch.arange(agent.shape[0], device=valid.device))
     li, fj = index.index_select(0, row * n + i), row * n + j
-    speed = agents.speed.flatten()[agent]
-    own = torch.stack([flat_size[agent, 0], half_width, speed], -1)
+    speed = agents.speed.flatten().index_select(0, agent)
+    own = torch.stack([length, half_width, speed], -1)
     near, gap, lead, ghost = pair_gaps((li, fj), agents, lanes, own)
     li = li.index_select(0, near)
     keep = torch.isfinite(gap) | torch.isfinite(ghost)  # the other pairs constrain nothing
     if agents.pedestrian is not None:  # groups of pedestrians keep no gaps between them
         ped = agents.pedestrian.flatten()
-        keep &= ~(ped.index_select(0, agent.index_select(0, li)) & ped.index_select(0, fj[near]))
+        keep &= ~(
+            ped.index_select(0, agent.index_select(0, li))
+            & ped.index_select(0, fj.index_select(0, near))
+        )
     sel = true_index(keep)
     li, gap, lead, ghost = (x.index_select(0, sel) for x in (li, gap, lead, ghost))
     pick = lambda x: x.index_select(0, li) if isinstance(x, torch.Tensor) else x  # noqa: E731
