@@ -360,19 +360,17 @@ def find_leaders(
     row, i, j = candidate_pairs(mid, valid, *discs)
     index = torch.full((b * n,), -1, dtype=torch.long, device=valid.device)
     index.index_copy_(0, agent, torch.arange(agent.shape[0], device=valid.device))
-    li, fj = index.index_select(0, row * n + i), row * n + j
+    fi, fj = row * n + i, row * n + j
+    if agents.pedestrian is not None:  # groups of pedestrians keep no gaps between them
+        ped = agents.pedestrian.flatten()
+        apart = true_index(~(ped.index_select(0, fi) & ped.index_select(0, fj)))
+        fi, fj = fi.index_select(0, apart), fj.index_select(0, apart)
+    li = index.index_select(0, fi)
     speed = agents.speed.flatten().index_select(0, agent)
     own = torch.stack([length, half_width, speed], -1)
     near, gap, lead, ghost = pair_gaps((li, fj), agents, lanes, own)
     li = li.index_select(0, near)
-    keep = torch.isfinite(gap) | torch.isfinite(ghost)  # the other pairs constrain nothing
-    if agents.pedestrian is not None:  # groups of pedestrians keep no gaps between them
-        ped = agents.pedestrian.flatten()
-        keep &= ~(
-            ped.index_select(0, agent.index_select(0, li))
-            & ped.index_select(0, fj.index_select(0, near))
-        )
-    sel = true_index(keep)
+    sel = true_index(torch.isfinite(gap) | torch.isfinite(ghost))  # the others: no constraint
     li, gap, lead, ghost = (x.index_select(0, sel) for x in (li, gap, lead, ghost))
     pick = lambda x: x.index_select(0, li) if isinstance(x, torch.Tensor) else x  # noqa: E731
     pair_terms = IDMTerms(*(pick(getattr(terms, f)) for f in _TERM_FIELDS))
