@@ -79,7 +79,6 @@ class IDMState:
         route: [B, N, P, 2] float32 route points, m, ``ROUTE_SPACING`` apart.
         speed_cap: [B, N, P] float32 m/s the route's bends allow.
         end: [B, N] float32 arc length (m) where the agent stops (+inf: open route).
-        progress: [B, N] float32 m, the agent's arc length along its route.
         desired_speed: [B, N] float32 m/s (drawn per rollout).
         params: [B, N, F] float32, the ``plan.PARAM_FIELDS`` of each agent (time headway
             drawn per rollout).
@@ -89,16 +88,17 @@ class IDMState:
         sign_arc: [B, N, Kt] float32 m (+inf padding).
         sign_stopped: [B, N, Kt] bool, the full stop at that line is made.
         sign_cleared: [B, N, Kt] bool, and the junction was clear after it: the agent goes.
-        lead_gap: [B, N] float32 m, bumper gap to the leader of the last search, carried on
-            since (+inf: none); lead_speed: [B, N] float32 m/s, that leader's speed.
-        yield_gap: [B, N] float32 m to the crossing yielded to (+inf: none), likewise.
         lead_known: [B, N] bool, the agent has searched for leaders since the start.
-        headway_cut: [B, N] float32 s taken off the drawn time headway now: the cut that lets
-            an agent follow its leader at the start at its logged gap (``_start_headway``),
-            shrinking by ``HEADWAY_RELAX_TIME``.
-        stand_arc: [B, N] float32 m, arc length along the route where the agent must stand (the
-            nearest stop line that holds it, or its route's end; +inf: none) as of its row's
-            last search, carried on in between (``IDMConfig.leader_period``).
+        motion: [B, N, 6] float32, what a step reads and writes of each agent, in one table
+            (``MOTION_FIELDS``; each column also a property of that name, [B, N]): progress m,
+            the agent's arc length along its route; lead_gap m, bumper gap to the leader of
+            the last search, carried on since (+inf: none); lead_speed m/s, that leader's
+            speed; yield_gap m to the crossing yielded to (+inf: none), likewise; stand_arc m,
+            arc length along the route where the agent must stand (the nearest stop line that
+            holds it, or its route's end; +inf: none) as of its row's last search, carried on
+            in between (``IDMConfig.leader_period``); headway_cut s taken off the drawn time
+            headway now: the cut that lets an agent follow its leader at the start at its
+            logged gap (``_start_headway``), shrinking by ``HEADWAY_RELAX_TIME``.
         crosswalk_arc: [B, N, Kc] float32 m (+inf padding); crosswalk_row: [B, N, Kc] int64
             row of ``crosswalks`` (-1 padding).
         crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
@@ -108,7 +108,6 @@ class IDMState:
     route: torch.Tensor
     speed_cap: torch.Tensor
     end: torch.Tensor
-    progress: torch.Tensor
     desired_speed: torch.Tensor
     params: torch.Tensor
     obeys: torch.Tensor
@@ -117,16 +116,25 @@ class IDMState:
     sign_arc: torch.Tensor
     sign_stopped: torch.Tensor
     sign_cleared: torch.Tensor
-    lead_gap: torch.Tensor
-    lead_speed: torch.Tensor
-    yield_gap: torch.Tensor
     lead_known: torch.Tensor
-    headway_cut: torch.Tensor
-    stand_arc: torch.Tensor
+    motion: torch.Tensor
     crosswalk_arc: torch.Tensor
     crosswalk_row: torch.Tensor
     crosswalks: torch.Tensor
     valid: torch.Tensor
+
+    progress = property(lambda self: self.motion[..., 0])
+    lead_gap = property(lambda self: self.motion[..., 1])
+    lead_speed = property(lambda self: self.motion[..., 2])
+    yield_gap = property(lambda self: self.motion[..., 3])
+    stand_arc = property(lambda self: self.motion[..., 4])
+    headway_cut = property(lambda self: self.motion[..., 5])
+
+
+MOTION_FIELDS = ("progress", "lead_gap", "lead_speed", "yield_gap", "stand_arc", "headway_cut")
+"""The columns of ``IDMState.motion``."""
+_START_MOTION = (0.0, float("inf"), 0.0, float("inf"), float("inf"), 0.0)
+"""``IDMState.motion`` of every slot at the start: no leader, crossing, stand line nor cut."""
 
 
 _PAD = {"end": np.inf, "params": 1.0, "signal_arc": np.inf, "signal_row": -1}
@@ -283,17 +291,11 @@ class IDMPolicy:
         headway = PARAM_FIELDS.index("time_headway")
         f["params"][..., headway] *= 1.0 + cfg.headway_spread * u[1]
         stops = f["sign_arc"].shape
-        inf = torch.full((b, n), float("inf"), device=dev)
         start = IDMState(
-            progress=torch.zeros(b, n, device=dev),
             sign_stopped=torch.zeros(stops, dtype=torch.bool, device=dev),
             sign_cleared=torch.zeros(stops, dtype=torch.bool, device=dev),
-            lead_gap=inf,
-            lead_speed=torch.zeros(b, n, device=dev),
-            yield_gap=inf.clone(),
             lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
-            headway_cut=torch.zeros(b, n, device=dev),
-            stand_arc=inf.clone(),
+            motion=torch.tensor(_START_MOTION, device=dev).repeat(b, n, 1),
             **f,
         )
         return self._start_headway(state, start)
@@ -317,9 +319,10 @@ class IDMPolicy:
         params = _rows(ps.params, agent)
         terms = IDMTerms(*(params[:, PARAM_FIELDS.index(f)] for f in _TERMS))
         speed, desired = _rows(state.speed, agent), _rows(ps.desired_speed, agent)
-        progress = _rows(ps.progress, agent)
+        progress, gap, lead_speed, crossing, _, _ = _rows(ps.motion, agent).unbind(-1)
         asking = desired >= MIN_DESIRED_SPEED
-        leader, _ = self._leaders(state, ps, agent, (progress, asking), terms)
+        carried = Leader(gap, lead_speed, crossing)
+        leader, _ = self._leaders(state, ps, (agent, carried), (progress, asking), terms)
         v = speed.clamp_min(HEADWAY_FIT_SPEED)
         free = 1.0 - (v / desired.clamp_min(MIN_DESIRED_SPEED)) ** terms.exponent
         rho = free.clamp_min(HEADWAY_FIT_SHARE).sqrt()
@@ -328,8 +331,9 @@ class IDMPolicy:
         fitted = (speed >= HEADWAY_FIT_SPEED) & torch.isfinite(leader.gap)
         cut = (terms.time_headway - fit.clamp_min(self.config.min_headway)).clamp_min(0.0)
         cut = torch.where(fitted, cut, torch.zeros_like(cut))
-        flat = ps.headway_cut.flatten().index_copy(0, agent, cut)
-        return dataclasses.replace(ps, headway_cut=flat.view_as(ps.headway_cut))
+        at = (agent, torch.full_like(agent, MOTION_FIELDS.index("headway_cut")))
+        motion = ps.motion.flatten(0, 1).index_put(at, cut).view_as(ps.motion)
+        return dataclasses.replace(ps, motion=motion)
 
     # ------------------------------------------------------------------ acting
     def act(
@@ -347,19 +351,25 @@ class IDMPolicy:
         agent = true_index(state.valid & ps.valid & ~parked)
         take = functools.partial(_rows, agent=agent)
         pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
-        progress = advance_progress(ps.route, agent, take(ps.progress), pose[:, :2])
+        last, gap, lead_speed, crossing, stand_arc, cut = take(ps.motion).unbind(-1)
+        progress = advance_progress(ps.route, agent, last, pose[:, :2])
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
-        terms = IDMTerms(a, decel, headway - take(ps.headway_cut), s0, delta)
+        terms = IDMTerms(a, decel, headway - cut, s0, delta)
         # Stand lines and leaders are looked for by a row's agents together, on its steps
         # that are multiples of ``leader_period`` and at its first act (nobody has searched),
         # and carried on in between: one search of a few agents costs the tensor operations
         # of a search of all, so two steps in three skip both whole.
         turn = (state.step % cfg.leader_period == 0) | ~ps.lead_known.any(1)  # [B]
         turn = turn.index_select(0, agent // n)  # [L]
-        stand_arc, stopped, cleared = self._stand_lines(state, ps, agent, (progress, size, turn))
+        searching = bool(turn.any())
+        if searching:  # else the stand lines and stop-sign flags stay as they are
+            where = (progress, size, turn, stand_arc)
+            stand_arc, stopped, cleared = self._stand_lines(state, ps, agent, where)
         desired = take(ps.desired_speed)
         follow = desired >= MIN_DESIRED_SPEED  # held agents need no leader
-        leader, known = self._leaders(state, ps, agent, (progress, follow & turn), terms)
+        carried = Leader(gap, lead_speed, crossing)
+        now = (progress, follow & turn)
+        leader, known = self._leaders(state, ps, (agent, carried), now, terms)
         # The stand line, the leader and the crossing yielded to, in one [L, 3] evaluation.
         zero = torch.zeros_like(speed)
         gaps = torch.stack([stand_arc - progress + s0, leader.gap, leader.crossing], -1)
@@ -378,17 +388,17 @@ class IDMPolicy:
         action = torch.zeros(b * n, 2, dtype=pose.dtype, device=pose.device)
         action = action.index_copy(0, agent, torch.stack([acc, yaw_rate], -1)).view(b, n, 2)
         put = lambda x, v: x.flatten(0, 1).index_copy(0, agent, v).view_as(x)  # noqa: E731
+        row = torch.stack([progress, leader.gap, leader.speed, leader.crossing, stand_arc, cut], -1)
+        motion = put(ps.motion, row)
+        motion[..., MOTION_FIELDS.index("headway_cut")] *= HEADWAY_RELAX_STEP  # every slot's
+        if not searching:
+            return action, dataclasses.replace(ps, motion=motion)
         nxt = dataclasses.replace(
             ps,
-            progress=put(ps.progress, progress),
+            motion=motion,
             sign_stopped=put(ps.sign_stopped, stopped),
             sign_cleared=put(ps.sign_cleared, cleared),
-            lead_gap=put(ps.lead_gap, leader.gap),
-            lead_speed=put(ps.lead_speed, leader.speed),
-            yield_gap=put(ps.yield_gap, leader.crossing),
-            lead_known=put(ps.lead_known, known),
-            headway_cut=ps.headway_cut * HEADWAY_RELAX_STEP,
-            stand_arc=put(ps.stand_arc, stand_arc),
+            lead_known=ps.lead_known if known is None else put(ps.lead_known, known),
         )
         return action, nxt
 
@@ -396,22 +406,22 @@ class IDMPolicy:
         self,
         state: SimState,
         ps: IDMState,
-        agent: torch.Tensor,
+        agents: tuple[torch.Tensor, Leader],
         now: tuple[torch.Tensor, torch.Tensor],
         terms: IDMTerms,
-    ) -> tuple[Leader, torch.Tensor]:
+    ) -> tuple[Leader, torch.Tensor | None]:
         """The L agents' leaders: searched anew (``leaders.find_leaders``) for the agents
         ``asking`` [L] bool (``now`` = (progress [L] m, asking)), carried on from the last search
-        for the others (none: no leader). Returns (leaders, ``lead_known`` [L])."""
-        progress, asking = now
-        take = functools.partial(_rows, agent=agent)
-        speed = take(state.speed)
-        gap = take(ps.lead_gap) - (speed - take(ps.lead_speed)) * DT
-        lead = Leader(gap, take(ps.lead_speed), take(ps.yield_gap) - speed * DT)
-        known = take(ps.lead_known)
+        for the others (``agents`` = (agent [L] flat slots, their leaders of the last step):
+        gaps closing at a step's speed difference). Returns (leaders, ``lead_known`` [L] with
+        the searching agents set; None when none searches: it stays as it is)."""
+        (agent, last), (progress, asking) = agents, now
+        speed = _rows(state.speed, agent)
+        gap = last.gap - (speed - last.speed) * DT
+        lead = Leader(gap, last.speed, last.crossing - speed * DT)
         search = true_index(asking)
         if search.numel() == 0:
-            return lead, known
+            return lead, None
         speed_now = speed.index_select(0, search).clamp_min(0.0)
         horizon = (HORIZON_BASE + HORIZON_TIME * speed_now).clamp_max(self.config.horizon)
         ask = agent.index_select(0, search)
@@ -427,25 +437,25 @@ class IDMPolicy:
             speed=lead.speed.index_copy(0, search, found.speed),
             crossing=lead.crossing.index_copy(0, search, found.crossing),
         )
-        return lead, known.index_fill(0, search, True)
+        return lead, _rows(ps.lead_known, agent).index_fill(0, search, True)
 
     def _stand_lines(
         self,
         state: SimState,
         ps: IDMState,
         agent: torch.Tensor,
-        where: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+        where: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
     ) -> tuple[torch.Tensor, ...]:
         """(``stand_arc`` [L] m, ``sign_stopped``, ``sign_cleared`` [L, Kt]) of the L agents
-        at progress [L] m with sizes [L, 3] (``where`` = (progress, size, turn)): looked up
-        anew (``_stand_distance``) for the agents whose ``turn`` [L] bool it is, carried on for
-        the others."""
-        progress, size, turn = where
+        at progress [L] m with sizes [L, 3] (``where`` = (progress, size, turn, stand_arc of
+        the last step)): looked up anew (``_stand_distance``) for the agents whose ``turn``
+        [L] bool it is, carried on for the others."""
+        progress, size, turn, last = where
         if bool(turn.all()):
             stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
             return progress + stand, stopped, cleared
         take = functools.partial(_rows, agent=agent)
-        carried = (take(ps.stand_arc), take(ps.sign_stopped), take(ps.sign_cleared))
+        carried = (last, take(ps.sign_stopped), take(ps.sign_cleared))
         due = true_index(turn)
         if due.numel() == 0:
             return carried
