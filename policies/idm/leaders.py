@@ -219,8 +219,8 @@ def _chord_gaps(
         (gap now [E] m, lead speed [E] m/s, gap to the crossing yielded to [E] m), the
         nearest over the C chords.
     """
-    ox, oy, ux, uy, length, offset = chords.unbind(-1)  # [Q, M]
-    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))  # [Q, 1]
+    ox, oy, ux, uy, length, offset = chords.unbind(-1)  # [E, C]
+    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))  # [E, 1]
     half_len_i, half_width_i, speed_i = mine[:, 0:1] * 0.5, mine[:, 1:2], mine[:, 2:3]
     dx, dy = xj - ox, yj - oy
     along, across = dx * ux + dy * uy, dy * ux - dx * uy
@@ -344,8 +344,7 @@ def find_leaders(
     b, n = valid.shape
     length, width = agents.size.flatten(0, 1).index_select(0, agent).unbind(-1)  # [L]
     half_width = 0.5 * width + cfg.lateral_margin
-    # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead; j's
-    # boxes (now and ahead in time) within its half diagonal plus its travel of its centre.
+    # Every corridor point lies within horizon / 2 of the route point horizon / 2 ahead.
     horizon = lanes.offset[:, -1] * CHORDS / (CHORDS - 1)
     radius = 0.5 * horizon + half_width + 0.5
     disc = torch.zeros(b * n, 3, device=valid.device, dtype=agents.speed.dtype)
