@@ -16,7 +16,13 @@ import torch
 
 from tbsim_env.core import constants as C
 from tbsim_env.core.boxes import box_corners
-from tbsim_env.core.torch_utils import gather_rows, true_index, valid_first, valid_order
+from tbsim_env.core.torch_utils import (
+    below_zero,
+    gather_rows,
+    true_index,
+    valid_first,
+    valid_order,
+)
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
 from tbsim_env.env import TrafficEnv
@@ -469,6 +475,18 @@ def test_true_index_lists_the_flat_positions_of_every_true_entry_in_order():
         assert got.dtype == torch.int64 and got.shape == (int(mask.sum()),)
         assert torch.equal(got, mask.reshape(-1).nonzero()[:, 0])
     assert true_index(torch.tensor([False, True, True, False, True])).tolist() == [1, 2, 4]
+
+
+def test_below_zero_is_the_comparison_with_zero():
+    """numpy's comparison on the CPU: ATen's ``x < 0`` for float32 and float64, a transposed
+    view, signed zeros, infinities and NaN (never below zero), and an empty tensor."""
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(64, 57, 153, generator=g)
+    x.view(-1)[:5] = torch.tensor([-0.0, 0.0, float("-inf"), float("inf"), float("nan")])
+    for t in (x, x.double(), x[0].t(), torch.zeros(0, 3)):
+        got = below_zero(t)
+        assert got.dtype == torch.bool and torch.equal(got, t < 0)
+    assert below_zero(x).view(-1)[:5].tolist() == [False, False, True, False, False]
 
 
 def test_gather_columns_reads_each_column_of_the_table_rows():

@@ -32,7 +32,7 @@ from policies.idm.params import (
     IDMConfig,
 )
 from policies.idm.tracking import points_at
-from tbsim_env.core.torch_utils import true_index, valid_order
+from tbsim_env.core.torch_utils import below_zero, true_index, valid_order
 from tbsim_env.sim.idm import IDMTerms, crowding
 
 
@@ -144,7 +144,7 @@ def _near_discs(
     one_i, one_j = torch.ones_like(own), torch.ones_like(other)
     u = torch.stack([xi, yi, ri, own, one_i], -1)  # [B, Ci, 5]
     v = torch.stack([-2.0 * xj, -2.0 * yj, -2.0 * reach, one_j, other], 1)  # [B, 5, Cj]
-    return torch.bmm(u, v) < 0.0
+    return below_zero(torch.bmm(u, v))
 
 
 @dataclass(frozen=True)

@@ -210,6 +210,18 @@ def true_index(mask: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(np.flatnonzero(mask.numpy()))
 
 
+def below_zero(x: torch.Tensor) -> torch.Tensor:
+    """``x < 0`` (bool, ``x``'s shape) for a large float tensor.
+
+    On the CPU, eagerly, numpy's comparison on the same memory: ~5x faster than ATen's on one
+    thread (0.05 vs 0.25 ms for 558,000 float32, the leader search's disc test). Elsewhere
+    (a GPU, a compiled graph, a tensor that needs its gradient) ATen's.
+    """
+    if x.device.type != "cpu" or torch.compiler.is_compiling() or x.requires_grad:
+        return x < 0
+    return torch.from_numpy(np.less(x.numpy(), 0))
+
+
 def valid_order(valid: torch.Tensor) -> torch.Tensor:
     """[B, C] int64 slots: each row's valid slots in order, then its others, C the most valid
     slots of any row (at least 1; eager only: C depends on the data). Columns past a row's
