@@ -178,7 +178,7 @@ def _quarter_discs(lanes: Corridor, half_width: torch.Tensor) -> torch.Tensor:
     corridor within its half width ``half_width`` [L] m more."""
     longer = torch.maximum(lanes.length[:, 0::2], lanes.length[:, 1::2])
     radius = longer + half_width.unsqueeze(-1)
-    return torch.cat([lanes.origin[:, 1::2], radius.unsqueeze(-1)], -1)
+    return torch.stack([*lanes.origin[:, 1::2].unbind(-1), radius], -1)
 
 
 def _near_quarters(discs: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
@@ -279,9 +279,8 @@ def pair_gaps(
     li, fj = pairs
     other = _others(agents, fj)  # [Q, 7]
     half = CHORDS // 2
-    table = torch.cat(
-        [lanes.origin, lanes.direction, lanes.length.unsqueeze(-1), lanes.offset.unsqueeze(-1)], -1
-    ).view(-1, 12)  # [L M / 2, 12]: the two chords (6 each) of every quarter
+    columns = (*lanes.origin.unbind(-1), *lanes.direction.unbind(-1), lanes.length, lanes.offset)
+    table = torch.stack(columns, -1).view(-1, 12)  # [L M / 2, 12]: a quarter's two chords
     quarters = _near_quarters(_quarter_discs(lanes, own[:, 1]).index_select(0, li), other)
     near = quarters.any(-1)
     k = true_index(near)
