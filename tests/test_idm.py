@@ -717,11 +717,12 @@ def test_quarter_chords_give_the_gaps_of_every_chord():
     li = torch.arange(n_lanes).repeat_interleave(n_agents)
     fj = torch.arange(n_agents).repeat(n_lanes)
     k, gap, lead, ghost = pair_gaps((li, fj), agents, lanes, own)
-    table = torch.cat([origin, direction, length.unsqueeze(-1), offset.unsqueeze(-1)], -1)
-    other = _others(agents, fj)
-    moving = other[:, 4].abs() > MOVING_SPEED
-    horizon = torch.where(moving, CROSSING_HORIZON, 0.0).unsqueeze(-1)
-    all_gap, all_lead, all_ghost = _chord_gaps(table[li], other, own[li], horizon)
+    columns = [*origin.unbind(-1), *direction.unbind(-1), length, offset]
+    chords = torch.stack(columns, 0)[:, li].transpose(1, 2)  # [6, CHORDS, Q]: every chord
+    other = _others(agents, fj)  # [7, Q]
+    moving = other[4].abs() > MOVING_SPEED
+    horizon = torch.where(moving, CROSSING_HORIZON, 0.0)
+    all_gap, all_lead, all_ghost = _chord_gaps(chords, other, own[li].t(), horizon)
     found = torch.isfinite(all_gap) | torch.isfinite(all_ghost)
     assert found.sum() > 50 and torch.isfinite(all_ghost).sum() > 10
     left_out = torch.ones(li.shape[0], dtype=torch.bool)

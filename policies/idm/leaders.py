@@ -166,35 +166,53 @@ class Agents:
 
 
 def _others(agents: Agents, fj: torch.Tensor) -> torch.Tensor:
-    """[Q, 7] (x, y, cos yaw, sin yaw, speed, length, width) of the slots ``fj`` [Q]."""
+    """[7, Q] (x, y, cos yaw, sin yaw, speed, length, width) of the slots ``fj`` [Q], a row
+    each.
+
+    The per-pair tests lay pairs along the last, contiguous dimension ([7, Q], [M / 2, Q],
+    [C, E]): ATen's elementwise loops broadcast a pair's value over a leading dimension at
+    full vector width, and over a trailing one of 2 or 4 several times slower."""
     yaw = agents.pose[..., 2]
     cols = [*agents.pose[..., :2].unbind(-1), yaw.cos(), yaw.sin(), agents.speed]
-    return torch.stack([*cols, *agents.size.unbind(-1)], -1).flatten(0, 1).index_select(0, fj)
+    table = torch.stack([*cols, *agents.size.unbind(-1)], 0)  # [7, B, N]
+    return table.view(7, -1).index_select(1, fj)
 
 
-def _quarter_discs(lanes: Corridor, half_width: torch.Tensor) -> torch.Tensor:
-    """[L, M / 2, 3] (centre x, y, radius) m of discs that hold the corridor's quarters:
-    chords 2k and 2k + 1 lie within the longer one's length of the start of chord 2k + 1, the
-    corridor within its half width ``half_width`` [L] m more."""
+def _quarter_discs(lanes: Corridor, half_width: torch.Tensor, li: torch.Tensor) -> torch.Tensor:
+    """[3, M / 2, Q] (centre x, y, radius) m of discs that hold the corridor's quarters of
+    the followers ``li`` [Q]: chords 2k and 2k + 1 lie within the longer one's length of the
+    start of chord 2k + 1, the corridor within its half width ``half_width`` [L] m more."""
     longer = torch.maximum(lanes.length[:, 0::2], lanes.length[:, 1::2])
     radius = longer + half_width.unsqueeze(-1)
-    return torch.stack([*lanes.origin[:, 1::2].unbind(-1), radius], -1)
+    table = torch.stack([*lanes.origin[:, 1::2].unbind(-1), radius], 0)  # [3, L, M / 2]
+    quarters = table.shape[-1]
+    return table.transpose(1, 2).reshape(3 * quarters, -1).index_select(1, li).view(3, quarters, -1)
+
+
+def _chord_table(lanes: Corridor) -> torch.Tensor:
+    """[12, L M / 2]: the two chords of each corridor quarter (quarter k of follower l at
+    column l M / 2 + k), row 2c + h the chord component c (origin x, y, direction x, y,
+    length, offset) of its chord h."""
+    columns = (*lanes.origin.unbind(-1), *lanes.direction.unbind(-1), lanes.length, lanes.offset)
+    table = torch.stack(columns, 0)  # [6, L, M]
+    n, m = table.shape[1:]
+    return table.view(6, n * m // 2, 2).transpose(1, 2).reshape(12, -1)
 
 
 def _near_quarters(discs: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
-    """[Q, M / 2] bool: j's path over the crossing horizon (constant velocity, backwards for
+    """[M / 2, Q] bool: j's path over the crossing horizon (constant velocity, backwards for
     a negative speed) comes within the disc around a quarter of i's corridor
     (``_quarter_discs``) widened by j's half diagonal: only then can j's box, now or on that
     path, be in that quarter's chords.
 
     Args:
-        discs: [Q, M / 2, 3] i's quarter discs (centre x, y, radius) m.
-        other: [Q, 7] j (``_others``).
+        discs: [3, M / 2, Q] i's quarter discs (centre x, y, radius) m.
+        other: [7, Q] j (``_others``).
     """
-    centre, radius = discs[..., :2], discs[..., 2]
-    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))
+    cx, cy, radius = discs.unbind(0)  # [M / 2, Q]
+    xj, yj, cj, sj, vj, lj, wj = other.unbind(0)  # [Q]
     travel = vj * CROSSING_HORIZON  # j's centre moves along (cj, sj) by this
-    rx, ry = centre[..., 0] - xj, centre[..., 1] - yj
+    rx, ry = cx - xj, cy - yj
     t = (rx * cj + ry * sj).clamp(min=travel.clamp_max(0.0), max=travel.clamp_min(0.0))
     dx, dy = rx - t * cj, ry - t * sj
     reach = radius + 0.5 * torch.sqrt(lj * lj + wj * wj)
@@ -209,19 +227,19 @@ def _chord_gaps(
     ``pair_gaps``).
 
     Args:
-        chords: [E, C, 6] the chords of i tested (origin x, y, direction x, y, length,
+        chords: [6, C, E] the chords of i tested (origin x, y, direction x, y, length,
             offset).
-        other: [E, 7] j (``_others``).
-        mine: [E, 3] i's (length, half corridor width, speed).
-        horizon: [E, 1] s ahead j's path is tested (0: its box now only).
+        other: [7, E] j (``_others``).
+        mine: [3, E] i's (length, half corridor width, speed).
+        horizon: [E] s ahead j's path is tested (0: its box now only).
 
     Returns:
         (gap now [E] m, lead speed [E] m/s, gap to the crossing yielded to [E] m), the
         nearest over the C chords.
     """
-    ox, oy, ux, uy, length, offset = chords.unbind(-1)  # [E, C]
-    xj, yj, cj, sj, vj, lj, wj = (c.unsqueeze(-1) for c in other.unbind(-1))  # [E, 1]
-    half_len_i, half_width_i, speed_i = mine[:, 0:1] * 0.5, mine[:, 1:2], mine[:, 2:3]
+    ox, oy, ux, uy, length, offset = chords.unbind(0)  # [C, E]
+    xj, yj, cj, sj, vj, lj, wj = other.unbind(0)  # [E]
+    half_len_i, half_width_i, speed_i = mine[0] * 0.5, mine[1], mine[2]
     dx, dy = xj - ox, yj - oy
     along, across = dx * ux + dy * uy, dy * ux - dx * uy
     cos_rel, sin_rel = cj * ux + sj * uy, sj * ux - cj * uy
@@ -229,8 +247,8 @@ def _chord_gaps(
     reach = half_width_i + 0.5 * (lj * sin_rel.abs() + wj * cos_rel.abs())
     inside = (along >= 0) & (along < length) & (across.abs() < reach)
     gap = torch.where(inside, offset + along - half_along - half_len_i, float("inf"))
-    now, m = gap.min(-1)
-    lead = (vj[:, 0] * cos_rel.gather(-1, m.unsqueeze(-1))[:, 0]).clamp_min(0.0)
+    now, m = gap.min(0)
+    lead = (vj * cos_rel.gather(0, m.unsqueeze(0))[0]).clamp_min(0.0)
     # The time j's box starts to overlap the corridor across: |across + rate t| < reach.
     rate = vj * sin_rel
     crossing = sin_rel.abs() > CROSSING_SIN
@@ -243,7 +261,7 @@ def _chord_gaps(
     # its own length) well before j's box arrives; else it yields.
     clear = gap_in + 2.0 * (half_along + half_len_i)
     late = clear >= speed_i.clamp_min(1.0) * (t_in - YIELD_SLACK)
-    ghost = torch.where(enters & late, gap_in, float("inf")).amin(-1)
+    ghost = torch.where(enters & late, gap_in, float("inf")).amin(0)
     return now, lead, ghost
 
 
@@ -277,22 +295,20 @@ def pair_gaps(
         where none is yielded to).
     """
     li, fj = pairs
-    other = _others(agents, fj)  # [Q, 7]
+    other = _others(agents, fj)  # [7, Q]
     half = CHORDS // 2
-    columns = (*lanes.origin.unbind(-1), *lanes.direction.unbind(-1), lanes.length, lanes.offset)
-    table = torch.stack(columns, -1).view(-1, 12)  # [L M / 2, 12]: a quarter's two chords
-    quarters = _near_quarters(_quarter_discs(lanes, own[:, 1]).index_select(0, li), other)
-    near = quarters.any(-1)
+    quarters = _near_quarters(_quarter_discs(lanes, own[:, 1], li), other)  # [M / 2, Q]
+    near = quarters.any(0)
     k = true_index(near)
-    # One entry per (pair, quarter) j comes near: only those chords are tested.
+    # One entry per (quarter, pair) j comes near: only those chords are tested.
     entry = true_index(quarters)
-    q, quarter = entry // half, entry % half
+    quarter, q = entry // li.shape[0], entry % li.shape[0]
     lq = li.index_select(0, q)
-    chords = table.index_select(0, lq * half + quarter).view(-1, 2, 6)
-    mine, near_j = own.index_select(0, lq), other.index_select(0, q)
+    chords = _chord_table(lanes).index_select(1, lq * half + quarter).view(6, 2, -1)
+    mine, near_j = own.t().index_select(1, lq), other.index_select(1, q)
     # Standing agents' paths are not tested ahead in time: a horizon of 0 s.
-    moving = near_j[:, 4].abs() > MOVING_SPEED
-    horizon = torch.where(moving, CROSSING_HORIZON, 0.0).unsqueeze(-1)
+    moving = near_j[4].abs() > MOVING_SPEED
+    horizon = torch.where(moving, CROSSING_HORIZON, 0.0)
     now_e, lead_e, ghost_e = _chord_gaps(chords, near_j, mine, horizon)
     pair = (near.cumsum(0) - 1).index_select(0, q)  # [E] the entry's pair among the K
     inf = torch.full((k.shape[0],), float("inf"), dtype=now_e.dtype, device=now_e.device)
