@@ -370,12 +370,12 @@ class IDMPolicy:
         carried = Leader(gap, lead_speed, crossing)
         now = (progress, follow & turn)
         leader, known = self._leaders(state, ps, (agent, carried), now, terms)
-        # The stand line, the leader and the crossing yielded to, in one [L, 3] evaluation.
+        # The stand line, the leader and the crossing yielded to, in one [3, L] evaluation
+        # (agents along the contiguous dimension: their terms broadcast at full width).
         zero = torch.zeros_like(speed)
-        gaps = torch.stack([stand_arc - progress + s0, leader.gap, leader.crossing], -1)
-        leads = torch.stack([zero, leader.speed, zero], -1)
-        each = IDMTerms(*(getattr(terms, f).unsqueeze(-1) for f in _TERMS))
-        crowd = crowding(speed.unsqueeze(-1), gaps, leads, each, cfg.min_gap).amax(-1)
+        gaps = torch.stack([stand_arc - progress + s0, leader.gap, leader.crossing], 0)
+        leads = torch.stack([zero, leader.speed, zero], 0)
+        crowd = crowding(speed, gaps, leads, terms, cfg.min_gap).amax(0)
         cap_index = (progress / ROUTE_SPACING).round().long().clamp(0, ps.speed_cap.shape[-1] - 1)
         cap = ps.speed_cap.view(-1).index_select(0, agent * ps.speed_cap.shape[-1] + cap_index)
         acc = acceleration(speed, torch.minimum(desired, cap), crowd, terms)
