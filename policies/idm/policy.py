@@ -71,6 +71,25 @@ CACHE_SCENES = 256
 """Scene plans kept (least recently used dropped first)."""
 
 
+_START_MOTION = {
+    "progress": 0.0,
+    "lead_gap": float("inf"),
+    "lead_speed": 0.0,
+    "yield_gap": float("inf"),
+    "stand_arc": float("inf"),
+    "headway_cut": 0.0,
+}
+"""``IDMState.motion`` of every slot at the start: no leader, crossing, stand line nor cut."""
+MOTION_FIELDS = tuple(_START_MOTION)
+"""The columns of ``IDMState.motion``, in order."""
+
+
+def _motion_column(name: str) -> property:
+    """A read-only [B, N] view of the column ``name`` of ``IDMState.motion``."""
+    k = MOTION_FIELDS.index(name)
+    return property(lambda self: self.motion[..., k], doc=f"[B, N] ``motion``'s {name}.")
+
+
 @dataclass(frozen=True)
 class IDMState:
     """Per-rollout memory of ``IDMPolicy``: B rows, N agent slots, in the state's frame.
@@ -123,18 +142,12 @@ class IDMState:
     crosswalks: torch.Tensor
     valid: torch.Tensor
 
-    progress = property(lambda self: self.motion[..., 0])
-    lead_gap = property(lambda self: self.motion[..., 1])
-    lead_speed = property(lambda self: self.motion[..., 2])
-    yield_gap = property(lambda self: self.motion[..., 3])
-    stand_arc = property(lambda self: self.motion[..., 4])
-    headway_cut = property(lambda self: self.motion[..., 5])
-
-
-MOTION_FIELDS = ("progress", "lead_gap", "lead_speed", "yield_gap", "stand_arc", "headway_cut")
-"""The columns of ``IDMState.motion``."""
-_START_MOTION = (0.0, float("inf"), 0.0, float("inf"), float("inf"), 0.0)
-"""``IDMState.motion`` of every slot at the start: no leader, crossing, stand line nor cut."""
+    progress = _motion_column("progress")
+    lead_gap = _motion_column("lead_gap")
+    lead_speed = _motion_column("lead_speed")
+    yield_gap = _motion_column("yield_gap")
+    stand_arc = _motion_column("stand_arc")
+    headway_cut = _motion_column("headway_cut")
 
 
 _PAD = {"end": np.inf, "params": 1.0, "signal_arc": np.inf, "signal_row": -1}
@@ -295,7 +308,7 @@ class IDMPolicy:
             sign_stopped=torch.zeros(stops, dtype=torch.bool, device=dev),
             sign_cleared=torch.zeros(stops, dtype=torch.bool, device=dev),
             lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
-            motion=torch.tensor(_START_MOTION, device=dev).repeat(b, n, 1),
+            motion=torch.tensor(list(_START_MOTION.values()), device=dev).repeat(b, n, 1),
             **f,
         )
         return self._start_headway(state, start)
@@ -351,6 +364,7 @@ class IDMPolicy:
         agent = true_index(state.valid & ps.valid & ~parked)
         take = functools.partial(_rows, agent=agent)
         pose, speed, size = take(state.pose), take(state.speed), take(state.agents.size)
+        # The MOTION_FIELDS, in order.
         last, gap, lead_speed, crossing, stand_arc, cut = take(ps.motion).unbind(-1)
         progress = advance_progress(ps.route, agent, last, pose[:, :2])
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
