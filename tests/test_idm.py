@@ -675,7 +675,7 @@ def test_quarter_chords_give_the_gaps_of_every_chord():
     near: on random bent corridors and agents (standing, slow, fast, reversing, crossing) it
     gives the gaps, lead speeds and crossing gaps of testing all ``CHORDS`` chords of every
     pair, and no pair it leaves out has a finite gap or crossing in any chord."""
-    from policies.idm.leaders import Agents, Corridor, _chord_gaps, _others, pair_gaps
+    from policies.idm.leaders import Agents, Corridor, _chord_gaps, pair_gaps, slot_table
     from policies.idm.params import CHORDS, CROSSING_HORIZON, MOVING_SPEED
 
     g = torch.Generator().manual_seed(0)
@@ -712,17 +712,18 @@ def test_quarter_chords_give_the_gaps_of_every_chord():
             1.3 * torch.ones(n_lanes),
             10.0 * torch.rand(n_lanes, generator=g),
         ],
-        -1,
-    )
+        0,
+    )  # [3, L]
     li = torch.arange(n_lanes).repeat_interleave(n_agents)
     fj = torch.arange(n_agents).repeat(n_lanes)
-    k, gap, lead, ghost = pair_gaps((li, fj), agents, lanes, own)
+    slots = slot_table(agents)
+    k, gap, lead, ghost = pair_gaps((li, fj), slots, lanes, own)
     columns = [*origin.unbind(-1), *direction.unbind(-1), length, offset]
     chords = torch.stack(columns, 0)[:, li].transpose(1, 2)  # [6, CHORDS, Q]: every chord
-    other = _others(agents, fj)  # [7, Q]
+    other = slots[:, fj]  # [7, Q]
     moving = other[4].abs() > MOVING_SPEED
     horizon = torch.where(moving, CROSSING_HORIZON, 0.0)
-    all_gap, all_lead, all_ghost = _chord_gaps(chords, other, own[li].t(), horizon)
+    all_gap, all_lead, all_ghost = _chord_gaps(chords, other, own[:, li], horizon)
     found = torch.isfinite(all_gap) | torch.isfinite(all_ghost)
     assert found.sum() > 50 and torch.isfinite(all_ghost).sum() > 10
     left_out = torch.ones(li.shape[0], dtype=torch.bool)

@@ -33,7 +33,7 @@ from policies.idm.params import (
 )
 from policies.idm.tracking import points_at
 from tbsim_env.core.torch_utils import below_zero, true_index, valid_order
-from tbsim_env.sim.idm import IDMTerms, crowding
+from tbsim_env.sim.idm import IDMTerms, crowding, terms_at
 
 
 @dataclass(frozen=True)
@@ -165,17 +165,15 @@ class Agents:
     pedestrian: torch.Tensor | None = None
 
 
-def _others(agents: Agents, fj: torch.Tensor) -> torch.Tensor:
-    """[7, Q] (x, y, cos yaw, sin yaw, speed, length, width) of the slots ``fj`` [Q], a row
-    each.
+def slot_table(agents: Agents) -> torch.Tensor:
+    """[7, B N] (x, y, cos yaw, sin yaw, speed, length, width) of every slot, a row each.
 
     The per-pair tests lay pairs along the last, contiguous dimension ([7, Q], [M / 2, Q],
     [C, E]): ATen's elementwise loops broadcast a pair's value over a leading dimension at
     full vector width, and over a trailing one of 2 or 4 several times slower."""
     yaw = agents.pose[..., 2]
     cols = [*agents.pose[..., :2].unbind(-1), yaw.cos(), yaw.sin(), agents.speed]
-    table = torch.stack([*cols, *agents.size.unbind(-1)], 0)  # [7, B, N]
-    return table.view(7, -1).index_select(1, fj)
+    return torch.stack([*cols, *agents.size.unbind(-1)], 0).view(7, -1)
 
 
 def _quarter_discs(lanes: Corridor, half_width: torch.Tensor, li: torch.Tensor) -> torch.Tensor:
@@ -207,7 +205,7 @@ def _near_quarters(discs: torch.Tensor, other: torch.Tensor) -> torch.Tensor:
 
     Args:
         discs: [3, M / 2, Q] i's quarter discs (centre x, y, radius) m.
-        other: [7, Q] j (``_others``).
+        other: [7, Q] j (columns of ``slot_table``).
     """
     cx, cy, radius = discs.unbind(0)  # [M / 2, Q]
     xj, yj, cj, sj, vj, lj, wj = other.unbind(0)  # [Q]
@@ -229,7 +227,7 @@ def _chord_gaps(
     Args:
         chords: [6, C, E] the chords of i tested (origin x, y, direction x, y, length,
             offset).
-        other: [7, E] j (``_others``).
+        other: [7, E] j (columns of ``slot_table``).
         mine: [3, E] i's (length, half corridor width, speed).
         horizon: [E] s ahead j's path is tested (0: its box now only).
 
@@ -267,7 +265,7 @@ def _chord_gaps(
 
 def pair_gaps(
     pairs: tuple[torch.Tensor, torch.Tensor],
-    agents: Agents,
+    slots: torch.Tensor,
     lanes: Corridor,
     own: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -285,9 +283,9 @@ def pair_gaps(
 
     Args:
         pairs: (i [Q] row of the L agents, j [Q] flat slot index b * N + n).
-        agents: every slot's pose, speed and size.
+        slots: [7, B N] every slot's pose, speed and size (``slot_table``).
         lanes: the L agents' corridors.
-        own: [L, 3] (length m, half the corridor's width m, speed m/s) of the L agents.
+        own: [3, L] (length m, half the corridor's width m, speed m/s) of the L agents.
 
     Returns:
         (near [K] int64: the pairs tested, indices into the Q pairs; gap [K] m, +inf where j
@@ -295,9 +293,9 @@ def pair_gaps(
         where none is yielded to).
     """
     li, fj = pairs
-    other = _others(agents, fj)  # [7, Q]
+    other = slots.index_select(1, fj)  # [7, Q]
     half = CHORDS // 2
-    quarters = _near_quarters(_quarter_discs(lanes, own[:, 1], li), other)  # [M / 2, Q]
+    quarters = _near_quarters(_quarter_discs(lanes, own[1], li), other)  # [M / 2, Q]
     near = quarters.any(0)
     k = true_index(near)
     # One entry per (quarter, pair) j comes near: only those chords are tested.
@@ -305,7 +303,7 @@ def pair_gaps(
     quarter, q = entry // li.shape[0], entry % li.shape[0]
     lq = li.index_select(0, q)
     chords = _chord_table(lanes).index_select(1, lq * half + quarter).view(6, 2, -1)
-    mine, near_j = own.t().index_select(1, lq), other.index_select(1, q)
+    mine, near_j = own.index_select(1, lq), other.index_select(1, q)
     # Standing agents' paths are not tested ahead in time: a horizon of 0 s.
     moving = near_j[4].abs() > MOVING_SPEED
     horizon = torch.where(moving, CROSSING_HORIZON, 0.0)
@@ -368,10 +366,11 @@ def find_leaders(
     asks.index_fill_(0, agent, True)
     # j's box over its path of the crossing horizon (``_near_quarters``) lies within a disc
     # around the path's midpoint: half its length plus the half diagonal.
-    size, yaw = agents.size, agents.pose[..., 2]
-    half_travel = 0.5 * CROSSING_HORIZON * agents.speed
-    mid = agents.pose[..., :2] + half_travel.unsqueeze(-1) * torch.stack([yaw.cos(), yaw.sin()], -1)
-    reach = 0.5 * torch.hypot(size[..., 0], size[..., 1]) + half_travel.abs()
+    slots = slot_table(agents)
+    x, y, c, s, v, length_j, width_j = slots.view(7, b, n).unbind(0)
+    half_travel = 0.5 * CROSSING_HORIZON * v
+    mid = torch.stack([x + half_travel * c, y + half_travel * s], -1)
+    reach = 0.5 * torch.hypot(length_j, width_j) + half_travel.abs()
     discs = (asks.view(b, n), disc.view(b, n, 3), reach)
     row, i, j = candidate_pairs(mid, valid, *discs)
     index = torch.full((b * n,), -1, dtype=torch.long, device=valid.device)
@@ -383,14 +382,12 @@ def find_leaders(
         fi, fj = fi.index_select(0, apart), fj.index_select(0, apart)
     li = index.index_select(0, fi)
     speed = agents.speed.flatten().index_select(0, agent)
-    own = torch.stack([length, half_width, speed], -1)
-    near, gap, lead, ghost = pair_gaps((li, fj), agents, lanes, own)
+    own = torch.stack([length, half_width, speed], 0)
+    near, gap, lead, ghost = pair_gaps((li, fj), slots, lanes, own)
     li = li.index_select(0, near)
     sel = true_index(torch.isfinite(gap) | torch.isfinite(ghost))  # the others: no constraint
     li, gap, lead, ghost = (x.index_select(0, sel) for x in (li, gap, lead, ghost))
-    pick = lambda x: x.index_select(0, li) if isinstance(x, torch.Tensor) else x  # noqa: E731
-    pair_terms = IDMTerms(*(pick(getattr(terms, f)) for f in _TERM_FIELDS))
-    ratio = crowding(speed.index_select(0, li), gap, lead, pair_terms, cfg.min_gap)
+    ratio = crowding(speed.index_select(0, li), gap, lead, terms_at(terms, li), cfg.min_gap)
     worst = torch.full_like(speed, -1.0).scatter_reduce(0, li, ratio, "amax")
     top = true_index((ratio >= worst.index_select(0, li)) & torch.isfinite(gap))
     inf = torch.full_like(speed, float("inf"))
@@ -402,9 +399,6 @@ def find_leaders(
     )
 
 
-_TERM_FIELDS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "exponent")
-
-
 __all__ = [
     "Agents",
     "Corridor",
@@ -413,4 +407,5 @@ __all__ = [
     "corridor",
     "find_leaders",
     "pair_gaps",
+    "slot_table",
 ]

@@ -58,10 +58,10 @@ from tbsim_env.sim.idm import (
     acceleration,
     approach_gap,
     crowding,
+    terms_at,
 )
 from tbsim_env.sim.state import SimState
 
-_TERMS = ("max_accel", "comfort_decel", "time_headway", "standstill_gap", "exponent")
 BRANCH_VARIANTS = 4
 """Route variants per scene: a rollout draws one (its random fork branches), so that a scene's
 routes are built at most this many times however many rollouts start from it."""
@@ -330,7 +330,8 @@ class IDMPolicy:
         if agent.numel() == 0:
             return ps
         params = _rows(ps.params, agent)
-        terms = IDMTerms(*(params[:, PARAM_FIELDS.index(f)] for f in _TERMS))
+        fields = dataclasses.fields(IDMTerms)
+        terms = IDMTerms(*(params[:, PARAM_FIELDS.index(f.name)] for f in fields))
         speed, desired = _rows(state.speed, agent), _rows(ps.desired_speed, agent)
         progress, gap, lead_speed, crossing, _, _ = _rows(ps.motion, agent).unbind(-1)
         asking = desired >= MIN_DESIRED_SPEED
@@ -444,7 +445,7 @@ class IDMPolicy:
         if not self.config.pedestrian_gaps:
             pedestrian = state.agents.object_type == int(ObjectType.PEDESTRIAN)
         agents = Agents(state.pose, state.speed, state.agents.size[..., :2], pedestrian)
-        sub = IDMTerms(*(getattr(terms, f).index_select(0, search) for f in _TERMS))
+        sub = terms_at(terms, search)
         found = find_leaders(agents, (state.valid, ask), lanes, sub, self.config)
         lead = Leader(
             gap=lead.gap.index_copy(0, search, found.gap),

@@ -264,7 +264,8 @@ def listed(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
     """
     if mask.device.type != "cpu" or torch.compiler.is_compiling() or bool(mask.all()):
         return None
-    return mask.nonzero(as_tuple=True)
+    flat = true_index(mask)
+    return flat // mask.shape[1], flat % mask.shape[1]
 
 
 def aten_op_count(fn, calls: int = 1) -> float:

@@ -14,7 +14,7 @@ shape, or floats).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 
@@ -40,6 +40,18 @@ class IDMTerms:
     time_headway: torch.Tensor | float
     standstill_gap: torch.Tensor | float
     exponent: torch.Tensor | float = 4.0
+
+
+def terms_at(terms: IDMTerms, index: torch.Tensor) -> IDMTerms:
+    """The terms of the agents ``index`` [K] int64: rows of its [L] tensors (floats as they
+    are)."""
+    pick = {f.name: getattr(terms, f.name) for f in fields(IDMTerms)}
+    return IDMTerms(
+        **{
+            k: v.index_select(0, index) if isinstance(v, torch.Tensor) else v
+            for k, v in pick.items()
+        }
+    )
 
 
 def desired_gap(speed: torch.Tensor, lead_speed: torch.Tensor, p: IDMTerms) -> torch.Tensor:
