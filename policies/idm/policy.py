@@ -34,6 +34,9 @@ from policies.idm.params import (
     HEADWAY_RELAX_TIME,
     HORIZON_BASE,
     HORIZON_TIME,
+    MAX_CROSSWALKS,
+    MAX_SIGN_STOPS,
+    MAX_SIGNAL_STOPS,
     ROUTE_SPACING,
     SCENE_CROSSWALKS,
     IDMConfig,
@@ -97,16 +100,19 @@ class IDMState:
     Attributes:
         route: [B, N, P, 2] float32 route points, m, ``ROUTE_SPACING`` apart.
         speed_cap: [B, N, P] float32 m/s the route's bends allow.
-        end: [B, N] float32 arc length (m) where the agent stops (+inf: open route).
         desired_speed: [B, N] float32 m/s (drawn per rollout).
         params: [B, N, F] float32, the ``plan.PARAM_FIELDS`` of each agent (time headway
             drawn per rollout).
-        obeys: [B, N] bool, the agent stops for signals, stop signs and crosswalks.
-        signal_arc: [B, N, Ks] float32 m (+inf padding); signal_row: [B, N, Ks] int64 row of
-            ``SimState.signals`` (-1 padding).
-        sign_arc: [B, N, Kt] float32 m (+inf padding).
-        sign_stopped: [B, N, Kt] bool, the full stop at that line is made.
-        sign_cleared: [B, N, Kt] bool, and the junction was clear after it: the agent goes.
+        lines: [B, N, Ks + Kt + Kc + 1] float32 arc lengths (m) along the route of the
+            signal stop lines (Ks), the stop-sign lines (Kt), the crosswalk entries (Kc) and
+            the route's end (+inf: open route); +inf padding, and every line +inf for the
+            agents that do not stop for signals, stop signs or crosswalks (pedestrians), so
+            that one gather reads all that holds an agent (``LINE_COLUMNS``).
+        line_row: [B, N, Ks + Kc] int64 rows of ``SimState.signals`` (Ks) and of
+            ``crosswalks`` (Kc) of those lines (-1 padding).
+        sign_flags: [B, N, 2, Kt] bool, per stop-sign line: the full stop there is made
+            (``[..., 0, :]``), and the junction was clear after it: the agent goes
+            (``[..., 1, :]``).
         lead_known: [B, N] bool, the agent has searched for leaders since the start.
         motion: [B, N, 6] float32, what a step reads and writes of each agent, in one table
             (``MOTION_FIELDS``; each column also a property of that name, [B, N]): progress m,
@@ -118,27 +124,19 @@ class IDMState:
             in between (``IDMConfig.leader_period``); headway_cut s taken off the drawn time
             headway now: the cut that lets an agent follow its leader at the start at its
             logged gap (``_start_headway``), shrinking by ``HEADWAY_RELAX_TIME``.
-        crosswalk_arc: [B, N, Kc] float32 m (+inf padding); crosswalk_row: [B, N, Kc] int64
-            row of ``crosswalks`` (-1 padding).
         crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
         valid: [B, N] bool, the slot has a route (agents that never appear have none).
     """
 
     route: torch.Tensor
     speed_cap: torch.Tensor
-    end: torch.Tensor
     desired_speed: torch.Tensor
     params: torch.Tensor
-    obeys: torch.Tensor
-    signal_arc: torch.Tensor
-    signal_row: torch.Tensor
-    sign_arc: torch.Tensor
-    sign_stopped: torch.Tensor
-    sign_cleared: torch.Tensor
+    lines: torch.Tensor
+    line_row: torch.Tensor
+    sign_flags: torch.Tensor
     lead_known: torch.Tensor
     motion: torch.Tensor
-    crosswalk_arc: torch.Tensor
-    crosswalk_row: torch.Tensor
     crosswalks: torch.Tensor
     valid: torch.Tensor
 
@@ -150,8 +148,16 @@ class IDMState:
     headway_cut = _motion_column("headway_cut")
 
 
-_PAD = {"end": np.inf, "params": 1.0, "signal_arc": np.inf, "signal_row": -1}
-_PAD |= {"sign_arc": np.inf, "crosswalk_arc": np.inf, "crosswalk_row": -1}
+_SIGNS = MAX_SIGNAL_STOPS + MAX_SIGN_STOPS
+LINE_COLUMNS = {
+    "signal": slice(0, MAX_SIGNAL_STOPS),
+    "sign": slice(MAX_SIGNAL_STOPS, _SIGNS),
+    "crosswalk": slice(_SIGNS, _SIGNS + MAX_CROSSWALKS),
+    "end": _SIGNS + MAX_CROSSWALKS,
+}
+"""The columns of ``IDMState.lines`` per kind of stop line (the last one: the route's end);
+``IDMState.line_row`` holds the signal rows, then the crosswalk rows."""
+_PAD = {"params": 1.0, "lines": np.inf, "line_row": -1}
 """The value of the slots (and crosswalk rows) past a scene's own, per field (others: 0)."""
 
 
@@ -159,18 +165,15 @@ def _row(plan: ScenePlan, origin: np.ndarray) -> dict[str, np.ndarray]:
     """One batch row's fields of a scene plan, in the state's frame, unpadded: [A, ...] per
     agent, crosswalks [W, V, 2]."""
     r, e = plan.routes, plan.events
+    lines = np.concatenate([e.signal_arc, e.sign_arc, e.crosswalk_arc], 1)
+    lines[~plan.obeys] = np.inf
     return {
         "route": r.points - origin,
         "speed_cap": plan.speed_cap,
-        "end": r.end,
         "desired_speed": plan.desired_speed,
         "params": plan.params,
-        "obeys": plan.obeys,
-        "signal_arc": e.signal_arc,
-        "signal_row": e.signal_row,
-        "sign_arc": e.sign_arc,
-        "crosswalk_arc": e.crosswalk_arc,
-        "crosswalk_row": e.crosswalk_row,
+        "lines": np.concatenate([lines, r.end[:, None]], 1),
+        "line_row": np.concatenate([e.signal_row, e.crosswalk_row], 1),
         "crosswalks": plan.crosswalks.reshape(-1, CROSSWALK_VERTICES, 2) - origin,
         "valid": r.valid,
     }
@@ -303,10 +306,8 @@ class IDMPolicy:
         f["desired_speed"] = f["desired_speed"] * (1.0 + cfg.speed_spread * u[0])
         headway = PARAM_FIELDS.index("time_headway")
         f["params"][..., headway] *= 1.0 + cfg.headway_spread * u[1]
-        stops = f["sign_arc"].shape
         start = IDMState(
-            sign_stopped=torch.zeros(stops, dtype=torch.bool, device=dev),
-            sign_cleared=torch.zeros(stops, dtype=torch.bool, device=dev),
+            sign_flags=torch.zeros(b, n, 2, MAX_SIGN_STOPS, dtype=torch.bool, device=dev),
             lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
             motion=torch.tensor(list(_START_MOTION.values()), device=dev).repeat(b, n, 1),
             **f,
@@ -378,8 +379,8 @@ class IDMPolicy:
         turn = turn.index_select(0, agent // n)  # [L]
         searching = bool(turn.any())
         if searching:  # else the stand lines and stop-sign flags stay as they are
-            where = (progress, size, turn, stand_arc)
-            stand_arc, stopped, cleared = self._stand_lines(state, ps, agent, where)
+            where = (progress, size[:, 0], speed, decel)
+            stand_arc, flags = self._stand_lines(state, ps, agent, where, (turn, stand_arc))
         desired = take(ps.desired_speed)
         follow = desired >= MIN_DESIRED_SPEED  # held agents need no leader
         carried = Leader(gap, lead_speed, crossing)
@@ -411,8 +412,7 @@ class IDMPolicy:
         nxt = dataclasses.replace(
             ps,
             motion=motion,
-            sign_stopped=put(ps.sign_stopped, stopped),
-            sign_cleared=put(ps.sign_cleared, cleared),
+            sign_flags=put(ps.sign_flags, flags),
             lead_known=ps.lead_known if known is None else put(ps.lead_known, known),
         )
         return action, nxt
@@ -459,66 +459,64 @@ class IDMPolicy:
         state: SimState,
         ps: IDMState,
         agent: torch.Tensor,
-        where: tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor],
-    ) -> tuple[torch.Tensor, ...]:
-        """(``stand_arc`` [L] m, ``sign_stopped``, ``sign_cleared`` [L, Kt]) of the L agents
-        at progress [L] m with sizes [L, 3] (``where`` = (progress, size, turn, stand_arc of
-        the last step)): looked up anew (``_stand_distance``) for the agents whose ``turn``
-        [L] bool it is, carried on for the others."""
-        progress, size, turn, last = where
+        where: tuple[torch.Tensor, ...],
+        carried: tuple[torch.Tensor, torch.Tensor],
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """(``stand_arc`` [L] m, ``sign_flags`` [L, 2, Kt]) of the L agents ``agent`` (``where``
+        as ``_stand_distance``'s): looked up anew for the agents whose turn it is
+        (``carried`` = (turn [L] bool, stand_arc [L] of the last step)), carried on for the
+        others."""
+        turn, last = carried
         if bool(turn.all()):
-            stand, stopped, cleared = self._stand_distance(state, ps, agent, (progress, size))
-            return progress + stand, stopped, cleared
-        take = functools.partial(_rows, agent=agent)
-        carried = (last, take(ps.sign_stopped), take(ps.sign_cleared))
+            stand, flags = self._stand_distance(state, ps, agent, where)
+            return where[0] + stand, flags
+        flags_before = _rows(ps.sign_flags, agent)
         due = true_index(turn)
         if due.numel() == 0:
-            return carried
-        now = (progress.index_select(0, due), size.index_select(0, due))
-        stand, stopped, cleared = self._stand_distance(state, ps, agent.index_select(0, due), now)
-        return (
-            carried[0].index_copy(0, due, now[0] + stand),
-            carried[1].index_copy(0, due, stopped),
-            carried[2].index_copy(0, due, cleared),
-        )
+            return last, flags_before
+        now = tuple(x.index_select(0, due) for x in where)
+        stand, flags = self._stand_distance(state, ps, agent.index_select(0, due), now)
+        return last.index_copy(0, due, now[0] + stand), flags_before.index_copy(0, due, flags)
 
     def _stand_distance(
         self,
         state: SimState,
         ps: IDMState,
         agent: torch.Tensor,
-        where: tuple[torch.Tensor, torch.Tensor],
-    ) -> tuple[torch.Tensor, ...]:
+        where: tuple[torch.Tensor, ...],
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """(distance to stand [L] m: the nearest of the stop lines that hold the agent and the
-        end of its route; stop-sign flags ``sign_stopped``, ``sign_cleared`` [L, Kt]) of the L
-        agents ``agent`` at progress [L] with sizes [L, 3]."""
+        end of its route; stop-sign flags ``sign_flags`` [L, 2, Kt]) of the L agents ``agent``
+        (``where`` = (progress m, length m, speed m/s, comfortable deceleration m/s^2), [L]
+        each)."""
         cfg = self.config
-        progress, size = where
-        take = functools.partial(_rows, agent=agent)
-        speed = take(state.speed)
+        progress, length, speed, comfort = where
         row = agent // state.num_agents
-        front = (progress + 0.5 * size[:, 0]).unsqueeze(-1)
-        comfort = take(ps.params)[:, PARAM_FIELDS.index("comfort_decel")]
-        signal = (take(ps.signal_arc) - front, (row, take(ps.signal_row)))
-        d_signal = signal_distance(*signal, state.tl_state_now(), speed, comfort)
-        sign_arc = take(ps.sign_arc)
-        sign_gap = sign_arc - front
-        cleared_before = take(ps.sign_cleared)
-        stopped = sign_progress(sign_gap, take(ps.sign_stopped), cleared_before, speed)
+        lines = _rows(ps.lines, agent)  # [L, K + 1]: one gather of all that can hold it
+        gap = lines - (progress + 0.5 * length).unsqueeze(-1)  # from the front bumper
+        line_row = _rows(ps.line_row, agent)
+        signal = LINE_COLUMNS["signal"]
+        d_signal = signal_distance(
+            gap[:, signal], (row, line_row[:, signal]), state.tl_state_now(), speed, comfort
+        )
+        sign_arc, sign_gap = lines[:, LINE_COLUMNS["sign"]], gap[:, LINE_COLUMNS["sign"]]
+        stopped_before, cleared_before = _rows(ps.sign_flags, agent).unbind(1)
+        stopped = sign_progress(sign_gap, stopped_before, cleared_before, speed)
         waiting = stopped & ~cleared_before & torch.isfinite(sign_arc)
         others = (state.pose[..., :2], state.speed, state.valid)
         clear = junction_clear(waiting, (ps.route, sign_arc), agent, others, cfg.junction_radius)
         cleared = cleared_before | (waiting & clear)
         d_sign = sign_distance(sign_gap, cleared)
         walker = state.valid & (state.agents.object_type == int(ObjectType.PEDESTRIAN))
-        used = max(int(ps.crosswalk_row.max()) + 1, 1)  # the polygons some route crosses
-        polygons = ps.crosswalks[:, :used]
-        occupied = crosswalks_occupied(polygons, walker.nonzero(as_tuple=True), others[0])
-        cross = (take(ps.crosswalk_arc) - front, (row, take(ps.crosswalk_row)))
-        d_cross = crosswalk_distance(*cross, occupied)
-        lines = torch.minimum(torch.minimum(d_signal, d_sign), d_cross) - cfg.stop_gap
-        lines = torch.where(take(ps.obeys), lines, float("inf"))
-        return torch.minimum(lines, take(ps.end) - progress), stopped, cleared
+        cross_row = line_row[:, signal.stop :]
+        used = max(int(ps.line_row[..., signal.stop :].max()) + 1, 1)  # polygons some route crosses
+        occupied = crosswalks_occupied(
+            ps.crosswalks[:, :used], walker.nonzero(as_tuple=True), others[0]
+        )
+        d_cross = crosswalk_distance(gap[:, LINE_COLUMNS["crosswalk"]], (row, cross_row), occupied)
+        stand = torch.minimum(torch.minimum(d_signal, d_sign), d_cross) - cfg.stop_gap
+        end = lines[:, LINE_COLUMNS["end"]] - progress
+        return torch.minimum(stand, end), torch.stack([stopped, cleared], 1)
 
 
 __all__ = ["BRANCH_VARIANTS", "IDMPolicy", "IDMState"]
