@@ -181,15 +181,19 @@ def _row(plan: ScenePlan, origin: np.ndarray) -> dict[str, np.ndarray]:
 
 def _batch(rows: Sequence[dict[str, np.ndarray]], n: int) -> dict[str, torch.Tensor]:
     """The rows' fields as [B, N, ...] tensors (crosswalks [B, ``SCENE_CROSSWALKS``, V, 2]),
-    float32 for floats, padded with ``_PAD``: each written once into its batch array."""
+    float32 for floats, padded with ``_PAD``: each distinct row (rows that are one object,
+    ``IDMPolicy``'s cache of rows, are padded once) written once, then gathered."""
+    first_of: dict[int, int] = {}
+    which = np.array([first_of.setdefault(id(row), len(first_of)) for row in rows])
+    distinct = [rows[int(k)] for k in np.unique(which, return_index=True)[1]]
     out = {}
     for name, first in rows[0].items():
         size = SCENE_CROSSWALKS if name == "crosswalks" else n
         dtype = np.float32 if first.dtype.kind == "f" else first.dtype
-        batch = np.full((len(rows), size, *first.shape[1:]), _PAD.get(name, 0), dtype)
-        for k, row in enumerate(rows):
-            batch[k, : len(row[name])] = row[name]
-        out[name] = torch.from_numpy(batch)
+        padded = np.full((len(distinct), size, *first.shape[1:]), _PAD.get(name, 0), dtype)
+        for k, row in enumerate(distinct):
+            padded[k, : len(row[name])] = row[name]
+        out[name] = torch.from_numpy(padded.take(which, axis=0))
     return out
 
 
@@ -237,6 +241,7 @@ class IDMPolicy:
         self.config = dataclasses.replace(cfg, **fields) if fields else cfg
         self._graphs: LRU[int, tuple[Scenario, LaneGraph]] = LRU(CACHE_SCENES)
         self._plans: LRU[tuple, tuple[Scenario, ScenePlan]] = LRU(CACHE_SCENES)
+        self._rows: LRU[tuple, tuple[ScenePlan, dict[str, np.ndarray]]] = LRU(CACHE_SCENES)
 
     # ------------------------------------------------------------------ planning
     def lane_graph(self, scenario: Scenario) -> LaneGraph:
@@ -270,6 +275,15 @@ class IDMPolicy:
             hit = self._plans.put(key, (scenario, built))
         return hit[1]
 
+    def _row(self, plan: ScenePlan, origin: np.ndarray) -> dict[str, np.ndarray]:
+        """``_row`` of a plan and a frame origin [2] (cached: the rows of a batch that start
+        one scene share it; never modified)."""
+        key = (id(plan), origin.tobytes())
+        hit = self._rows.get(key)
+        if hit is None or hit[0] is not plan:
+            hit = self._rows.put(key, (plan, _row(plan, origin)))
+        return hit[1]
+
     def initial_state(
         self,
         state: SimState,
@@ -293,7 +307,7 @@ class IDMPolicy:
         steps = state.step.tolist()
         origins = state.origin.cpu().numpy()
         rows = [
-            _row(
+            self._row(
                 self.plan(sc, steps[k], variant[k], None if tracks is None else tracks[k]),
                 origins[k],
             )
