@@ -516,3 +516,25 @@ def test_segment_projection_layouts_agree_bit_for_bit():
         want = segment_projection(q, a, ab)
         got = segment_projection_xy(*q.unbind(-1), *a.unbind(-1), *ab.unbind(-1))
         assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+
+
+def test_merge_actions_by_component_is_the_masked_broadcast_where():
+    g = torch.Generator().manual_seed(0)
+    b, n = 5, 9
+    masks = [torch.rand(b, n, generator=g) < 0.5 for _ in range(3)]
+    actions = [torch.randn(b, n, 2, generator=g) for _ in range(3)]
+    actions[0][0, 0] = float("nan")  # a value outside its mask is never read
+    masks[0][0, 0] = masks[1][0, 0] = masks[2][0, 0] = False
+    ref = torch.zeros(b, n, 2)
+    for mask, action in zip(masks, actions):
+        ref = torch.where(mask[..., None], action, ref)
+    got = core.merge_actions(*zip(masks, actions))
+    assert torch.equal(got, ref)
+    assert torch.equal(
+        core.merge_actions((masks[1], actions[1])),
+        torch.where(masks[1][..., None], actions[1], 0.0),
+    )
+    expanded = actions[2][:, :1].expand(b, n, 2)  # a view, as one query column's actions
+    assert torch.equal(
+        core.merge_actions((masks[2], expanded)), torch.where(masks[2][..., None], expanded, 0.0)
+    )

@@ -197,6 +197,18 @@ def _flat(x: torch.Tensor, rows: int) -> torch.Tensor:
     return x.view(shape) if x.is_contiguous() else x.reshape(shape)
 
 
+def where_into(out: torch.Tensor, cond: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> None:
+    """``out[...] = torch.where(cond, a, b)``, written into ``out``: e.g. one component
+    ``x[..., k]`` of an interleaved [..., K] tensor, merged a component at a time (a [B, N]
+    mask against [B, N, K] values broadcasts over the trailing dim, several times slower on
+    the CPU: 130 vs 3 x 16 us for [64, 257, 3]). Eagerly ``where`` writes it directly; under
+    ``torch.compile``, which takes no strided ``out=``, a copy (the graph fuses it)."""
+    if torch.compiler.is_compiling():
+        out.copy_(torch.where(cond, a, b))
+    else:
+        torch.where(cond, a, b, out=out)
+
+
 def true_index(mask: torch.Tensor) -> torch.Tensor:
     """[K] int64 flat (row-major) indices of the True entries of ``mask`` (any shape), in
     order: ``mask.flatten().nonzero()[:, 0]``.

@@ -340,6 +340,8 @@ def npc_actions(
             policy, and the batch rows and track ids of those NPCs); the dynamics never see it.
     """
     action, policy_state = policy.act(state.sim, state.policy_state, generator)
+    if bool(torch.isfinite(action).all()):  # the usual case, in two operations
+        return action, policy_state
     sim = state.sim
     bad = state.setup.npc & sim.valid & ~torch.isfinite(action).all(-1)
     if bool(bad.any()):
@@ -370,7 +372,7 @@ def slot_actions(
         alive = gather_rows(state.alive, setup.slot_query)
     on = torch.bitwise_and(setup.external, alive)
     if npc_action is None:
-        return torch.where(on.unsqueeze(-1), ext, const(0.0, ext))
+        return core.merge_actions((on, ext))
     return core.merge_actions((setup.npc, npc_action), (on, ext))
 
 

@@ -10,8 +10,15 @@ from __future__ import annotations
 import torch
 
 from tbsim_env.core import constants as C
-from tbsim_env.core.torch_utils import const, gather_rows, row_offsets, scalar, select_rows
-from tbsim_env.sim.dynamics import unicycle_step
+from tbsim_env.core.torch_utils import (
+    const,
+    gather_rows,
+    row_offsets,
+    scalar,
+    select_rows,
+    where_into,
+)
+from tbsim_env.sim.dynamics import unicycle_planes, unicycle_step
 from tbsim_env.sim.state import SimState
 
 
@@ -23,10 +30,17 @@ def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
 
     Returns:
         [B, N, 2] merged action (zero where no mask is set).
+
+    Merged a component at a time (``where_into``).
     """
-    out = torch.zeros_like(pairs[0][1])
-    for mask, action in pairs:
-        out = torch.where(mask[..., None], action, out)
+    first = pairs[0][1]
+    out = torch.empty(first.shape, dtype=first.dtype, device=first.device)
+    for k in range(first.shape[-1]):
+        plane = scalar(0.0, first.dtype, first.device)
+        for mask, action in pairs[:-1]:
+            plane = torch.where(mask, action[..., k], plane)
+        mask, action = pairs[-1]
+        where_into(out[..., k], mask, action[..., k], plane)
     return out
 
 
@@ -69,18 +83,26 @@ def step(state: SimState, action: torch.Tensor, movers: torch.Tensor | None = No
     # not seen before) where the log has the agent. For a moving agent ``from_log`` may be
     # anything: ``moving`` wins below. (``valid > controlled`` is ``valid & ~controlled``.)
     from_log = torch.bitwise_and(log_valid, torch.bitwise_or(fresh, state.valid > state.controlled))
-    pose = torch.where(from_log.view(b, n, 1), at[..., :3], state.pose)
-    speed = torch.where(from_log, at[..., 3], state.speed)
+    now = state.pose.unbind(-1)
+    logged = at.unbind(-1)
+    speed = torch.where(from_log, logged[3], state.speed)
+    valid = torch.bitwise_or(moving, from_log)
+    pose = torch.empty_like(state.pose)
+    # Poses are merged a component at a time, into the components of ``pose`` (``where_into``).
     if movers is None or b * n <= C.DENSE_DYNAMICS_MAX_SLOTS:
         # Every slot integrates (a few operations on [B, N]); only the moving ones keep it.
         limit = state.agents.action_limit
         act = torch.clamp(action, -limit, limit)  # clip_action
-        sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
-        pose = torch.where(moving.view(b, n, 1), sim_pose, pose)
+        *sim_pose, sim_speed = unicycle_planes(now, state.speed, act.unbind(-1))
+        for k in range(3):
+            replayed = torch.where(from_log, logged[k], now[k])
+            where_into(pose[..., k], moving, sim_pose[k], replayed)
         speed = torch.where(moving, sim_speed, speed)
-    else:
-        pose, speed = _integrate_movers(state, action, movers, moving, (pose, speed))
-    return state.replace(step=nxt, pose=pose, speed=speed, valid=torch.bitwise_or(moving, from_log))
+        return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
+    for k in range(3):
+        where_into(pose[..., k], from_log, logged[k], now[k])
+    pose, speed = _integrate_movers(state, action, movers, moving, (pose, speed))
+    return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
 
 
 def _integrate_movers(

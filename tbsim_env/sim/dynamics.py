@@ -81,6 +81,26 @@ def squash_action(raw: torch.Tensor, object_type: torch.Tensor) -> torch.Tensor:
     return limit * torch.tanh(raw)
 
 
+def unicycle_planes(
+    pose: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+    speed: torch.Tensor,
+    action: tuple[torch.Tensor, torch.Tensor],
+    dt: float = C.DT,
+) -> tuple[torch.Tensor, ...]:
+    """``unicycle_step`` on separate components, each [...]: (x, y, yaw) m, m, rad, signed
+    speed m/s, (acceleration m/s^2, yaw rate rad/s) -> (x', y', yaw' wrapped, speed').
+
+    The one implementation of the rule: a caller that merges the new pose with others by
+    component (``sim.core.step``) skips interleaving it into [..., 3] first."""
+    x, y, yaw = pose
+    acc, yaw_rate = action
+    half_dt, dt_ = const(0.5 * dt, speed), const(dt, speed)
+    v_mid = speed + half_dt * acc
+    c, s = cos_sin(yaw + half_dt * yaw_rate)
+    step = dt_ * v_mid
+    return x + step * c, y + step * s, wrap_angle(yaw + dt_ * yaw_rate), speed + dt_ * acc
+
+
 def unicycle_step(
     pose: torch.Tensor, speed: torch.Tensor, action: torch.Tensor, dt: float = C.DT
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -95,14 +115,8 @@ def unicycle_step(
     Returns:
         (pose' [..., 3] with wrapped yaw, speed' [...]).
     """
-    acc, yaw_rate = action.unbind(-1)
-    x, y, yaw = pose.unbind(-1)
-    half_dt, dt_ = const(0.5 * dt, speed), const(dt, speed)
-    v_mid = speed + half_dt * acc
-    c, s = cos_sin(yaw + half_dt * yaw_rate)
-    step = dt_ * v_mid
-    yaw = wrap_angle(yaw + dt_ * yaw_rate)
-    return torch.stack([x + step * c, y + step * s, yaw], dim=-1), speed + dt_ * acc
+    *xy_yaw, next_speed = unicycle_planes(pose.unbind(-1), speed, action.unbind(-1), dt)
+    return torch.stack(xy_yaw, dim=-1), next_speed
 
 
 def signed_speed(velocity: torch.Tensor, yaw: torch.Tensor) -> torch.Tensor:
