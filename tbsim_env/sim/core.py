@@ -31,9 +31,18 @@ def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     Returns:
         [B, N, 2] merged action (zero where no mask is set).
 
-    Merged a component at a time (``where_into``).
+    From ``COMPONENT_MERGE_MIN_SLOTS`` slots on, merged a component at a time
+    (``where_into``); below, by [B, N, 1] masks (fewer operations).
     """
     first = pairs[0][1]
+    if (
+        first.numel() // first.shape[-1] < C.COMPONENT_MERGE_MIN_SLOTS
+        or torch.compiler.is_compiling()
+    ):
+        out = const(0.0, first)
+        for mask, action in pairs:
+            out = torch.where(mask.unsqueeze(-1), action, out)
+        return out
     out = torch.empty(first.shape, dtype=first.dtype, device=first.device)
     for k in range(first.shape[-1]):
         plane = scalar(0.0, first.dtype, first.device)
@@ -83,26 +92,64 @@ def step(state: SimState, action: torch.Tensor, movers: torch.Tensor | None = No
     # not seen before) where the log has the agent. For a moving agent ``from_log`` may be
     # anything: ``moving`` wins below. (``valid > controlled`` is ``valid & ~controlled``.)
     from_log = torch.bitwise_and(log_valid, torch.bitwise_or(fresh, state.valid > state.controlled))
-    now = state.pose.unbind(-1)
-    logged = at.unbind(-1)
-    speed = torch.where(from_log, logged[3], state.speed)
-    valid = torch.bitwise_or(moving, from_log)
+    masks = (moving, from_log)
+    if b * n < C.COMPONENT_MERGE_MIN_SLOTS:
+        pose, speed = _merge_few(state, action, at, masks)
+    elif movers is None or b * n <= C.DENSE_DYNAMICS_MAX_SLOTS:
+        pose, speed = _merge_dense(state, action, at, masks)
+    else:
+        pose, speed = _merge_movers(state, action, at, masks, movers)
+    return state.replace(step=nxt, pose=pose, speed=speed, valid=torch.bitwise_or(moving, from_log))
+
+
+def _merge_few(
+    state: SimState, action: torch.Tensor, at: torch.Tensor, masks: tuple[torch.Tensor, ...]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``step``'s (pose [B, N, 3], speed [B, N]) of a small batch: every slot integrates (a few
+    operations on [B, N]), merged with the log by [B, N, 1] masks (the fewest operations).
+    ``at``: ``_log_at`` the next step; ``masks``: (moving, from_log) [B, N] bool."""
+    moving, from_log = masks
+    b, n = moving.shape
+    pose = torch.where(from_log.view(b, n, 1), at[..., :3], state.pose)
+    speed = torch.where(from_log, at[..., 3], state.speed)
+    limit = state.agents.action_limit
+    act = torch.clamp(action, -limit, limit)  # clip_action
+    sim_pose, sim_speed = unicycle_step(state.pose, state.speed, act)
+    return torch.where(moving.view(b, n, 1), sim_pose, pose), torch.where(moving, sim_speed, speed)
+
+
+def _merge_dense(
+    state: SimState, action: torch.Tensor, at: torch.Tensor, masks: tuple[torch.Tensor, ...]
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_merge_few``'s values on a larger batch, a component at a time into the components
+    of the new pose (``where_into``): no [B, N, 1] mask broadcast over [B, N, 3] poses."""
+    moving, from_log = masks
+    now, logged = state.pose.unbind(-1), at.unbind(-1)
+    limit = state.agents.action_limit
+    act = torch.clamp(action, -limit, limit)  # clip_action
+    *sim_pose, sim_speed = unicycle_planes(now, state.speed, act.unbind(-1))
     pose = torch.empty_like(state.pose)
-    # Poses are merged a component at a time, into the components of ``pose`` (``where_into``).
-    if movers is None or b * n <= C.DENSE_DYNAMICS_MAX_SLOTS:
-        # Every slot integrates (a few operations on [B, N]); only the moving ones keep it.
-        limit = state.agents.action_limit
-        act = torch.clamp(action, -limit, limit)  # clip_action
-        *sim_pose, sim_speed = unicycle_planes(now, state.speed, act.unbind(-1))
-        for k in range(3):
-            replayed = torch.where(from_log, logged[k], now[k])
-            where_into(pose[..., k], moving, sim_pose[k], replayed)
-        speed = torch.where(moving, sim_speed, speed)
-        return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
+    for k in range(3):
+        where_into(pose[..., k], moving, sim_pose[k], torch.where(from_log, logged[k], now[k]))
+    speed = torch.where(from_log, logged[3], state.speed)
+    return pose, torch.where(moving, sim_speed, speed)
+
+
+def _merge_movers(
+    state: SimState,
+    action: torch.Tensor,
+    at: torch.Tensor,
+    masks: tuple[torch.Tensor, ...],
+    movers: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``_merge_dense``'s values with only the ``movers`` [B, K] integrating."""
+    moving, from_log = masks
+    now, logged = state.pose.unbind(-1), at.unbind(-1)
+    pose = torch.empty_like(state.pose)
     for k in range(3):
         where_into(pose[..., k], from_log, logged[k], now[k])
-    pose, speed = _integrate_movers(state, action, movers, moving, (pose, speed))
-    return state.replace(step=nxt, pose=pose, speed=speed, valid=valid)
+    speed = torch.where(from_log, logged[3], state.speed)
+    return _integrate_movers(state, action, movers, moving, (pose, speed))
 
 
 def _integrate_movers(
