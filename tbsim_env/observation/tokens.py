@@ -47,7 +47,7 @@ from tbsim_env.observation.spec import (
     observation_space,
 )
 from tbsim_env.sim.collision import agent_distances
-from tbsim_env.sim.geometry import cos_sin, relative_pose, rotate_by
+from tbsim_env.sim.geometry import cos_sin, relative_pose, rotate_by, to_local_xy
 from tbsim_env.sim.knn import k_nearest, planar_distances
 from tbsim_env.sim.state import SimState
 
@@ -327,6 +327,8 @@ def agent_tokens(
     if slots is not None:
         data, static = gather_rows(data, slots), gather_rows(static, slots)
     b, n, h = data.shape[:3]
+    if b * n * h >= C.COMPONENT_POSES_MIN and not torch.compiler.is_compiling():
+        return _agent_tokens_by_component(data, static)
     now = data[:, :, -1:]  # [B, S, 1, 5]
     yaw = now[..., 2:3]
     c, s = cos_sin(-yaw)
@@ -339,6 +341,26 @@ def agent_tokens(
     hist = (hist * data[..., 4:]).view(b, n, h * HISTORY_FEATURES)
     valid, speed_now = data[..., 4].contiguous(), now[:, :, 0, 3:4].contiguous()
     return torch.cat([hist, valid, static, speed_now], -1)
+
+
+def _agent_tokens_by_component(data: torch.Tensor, static: torch.Tensor) -> torch.Tensor:
+    """``agent_tokens``' values from ``History.data`` [B, S, H, 5] and ``static`` [B, S, 6],
+    a component at a time, each written into the result (``COMPONENT_POSES_MIN``): the same
+    arithmetic (``to_local_xy``'s is ``rotate_by``'s, bit for bit)."""
+    b, n, h = data.shape[:3]
+    x, y, yaw, speed, valid = data.unbind(-1)  # [B, S, H]
+    now = data[:, :, -1:, :3]  # [B, S, 1, 3]
+    width = h * HISTORY_FEATURES
+    out = torch.empty(b, n, width + h + static.shape[-1] + 1, dtype=data.dtype, device=data.device)
+    hist = out[..., :width].view(b, n, h, HISTORY_FEATURES)
+    turn = yaw - now[..., 2]
+    parts = (*to_local_xy(x, y, now), torch.cos(turn), torch.sin(turn), speed)
+    for k, part in enumerate(parts):
+        torch.mul(part, valid, out=hist[..., k])
+    out[..., width : width + h] = valid
+    out[..., width + h : -1] = static
+    out[..., -1] = speed[..., -1]
+    return out
 
 
 def _seen_tokens(

@@ -8,6 +8,7 @@ import math
 
 import torch
 
+from tbsim_env.core import constants as C
 from tbsim_env.core.boxes import cos_sin  # noqa: F401  (re-exported)
 from tbsim_env.core.torch_utils import const
 
@@ -75,7 +76,19 @@ def relative_pose(query: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
 
     Returns:
         [..., 3].
+
+    From ``COMPONENT_POSES_MIN`` targets on (eagerly), a component at a time into the result
+    (``to_local_xy``'s arithmetic, the same bits as ``rotate_by``'s).
     """
+    many = target.numel() // 3 >= C.COMPONENT_POSES_MIN
+    if many and not torch.compiler.is_compiling():
+        shape = torch.broadcast_shapes(query.shape, target.shape)
+        out = torch.empty(shape, dtype=target.dtype, device=target.device)
+        x, y, yaw = target.unbind(-1)
+        local = to_local_xy(x, y, query)
+        out[..., 0], out[..., 1] = local
+        out[..., 2] = wrap_angle(yaw - query[..., 2])
+        return out
     yaw = query[..., 2:]
     c, s = cos_sin(-yaw)
     local = rotate_by(target[..., :2] - query[..., :2], c, s)
