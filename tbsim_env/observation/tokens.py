@@ -29,6 +29,7 @@ from tbsim_env.core.torch_utils import (
     row_offsets,
     scalar,
     select_rows,
+    true_index,
     valid_first,
     valid_order,
 )
@@ -472,9 +473,16 @@ def _seen_by_listed(
         *_seen_tokens(state, ctx, observers[b, q].unsqueeze(1), near.unsqueeze(1), cfg, b, columns)
     )
     out = []
+    # The rows of the observers not listed are zero: written once each (no zero fill of rows
+    # that the listed ones then overwrite).
+    rest = None
+    if flat.numel() < observers.numel():
+        listed = torch.zeros(observers.numel(), dtype=torch.bool, device=flat.device)
+        rest = true_index(~listed.index_fill_(0, flat, True))
     for part in (index, rel, mask):
-        full = part.new_zeros(observers.numel(), *part.shape[2:])
-        full.index_copy_(0, flat, part[:, 0])
+        full = part.new_empty(observers.numel(), *part.shape[2:]).index_copy_(0, flat, part[:, 0])
+        if rest is not None:
+            full.index_fill_(0, rest, 0)
         out.append(full.view(*observers.shape, *part.shape[2:]))
     return out[0], out[1], out[2]
 

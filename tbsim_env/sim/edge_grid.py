@@ -552,6 +552,10 @@ def _segment_columns(
         c, e = table.shape[1:]
         base = grid.row_columns if rows is None else grid.row_columns[rows]
         base = base.view(-1, *([1] * (seg.dim() - 1)))
+        if seg.numel() >= C.COLUMN_GATHER_MIN:  # a column at a time: no [C, ...] index
+            at, words = (seg + base).view(-1), table.view(-1)
+            n = c if isinstance(edges, EdgeGrid) else 4
+            return tuple(words[k * e :].index_select(0, at).view(seg.shape) for k in range(n))
         flat = (seg + base).view(1, *seg.shape) + row_offsets(c, e, seg.dim() + 1, seg.device)
         cols = table.view(-1).index_select(0, flat.view(-1)).view(c, *seg.shape).unbind(0)
         return cols if isinstance(edges, EdgeGrid) else cols[:4]
