@@ -185,8 +185,17 @@ def _reference_core_step(state, action):
 
 
 # ---------------------------------------------------------------------- tests
+_PATH_LIMITS = ("COMPONENT_MERGE_MIN_SLOTS", "COMPONENT_POSES_MIN", "COLUMN_GATHER_MIN")
+"""The size limits that choose between a component-wise and a fewer-operation form."""
+
+
+@pytest.mark.parametrize("paths", ["default", "components", "fewer operations"])
 @pytest.mark.parametrize("name", ["real", "generated"])
-def test_observe_and_core_step_match_references(scenes, name):
+def test_observe_and_core_step_match_references(scenes, name, paths, monkeypatch):
+    # Both forms of every size-chosen path give the references' values, bit for bit.
+    if paths != "default":
+        for limit in _PATH_LIMITS:
+            monkeypatch.setattr(C, limit, 1 if paths == "components" else 2**62)
     env = TrafficEnv([scenes[name]], controlled="all", npc_policy="constant_velocity")
     env.reset(seed=0)
     rng = np.random.default_rng(0)
