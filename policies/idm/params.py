@@ -84,7 +84,7 @@ validation split, each back to the collision rate without the cut, 0.020, where 
 cut for good gave 0.021)."""
 HEADWAY_FIT_SHARE = 0.25
 """The least share of the maximum acceleration that a leader at the start takes away from an
-agent whose headway is fitted to its gap (``IDMPolicy._start_headway``: where the free-road term
+agent whose headway is fitted to its gap (``IDMPolicy._start_cut``: where the free-road term
 leaves less, e.g. an agent at or above its desired speed)."""
 MAX_SIGNAL_STOPS = 4
 """Signal-controlled stop lines kept per route (the first along it)."""
@@ -244,7 +244,7 @@ class IDMConfig:
             wants the lane's speed limit (``plan.desired_speeds``).
         min_headway: s (>= 0): an agent that follows a leader closer at the start than its time
             headway allows has its headway lowered, to no less than this, the cut then
-            shrinking back (``HEADWAY_RELAX_TIME``; ``IDMPolicy._start_headway``): real
+            shrinking back (``HEADWAY_RELAX_TIME``; ``IDMPolicy._start_cut``): real
             drivers keep 0.5-1 s where the IDM's 1 s would brake them at once. 0.3 on the
             real validation split (57 scenes, 32 rollouts): minADE 3.29 -> 3.20 m, the
             meta-metric the same (0.763); 0.5 s and 0.2 s (tried without the relaxation) did

@@ -123,7 +123,8 @@ class IDMState:
             holds it, or its route's end; +inf: none) as of its row's last search, carried on
             in between (``IDMConfig.leader_period``); headway_cut s taken off the drawn time
             headway now: the cut that lets an agent follow its leader at the start at its
-            logged gap (``_start_headway``), shrinking by ``HEADWAY_RELAX_TIME``.
+            logged gap (``_start_cut``; NaN until the agent's first leader search fixes
+            it), shrinking by ``HEADWAY_RELAX_TIME``.
         crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
         valid: [B, N] bool, the slot has a route (agents that never appear have none).
     """
@@ -326,12 +327,19 @@ class IDMPolicy:
             motion=torch.tensor(list(_START_MOTION.values()), device=dev).repeat(b, n, 1),
             **f,
         )
-        return self._start_headway(state, start)
+        # The start headway of each agent that follows is fixed at its first leader search
+        # (``_start_cut``, in ``act``): NaN until then.
+        pending = state.valid & start.valid & (start.desired_speed >= MIN_DESIRED_SPEED)
+        start.motion[..., MOTION_FIELDS.index("headway_cut")].masked_fill_(pending, float("nan"))
+        return start
 
-    def _start_headway(self, state: SimState, ps: IDMState) -> IDMState:
-        """``ps`` with the ``headway_cut`` of each agent that follows a leader at the start
-        closer than its time headway T allows: the cut that lowers T to what its gap there
-        allows, no lower than ``IDMConfig.min_headway``.
+    def _start_cut(
+        self, speed: torch.Tensor, desired: torch.Tensor, leader: Leader, terms: IDMTerms
+    ) -> torch.Tensor:
+        """[L] s: the ``headway_cut`` of agents at their first leader search (speed and desired
+        speed [L] m/s, the leaders found, their IDM terms with the drawn time headway): for an
+        agent that follows a leader closer than its time headway T allows, the cut that lowers
+        T to what its gap allows, no lower than ``IDMConfig.min_headway``; 0 for the others.
 
         With v its speed, v0 its desired speed, s and v_l its leader's gap and speed, the
         lowered T makes the IDM's desired gap s* = s0 + v T + v (v - v_l) / (2 sqrt(a b))
@@ -341,17 +349,6 @@ class IDMPolicy:
         van Arem 2012), so that later conflicts, a merge say, meet its own headway. Agents
         slower than ``HEADWAY_FIT_SPEED`` or with no leader get no cut.
         """
-        agent = true_index(state.valid & ps.valid)
-        if agent.numel() == 0:
-            return ps
-        params = _rows(ps.params, agent)
-        fields = dataclasses.fields(IDMTerms)
-        terms = IDMTerms(*(params[:, PARAM_FIELDS.index(f.name)] for f in fields))
-        speed, desired = _rows(state.speed, agent), _rows(ps.desired_speed, agent)
-        progress, gap, lead_speed, crossing, _, _ = _rows(ps.motion, agent).unbind(-1)
-        asking = desired >= MIN_DESIRED_SPEED
-        carried = Leader(gap, lead_speed, crossing)
-        leader, _ = self._leaders(state, ps, (agent, carried), (progress, asking), terms)
         v = speed.clamp_min(HEADWAY_FIT_SPEED)
         free = 1.0 - (v / desired.clamp_min(MIN_DESIRED_SPEED)) ** terms.exponent
         rho = free.clamp_min(HEADWAY_FIT_SHARE).sqrt()
@@ -359,10 +356,7 @@ class IDMPolicy:
         fit = (rho * leader.gap - terms.standstill_gap - closing) / v
         fitted = (speed >= HEADWAY_FIT_SPEED) & torch.isfinite(leader.gap)
         cut = (terms.time_headway - fit.clamp_min(self.config.min_headway)).clamp_min(0.0)
-        cut = torch.where(fitted, cut, torch.zeros_like(cut))
-        at = (agent, torch.full_like(agent, MOTION_FIELDS.index("headway_cut")))
-        motion = ps.motion.flatten(0, 1).index_put(at, cut).view_as(ps.motion)
-        return dataclasses.replace(ps, motion=motion)
+        return torch.where(fitted, cut, torch.zeros_like(cut))
 
     # ------------------------------------------------------------------ acting
     def act(
@@ -384,7 +378,6 @@ class IDMPolicy:
         last, gap, lead_speed, crossing, stand_arc, cut = take(ps.motion).unbind(-1)
         progress = advance_progress(ps.route, agent, last, pose[:, :2])
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
-        terms = IDMTerms(a, decel, headway - cut, s0, delta)
         # Stand lines and leaders are looked for by a row's agents together, on its steps
         # that are multiples of ``leader_period`` and at its first act (nobody has searched),
         # and carried on in between: one search of a few agents costs the tensor operations
@@ -392,6 +385,14 @@ class IDMPolicy:
         turn = (state.step % cfg.leader_period == 0) | ~ps.lead_known.any(1)  # [B]
         turn = turn.index_select(0, agent // n)  # [L]
         searching = bool(turn.any())
+        pending = None  # agents whose start headway this search fixes (NaN cut)
+        if searching:
+            pending = torch.isnan(cut)
+            if bool(pending.any()):
+                cut = torch.where(pending, 0.0, cut)
+            else:
+                pending = None
+        terms = IDMTerms(a, decel, headway - cut, s0, delta)
         if searching:  # else the stand lines and stop-sign flags stay as they are
             where = (progress, size[:, 0], speed, decel)
             stand_arc, flags = self._stand_lines(state, ps, agent, where, (turn, stand_arc))
@@ -400,6 +401,9 @@ class IDMPolicy:
         carried = Leader(gap, lead_speed, crossing)
         now = (progress, follow & turn)
         leader, known = self._leaders(state, ps, (agent, carried), now, terms)
+        if pending is not None:
+            cut = torch.where(pending, self._start_cut(speed, desired, leader, terms), cut)
+            terms = IDMTerms(a, decel, headway - cut, s0, delta)
         # The stand line, the leader and the crossing yielded to, in one [3, L] evaluation
         # (agents along the contiguous dimension: their terms broadcast at full width).
         zero = torch.zeros_like(speed)
