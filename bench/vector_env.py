@@ -1,12 +1,16 @@
 """Throughput of ``BatchedTrafficEnv``: controlled-agent steps per second at several batch sizes.
 
-Each measurement steps B scenario slots with zero actions for a fixed number of batched
-steps (autoreset included: finished slots restart from the scenario bank), full observations
-and metrics, and reports agent steps/s = (active controlled agents summed over steps) / s and
-batched env steps/s. The rows of one B are timed in interleaved rounds (``--rounds``, each
-rate the median over rounds), so that a machine whose speed drifts between runs (a shared
-one) slows every row alike and the ratios between rows hold. Scenarios are the real WOMD
-samples when found, else the embedded generated scenes.
+Each measurement steps B scenario slots with zero actions (``--actions random``: actions
+drawn at random, acceleration ~ N(0, 4 m/s^2) and yaw rate ~ N(0, 0.6 rad/s), clipped by the
+env, the same draws for every row of a round: controlled agents then crash and leave the
+road, and their episodes end and restart early, as with a learner at the start of training)
+for a fixed number of batched steps (autoreset included: finished slots restart from the
+scenario bank), full observations and metrics, and reports agent steps/s = (active
+controlled agents summed over steps) / s and batched env steps/s. The rows of one B are
+timed in interleaved rounds (``--rounds``, each rate the median over rounds), so that a
+machine whose speed drifts between runs (a shared one) slows every row alike and the ratios
+between rows hold. Scenarios are the real WOMD samples when found, else the embedded
+generated scenes.
 
     python bench/vector_env.py [--npc-policy log_replay constant_velocity idm] \
         [--batch-sizes 1 16 64] [--controlled sdc] [--steps 200] [--threads N] [--device cpu]
@@ -81,6 +85,7 @@ class Case:
     npc_kwargs: dict | None = None
     obs_layout: str = "dense"
     compile: bool = False
+    actions: str = "zero"
 
 
 @dataclass(frozen=True)
@@ -135,9 +140,9 @@ def bench(
     alike); the split ("" unless ``stages``) and the operation count are measured in further
     runs (the timers and the profiler cost time of their own)."""
     timed: list[list[tuple[int, float]]] = [[] for _ in envs]
-    for _ in range(rounds):
+    for r in range(rounds):
         for k, ((env, _), case) in enumerate(zip(envs, cases)):
-            timed[k].append(_run(env, _zeros(env), case.steps))
+            timed[k].append(_run(env, _actions(env, case, seed=r), case.steps))
     results = []
     for (env, obs_bytes), case, runs in zip(envs, cases, timed):
         agent_rate = statistics.median(a / dt for a, dt in runs)
@@ -146,7 +151,7 @@ def bench(
         if stages and not case.compile:
             totals: dict[str, float] = {}
             with stage_times(totals):
-                _, wall = _run(env, _zeros(env), case.steps)
+                _, wall = _run(env, _actions(env, case, seed=rounds), case.steps)
             split = format_split(totals, wall)
         ops = 0.0 if case.compile else aten_op_count(lambda e=env: e.step(_zeros(e)), 10)
         results.append(Result(agent_rate, env_rate, obs_bytes, ops, split))
@@ -158,15 +163,30 @@ def _zeros(env: BatchedTrafficEnv) -> torch.Tensor:
     return torch.zeros(env.batch_size, env.num_agents, 2, device=env.device)
 
 
-def _run(env: BatchedTrafficEnv, actions: torch.Tensor, steps: int) -> tuple[int, float]:
-    """(active agent steps, seconds) of ``steps`` batched steps."""
+ACTION_SCALE = (4.0, 0.6)
+"""Standard deviations of ``--actions random``: acceleration m/s^2, yaw rate rad/s."""
+
+
+def _actions(env: BatchedTrafficEnv, case: Case, seed: int) -> list[torch.Tensor]:
+    """``case.steps`` [B, Q, 2] actions: zeros, or (``case.actions == "random"``) normal draws
+    scaled by ``ACTION_SCALE``, from ``seed`` (the same for every row of a round)."""
+    if case.actions != "random":
+        return [_zeros(env)] * case.steps
+    g = torch.Generator().manual_seed(seed)
+    scale = torch.tensor(ACTION_SCALE)
+    shape = (env.batch_size, env.num_agents, 2)
+    return [(torch.randn(shape, generator=g) * scale).to(env.device) for _ in range(case.steps)]
+
+
+def _run(env: BatchedTrafficEnv, actions: list[torch.Tensor], steps: int) -> tuple[int, float]:
+    """(active agent steps, seconds) of ``steps`` batched steps with ``actions`` [steps]."""
     agent_steps = 0
     if env.device.type == "cuda":
         torch.cuda.synchronize()
     start = time.perf_counter()
-    for _ in range(steps):
+    for a in actions[:steps]:
         agent_steps += int(env.agent_mask.sum())
-        env.step(actions)
+        env.step(a)
     if env.device.type == "cuda":
         torch.cuda.synchronize()
     return agent_steps, time.perf_counter() - start
@@ -208,6 +228,12 @@ def main() -> None:
         "also where compile=True would step eagerly)",
     )
     p.add_argument(
+        "--actions",
+        choices=["zero", "random"],
+        default="zero",
+        help="controlled agents' actions: zero, or random draws (early episode ends, restarts)",
+    )
+    p.add_argument(
         "--stages",
         action="store_true",
         help="also print each eager row's time split per stage (bench/stages.py)",
@@ -216,7 +242,10 @@ def main() -> None:
     scenarios, label = load(args.scenarios, str(args.data))
     machine = measure(scenarios, args.threads)
     print(machine.line())
-    print(f"device {args.device}, controlled={args.controlled}, scenarios: {label}")
+    print(
+        f"device {args.device}, controlled={args.controlled}, actions {args.actions}, "
+        f"scenarios: {label}"
+    )
     print(
         f"{'npc policy':<20} {'obs':<8} {'B':>4} {'agent steps/s':>14} {'x core':>8} "
         f"{'env steps/s':>12} {'ops/step':>9} {'obs B/agent':>12} {'x first':>8} "
@@ -227,7 +256,7 @@ def main() -> None:
         for policy in args.npc_policy:
             for label, kw, layout, compiled in _variants(policy, args):
                 fields = (args.controlled, args.steps, args.device, args.threads, kw)
-                case = Case(b, policy, *fields, layout, compiled)
+                case = Case(b, policy, *fields, layout, compiled, args.actions)
                 try:
                     envs.append(make_env(scenarios, case))
                 except FileNotFoundError as e:  # e.g. TrafficBots without weights

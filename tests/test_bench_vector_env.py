@@ -9,10 +9,13 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
 
 
-def test_vector_env_bench_prints_a_row_per_policy_with_its_ratio_to_the_first():
+@pytest.mark.parametrize("actions", ["zero", "random"])
+def test_vector_env_bench_prints_a_row_per_policy_with_its_ratio_to_the_first(actions):
     cmd = [
         sys.executable,
         str(REPO / "bench" / "vector_env.py"),
@@ -22,12 +25,14 @@ def test_vector_env_bench_prints_a_row_per_policy_with_its_ratio_to_the_first():
         "--steps", "3",
         "--rounds", "2",
         "--obs-layout", "indexed",
+        "--actions", actions,
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env, cwd=REPO)
     assert proc.returncode == 0, proc.stderr[-3000:]
     lines = proc.stdout.splitlines()
     assert lines[0].startswith("machine: ") and "tiny op" in lines[0]
+    assert f"actions {actions}" in lines[1]
     rows = [
         line.split()
         for line in lines
