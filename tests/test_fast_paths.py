@@ -22,6 +22,7 @@ from tbsim_env.core.torch_utils import (
     true_index,
     valid_first,
     valid_order,
+    where_into,
 )
 from tbsim_env.data import load_scenarios
 from tbsim_env.data.generator import default_scenarios
@@ -189,6 +190,7 @@ _PATH_LIMITS = ("COMPONENT_MERGE_MIN_SLOTS", "COMPONENT_POSES_MIN", "COLUMN_GATH
 """The size limits that choose between a component-wise and a fewer-operation form."""
 
 
+@pytest.mark.float_sensitive
 @pytest.mark.parametrize("paths", ["default", "components", "fewer operations"])
 @pytest.mark.parametrize("name", ["real", "generated"])
 def test_observe_and_core_step_match_references(scenes, name, paths, monkeypatch):
@@ -547,3 +549,20 @@ def test_merge_actions_by_component_is_the_masked_broadcast_where():
     assert torch.equal(
         core.merge_actions((masks[2], expanded)), torch.where(masks[2][..., None], expanded, 0.0)
     )
+
+
+def _merge_by_component(mask, a, b):
+    out = torch.empty_like(b)
+    for k in range(b.shape[-1]):
+        where_into(out[..., k], mask, a[..., k], b[..., k])
+    return out
+
+
+def test_where_into_writes_a_component_eagerly_and_in_a_compiled_graph():
+    g = torch.Generator().manual_seed(1)
+    mask = torch.rand(4, 7, generator=g) < 0.5
+    a, b = torch.randn(4, 7, 3, generator=g), torch.randn(4, 7, 3, generator=g)
+    ref = torch.where(mask[..., None], a, b)
+    assert torch.equal(_merge_by_component(mask, a, b), ref)
+    compiled = torch.compile(_merge_by_component, dynamic=False, fullgraph=True)
+    assert torch.equal(compiled(mask, a, b), ref)  # no strided out=: a copy in the graph

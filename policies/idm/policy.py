@@ -184,9 +184,9 @@ def _batch(rows: Sequence[dict[str, np.ndarray]], n: int) -> dict[str, torch.Ten
     """The rows' fields as [B, N, ...] tensors (crosswalks [B, ``SCENE_CROSSWALKS``, V, 2]),
     float32 for floats, padded with ``_PAD``: each distinct row (rows that are one object,
     ``IDMPolicy``'s cache of rows, are padded once) written once, then gathered."""
-    first_of: dict[int, int] = {}
-    which = np.array([first_of.setdefault(id(row), len(first_of)) for row in rows])
-    distinct = [rows[int(k)] for k in np.unique(which, return_index=True)[1]]
+    distinct = list({id(row): row for row in rows}.values())  # in order of first use
+    slot = {id(row): k for k, row in enumerate(distinct)}
+    which = np.array([slot[id(row)] for row in rows])
     out = {}
     for name, first in rows[0].items():
         size = SCENE_CROSSWALKS if name == "crosswalks" else n
@@ -527,7 +527,7 @@ class IDMPolicy:
         d_sign = sign_distance(sign_gap, cleared)
         walker = state.valid & (state.agents.object_type == int(ObjectType.PEDESTRIAN))
         cross_row = line_row[:, signal.stop :]
-        used = max(int(ps.line_row[..., signal.stop :].max()) + 1, 1)  # polygons some route crosses
+        used = max(int(cross_row.max()) + 1, 1)  # the polygons these agents' routes cross
         occupied = crosswalks_occupied(
             ps.crosswalks[:, :used], walker.nonzero(as_tuple=True), others[0]
         )

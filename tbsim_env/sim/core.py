@@ -35,10 +35,7 @@ def merge_actions(*pairs: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
     (``where_into``); below, by [B, N, 1] masks (fewer operations).
     """
     first = pairs[0][1]
-    if (
-        first.numel() // first.shape[-1] < C.COMPONENT_MERGE_MIN_SLOTS
-        or torch.compiler.is_compiling()
-    ):
+    if first.numel() // first.shape[-1] < C.COMPONENT_MERGE_MIN_SLOTS:
         out = const(0.0, first)
         for mask, action in pairs:
             out = torch.where(mask.unsqueeze(-1), action, out)

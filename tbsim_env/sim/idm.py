@@ -45,13 +45,8 @@ class IDMTerms:
 def terms_at(terms: IDMTerms, index: torch.Tensor) -> IDMTerms:
     """The terms of the agents ``index`` [K] int64: rows of its [L] tensors (floats as they
     are)."""
-    pick = {f.name: getattr(terms, f.name) for f in fields(IDMTerms)}
-    return IDMTerms(
-        **{
-            k: v.index_select(0, index) if isinstance(v, torch.Tensor) else v
-            for k, v in pick.items()
-        }
-    )
+    values = (getattr(terms, f.name) for f in fields(IDMTerms))
+    return IDMTerms(*(v.index_select(0, index) if torch.is_tensor(v) else v for v in values))
 
 
 def desired_gap(speed: torch.Tensor, lead_speed: torch.Tensor, p: IDMTerms) -> torch.Tensor:
