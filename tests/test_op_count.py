@@ -17,7 +17,7 @@ from tbsim_env.core.torch_utils import aten_op_count
 from tbsim_env.data import load_scenarios
 from tbsim_env.env import TrafficEnv
 
-MAX_STEP_OPS = 830
+MAX_STEP_OPS = 775
 """ATen operations per step allowed (the count reached, rounded up by about 5%)."""
 
 

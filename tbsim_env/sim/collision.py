@@ -2,56 +2,55 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import torch
 
-from tbsim_env.core.boxes import cos_sin
-from tbsim_env.core.torch_utils import cached_arange, const
+from tbsim_env.core.torch_utils import cached, cached_arange, const, true_index
+
+# The separating-axis test of two boxes a and b, (x, y, yaw, length, width) each, on the
+# columns of one table [..., 15]: a's box (0-4), b's (5-9) and b - a (10-14). The four
+# candidate axes (a's length and width axes, b's) go along the last dim, so that the test is
+# a few operations on [..., 4] blocks whatever the number of pairs:
+#   axis k separates when |dx c1_k + dy c2_k| > h_k + m_k cd_k + n_k sd_k
+# with (c1, c2) = (cos, sin) a, (-sin, cos) a, (cos, sin) b, (-sin, cos) b (the unit axis),
+# h = half (length a, width a, length b, width b), (m, n) the other box's half length and
+# width, and (cd, sd) = |cos|, |sin| of yaw_b - yaw_a (swapped on the width axes), each sum
+# in the order that writes it out term by term.
+_SAT_YAWS = (12, 2, 7)
+"""Table columns of yaw_b - yaw_a, yaw_a, yaw_b: their cos are trig columns 0-2, sin 3-5."""
+_SAT_TRIG = (1, 4, 2, 5, 4, 1, 5, 2, 0, 3, 0, 3, 3, 0, 3, 0)
+"""Trig columns of c1 (sign in ``_SAT_SIGN``), c2, cd, sd (four each, one per axis)."""
+_SAT_SIGN = (1.0, -1.0, 1.0, -1.0)
+_SAT_SIZES = (3, 4, 8, 9, 8, 8, 3, 3, 9, 9, 4, 4)
+"""Table columns of h, m and n (four each, one per axis): full sizes, halved once."""
 
 
-class _BoxPairs(NamedTuple):
-    """What the separating-axis tests of boxes a against boxes b share, [..., Na, Nb]."""
+def boxes_overlap(box_a: torch.Tensor, box_b: torch.Tensor) -> torch.Tensor:
+    """Whether box a overlaps box b (touching counts as overlap), broadcast over the leading
+    dims: the separating axis theorem, no axis of a or b separates them.
 
-    dx: torch.Tensor  # centre offset b - a, x
-    dy: torch.Tensor
-    ndx: torch.Tensor  # -dx
-    la: torch.Tensor  # half length / width of a [..., Na, 1] and of b [..., 1, Nb]
-    wa: torch.Tensor
-    lb: torch.Tensor
-    wb: torch.Tensor
-    cd: torch.Tensor  # |cos|, |sin| of yaw_b - yaw_a
-    sd: torch.Tensor
-    yaw_b: torch.Tensor  # [..., 1, Nb]
+    Args:
+        box_a, box_b: [..., 5] (x m, y m, yaw rad, length m, width m), broadcastable.
 
-
-def _box_pairs(
-    pose_a: torch.Tensor, size_a: torch.Tensor, pose_b: torch.Tensor, size_b: torch.Tensor
-) -> tuple[_BoxPairs, torch.Tensor]:
-    """(``_BoxPairs`` of the boxes of ``pairwise_overlap``, yaw of a [..., Na, 1])."""
-    xa, ya, yaw_a = pose_a.unsqueeze(-2).unbind(-1)  # [..., Na, 1]
-    xb, yb, yaw_b = pose_b.unsqueeze(-3).unbind(-1)  # [..., 1, Nb]
-    dx, dy = xb - xa, yb - ya  # [..., Na, Nb]
-    half = const(0.5, size_a)
-    la, wa = (half * size_a).unsqueeze(-2).unbind(-1)
-    lb, wb = (half * size_b).unsqueeze(-3).unbind(-1)
-    cd, sd = cos_sin(yaw_b - yaw_a)
-    return _BoxPairs(dx, dy, -dx, la, wa, lb, wb, cd.abs(), sd.abs(), yaw_b), yaw_a
+    Returns:
+        [...] bool, the broadcast shape.
+    """
+    diff = box_b - box_a
+    if box_a.shape != diff.shape or box_b.shape != diff.shape:
+        box_a, box_b = box_a.expand_as(diff), box_b.expand_as(diff)
+    table = torch.cat([box_a, box_b, diff], -1)  # [..., 15]
+    yaw = table.index_select(-1, _index(_SAT_YAWS, table))
+    trig = torch.cat([yaw.cos(), yaw.sin()], -1).index_select(-1, _index(_SAT_TRIG, table))
+    cdsd = trig[..., 8:].abs_()  # the gathered copy's own memory
+    sizes = table.index_select(-1, _index(_SAT_SIZES, table)) * const(0.5, table)
+    c1 = trig[..., :4] * const(_SAT_SIGN, trig)
+    reach = (diff[..., 0:1] * c1 + diff[..., 1:2] * trig[..., 4:8]).abs_()
+    limit = sizes[..., :4] + sizes[..., 4:8] * cdsd[..., :4] + sizes[..., 8:] * cdsd[..., 4:]
+    return ~(reach > limit).any(-1)
 
 
-def _separated_on_axes_of_a(p: _BoxPairs, ca: torch.Tensor, sa: torch.Tensor) -> torch.Tensor:
-    """[..., Na, Nb] bool: a's length or width axis (ca, sa), (-sa, ca) separates the pair."""
-    sep = (p.dx * ca + p.dy * sa).abs() > p.la + p.lb * p.cd + p.wb * p.sd
-    sep |= (p.ndx * sa + p.dy * ca).abs() > p.wa + p.lb * p.sd + p.wb * p.cd
-    return sep
-
-
-def _separated_on_axes_of_b(p: _BoxPairs) -> torch.Tensor:
-    """[..., Na, Nb] bool: b's length or width axis separates the pair."""
-    cb, sb = cos_sin(p.yaw_b)
-    sep = (p.dx * cb + p.dy * sb).abs() > p.lb + p.la * p.cd + p.wa * p.sd
-    sep |= (p.ndx * sb + p.dy * cb).abs() > p.wb + p.la * p.sd + p.wa * p.cd
-    return sep
+def _index(columns: tuple[int, ...], like: torch.Tensor) -> torch.Tensor:
+    """``columns`` as a cached int64 index on ``like``'s device."""
+    return cached(("sat", columns, like.device), lambda: torch.tensor(columns, device=like.device))
 
 
 def pairwise_overlap(
@@ -60,9 +59,8 @@ def pairwise_overlap(
     pose_b: torch.Tensor,
     size_b: torch.Tensor,
 ) -> torch.Tensor:
-    """Whether each box of set a overlaps each box of set b (touching counts as overlap).
-
-    Separating axis theorem: no axis of a or b separates the pair.
+    """Whether each box of set a overlaps each box of set b (touching counts as overlap):
+    ``boxes_overlap`` of every pair.
 
     Args:
         pose_a: [..., Na, 3] (x, y, yaw); size_a: [..., Na, 2] (length, width).
@@ -71,9 +69,15 @@ def pairwise_overlap(
     Returns:
         [..., Na, Nb] bool.
     """
-    pairs, yaw_a = _box_pairs(pose_a, size_a, pose_b, size_b)
-    sep = _separated_on_axes_of_a(pairs, *cos_sin(yaw_a))
-    return ~(sep | _separated_on_axes_of_b(pairs))
+    return boxes_overlap(_boxes(pose_a, size_a).unsqueeze(-2), _boxes(pose_b, size_b).unsqueeze(-3))
+
+
+def _boxes(pose: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """[..., N, 5] boxes of poses [..., N, 3] and sizes [..., N, 2] (leading dims broadcast)."""
+    if pose.shape[:-1] != size.shape[:-1]:
+        lead = torch.broadcast_shapes(pose.shape[:-1], size.shape[:-1])
+        pose, size = pose.expand(*lead, 3), size.expand(*lead, 2)
+    return torch.cat([pose, size], -1)
 
 
 def near_limits(
@@ -144,57 +148,22 @@ def collided_with_others(
     if gap is None:
         gap = agent_distances(pose_q, pose)
     near = (gap <= near_limit) & valid.unsqueeze(1)  # [B, K, N]
-    if not torch.compiler.is_compiling():
-        # Eagerly, only the near pairs (a few per agent) get the box test. A compiled graph
-        # cannot size tensors by data: it tests every pair (fused into few kernels).
-        return _near_pairs_overlap(near, pose_q, size_q, pose, size)
-    # ``pairwise_overlap & near``, b's axes only tested when a's leave a near pair unseparated.
-    pairs, yaw_q = _box_pairs(pose_q, size_q, pose, size)
-    near = near & ~_separated_on_axes_of_a(pairs, *(cos_sin_q or cos_sin(yaw_q)))
-    return (near & ~_separated_on_axes_of_b(pairs)).any(-1)
-
-
-def _near_pairs_overlap(
-    near: torch.Tensor,
-    pose_q: torch.Tensor,
-    size_q: torch.Tensor,
-    pose: torch.Tensor,
-    size: torch.Tensor,
-) -> torch.Tensor:
-    """[B, K] bool: some pair flagged in ``near`` [B, K, N] overlaps (``pairwise_overlap`` of
-    the gathered pairs, the same arithmetic; arguments as ``collided_with_others``)."""
+    box_q, box = _boxes(pose_q, size_q), _boxes(pose, size)
+    if torch.compiler.is_compiling():
+        # A compiled graph cannot size tensors by data: it tests every pair (fused into few
+        # kernels).
+        return (near & boxes_overlap(box_q.unsqueeze(2), box.unsqueeze(1))).any(-1)
+    # Eagerly, only the near pairs (a few per agent) get the box test.
     b, k, n = near.shape
-    pairs = near.nonzero()  # [P, 3]: (row, query, slot)
+    flat = true_index(near)  # (row K + query) N + slot
     out = torch.zeros(b * k, dtype=torch.bool, device=near.device)
-    if not len(pairs):
+    if not len(flat):
         return out.view(b, k)
-    row, query, slot = pairs.unbind(1)
-    qi = torch.add(query, row, alpha=k)  # the query's row in [B K]
-    box_a = torch.cat([pose_q, size_q], -1).view(b * k, 5).index_select(0, qi)
-    si = torch.add(slot, row, alpha=n)  # the partner's row in [B N]
-    box_b = torch.cat([pose, size], -1).view(b * n, 5).index_select(0, si)
-    hit = _rows_overlap(box_a, box_b)
+    qi = flat.div(n, rounding_mode="floor")  # the query's row in [B K]
+    # The partner's row in [B N]: row N + slot = flat - (query) N.
+    si = flat if k == 1 else flat - (qi - qi.div(k, rounding_mode="floor")) * n
+    hit = boxes_overlap(box_q.view(b * k, 5)[qi], box.view(b * n, 5)[si])
     return out.index_put_((qi,), hit, accumulate=True).view(b, k)
-
-
-def _rows_overlap(box_a: torch.Tensor, box_b: torch.Tensor) -> torch.Tensor:
-    """[P] bool: box a of each row overlaps box b of the row (``pairwise_overlap``'s test and
-    arithmetic): boxes [P, 5] (x, y, yaw, length, width)."""
-    xa, ya, yaw_a, length_a, width_a = box_a.unbind(1)
-    xb, yb, yaw_b, length_b, width_b = box_b.unbind(1)
-    half = const(0.5, box_a)
-    dx, dy = xb - xa, yb - ya
-    la, wa, lb, wb = half * length_a, half * width_a, half * length_b, half * width_b
-    cd, sd = cos_sin(yaw_b - yaw_a)
-    cd, sd = cd.abs(), sd.abs()
-    ndx = -dx
-    ca, sa = cos_sin(yaw_a)
-    sep = (dx * ca + dy * sa).abs() > la + lb * cd + wb * sd
-    sep |= (ndx * sa + dy * ca).abs() > wa + lb * sd + wb * cd
-    cb, sb = cos_sin(yaw_b)
-    sep |= (dx * cb + dy * sb).abs() > lb + la * cd + wa * sd
-    sep |= (ndx * sb + dy * cb).abs() > wb + la * sd + wa * cd
-    return ~sep
 
 
 def collided(
