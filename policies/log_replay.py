@@ -47,7 +47,8 @@ class LogReplayPolicy:
     ) -> ExpertActions:
         del scenarios, generator  # Unused.
         log = state.log
-        action, valid = inverse_unicycle(log.pose, log.speed, log.valid, state.agents.object_type)
+        pose, speed, valid = log.take("pose"), log.take("speed"), log.take("valid")
+        action, valid = inverse_unicycle(pose, speed, valid, state.agents.object_type)
         return ExpertActions(action=action, valid=valid)
 
     def act(

@@ -85,12 +85,12 @@ def test_inverse_then_forward_is_exact_on_feasible_trajectories():
 
 def _log_tracking_error(scenario) -> dict[int, torch.Tensor]:
     state = build_sim_state([scenario])
-    log = state.log
-    action, _ = inverse_unicycle(log.pose, log.speed, log.valid, state.agents.object_type)
-    pose, _ = rollout_from_log(log.pose, log.speed, log.valid, action)
-    err = (pose[..., :2] - log.pose[..., :2]).norm(dim=-1)
+    log_pose, speed, valid = (state.log.take(k) for k in ("pose", "speed", "valid"))
+    action, _ = inverse_unicycle(log_pose, speed, valid, state.agents.object_type)
+    pose, _ = rollout_from_log(log_pose, speed, valid, action)
+    err = (pose[..., :2] - log_pose[..., :2]).norm(dim=-1)
     types = state.agents.object_type[..., None].expand_as(err)
-    return {t: err[log.valid & (types == t)] for t in (1, 2, 3)}
+    return {t: err[valid & (types == t)] for t in (1, 2, 3)}
 
 
 @pytest.mark.parametrize("name", ["motion_data_one_scenario", "womd_scenario_input"])

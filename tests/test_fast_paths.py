@@ -158,12 +158,12 @@ def _reference_overlap(pose_a, size_a, pose_b, size_b):
 
 def _reference_core_step(state, action):
     """``core.step`` as its docstring says, with per-field gathers and the plain unicycle."""
-    n_t = state.log.valid.shape[-1]
+    n_t = state.log.num_steps
     nxt = (state.step + 1).clamp(max=n_t - 1)
     idx = nxt.view(-1, 1, 1).expand(state.batch_size, state.num_agents, 1)
-    log_valid = state.log.valid.gather(2, idx)[..., 0] & state.agents.mask
-    log_pose = state.log.pose.gather(2, idx[..., None].expand(-1, -1, 1, 3))[:, :, 0]
-    log_speed = state.log.speed.gather(2, idx)[..., 0]
+    log_valid = state.log.take("valid").gather(2, idx)[..., 0] & state.agents.mask
+    log_pose = state.log.take("pose").gather(2, idx[..., None].expand(-1, -1, 1, 3))[:, :, 0]
+    log_speed = state.log.take("speed").gather(2, idx)[..., 0]
     fresh = ~(state.log.first_valid <= state.step[:, None])
     moving = state.controlled & state.valid
     limit = torch.tensor([C.MAX_ACCEL, C.MAX_YAW_RATE]).T[state.agents.object_type]

@@ -105,7 +105,7 @@ def test_the_grid_search_holds_where_agents_drive_and_not_far_away(contexts, rea
     assert ctx.grid.cells.value.shape[-1] < ctx.pose.shape[1], "the real maps use the grid"
     m, cfg = ctx.pose.shape[1], ObsConfig()
     for b in range(ctx.valid.shape[0]):
-        me = state.log.pose[b][state.log.valid[b]][None, :, :2]  # [1, P, 2]
+        me = state.log.take("pose")[b][state.log.take("valid")[b]][None, :, :2]  # [1, P, 2]
         far = me[:, :5] + torch.tensor([1000.0, -3000.0])
         me = torch.cat([far, me], 1)
         rows = torch.tensor([b])

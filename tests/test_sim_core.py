@@ -33,7 +33,7 @@ def real(womd_dir):
 def _run_log_replay(state):
     states = [state]
     zero = torch.zeros(*state.pose.shape[:2], 2)
-    while int(state.step[0]) < state.log.valid.shape[-1] - 1:
+    while int(state.step[0]) < state.log.num_steps - 1:
         state = core.step(state, zero)
         states.append(state)
     return states
@@ -44,9 +44,9 @@ def test_log_replay_reproduces_the_log_exactly(real):
     seen_and_left = torch.zeros_like(state.valid)
     for s in _run_log_replay(state):
         t = int(s.step[0])
-        log_valid = s.log.valid[:, :, t]
+        log_valid = s.log.take("valid")[:, :, t]
         # Agents present now are exactly at their logged pose.
-        assert torch.equal(s.pose[s.valid], s.log.pose[:, :, t][s.valid])
+        assert torch.equal(s.pose[s.valid], s.log.take("pose")[:, :, t][s.valid])
         # Present implies logged; logged and never departed implies present.
         assert not (s.valid & ~log_valid).any()
         seen_and_left |= ~s.valid & (s.log.first_valid < t)
@@ -83,7 +83,7 @@ def test_controlled_agents_integrate_and_late_agents_spawn():
         while int(s.step[0]) < int(state.log.first_valid[0, k]):
             s = core.step(s, action)
         assert bool(s.valid[0, k])
-        assert torch.equal(s.pose[0, k], state.log.pose[0, k, int(s.step[0])])
+        assert torch.equal(s.pose[0, k], state.log.take("pose")[0, k, int(s.step[0])])
 
 
 def test_actions_are_clipped_to_type_limits():
@@ -197,7 +197,7 @@ def test_simplified_road_edges_stay_within_tolerance(real):
         next_index=torch.zeros(1, sum(len(p) - 1 for p in logged), dtype=torch.int64),
     )
     assert raw.start.shape[1] > 4 * int(state.road_edges.valid.sum())
-    pts = state.log.pose[0, :, ::10, :2][state.log.valid[0, :, ::10]][None]
+    pts = state.log.take("pose")[0, :, ::10, :2][state.log.take("valid")[0, :, ::10]][None]
     pts = pts + torch.randn(pts.shape, generator=torch.Generator().manual_seed(0))
     d_raw, _ = point_segment_distance(pts, raw)
     d_env, _ = point_segment_distance(pts, state.road_edges)

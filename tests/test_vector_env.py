@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from tbsim_env.core import constants as C
 from tbsim_env.core.config import EnvConfig, TerminationConfig
 from tbsim_env.core.errors import ActionError
 from tbsim_env.data.generator import default_scenarios
@@ -155,7 +156,13 @@ def test_slots_of_a_batch_match_single_runs(scenes):
                 assert not obs[key][b, q:].any()
 
 
-def test_autoreset_restarts_finished_slots(scenes):
+@pytest.mark.parametrize("kept", [True, False])
+def test_autoreset_restarts_finished_slots(scenes, kept, monkeypatch):
+    """Finished slots restart in the same step with the new episode's first observation:
+    gathered from the bank's first observations when they are kept, else observed anew
+    (``FIRST_OBS_BANK_MAX_BYTES``); both equal a fresh env's."""
+    if not kept:
+        monkeypatch.setattr(C, "FIRST_OBS_BANK_MAX_BYTES", 0)
     venv = BatchedTrafficEnv(scenes, 2, controlled="sdc", npc_policy="log_replay", seed=1)
     obs, _ = venv.reset()
     # Slot 0 drives into trouble at full throttle, slot 1 follows the log.
@@ -186,6 +193,7 @@ def test_autoreset_restarts_finished_slots(scenes):
             assert any(not torch.equal(final[key][b], obs[key][b]) for key in obs)
         assert torch.equal(venv.scenario_index[~info["done"]], before[~info["done"]])
     assert restarted >= 3
+    assert (venv._first_observations() is not None) == kept
     # Scenarios are drawn from the env's seeded generator, one draw per restart.
     rng = np.random.default_rng(1)
     expected = [int(rng.integers(len(scenes))) for _ in range(2 + len(draws))][2:]
@@ -200,12 +208,14 @@ def test_restarting_every_slot_reuses_the_batch_memory(scenes, batch, layout):
     kw = dict(controlled="sdc", npc_policy="log_replay", obs_layout=layout)
     venv = BatchedTrafficEnv(scenes, batch, seed=2, **kw)
     venv.reset()
-    log_memory = venv.sim_state.log.by_step.data_ptr()
+    tables = venv.episode.setup.ctx.tokens.data_ptr()  # per-row map tokens
     for _ in range(5):
         before, *_ = venv.step(venv.expert_actions())
     kept = {k: v.clone() for k, v in before.items()}
     obs = venv.reset_slots(list(range(batch)))
-    assert venv.sim_state.log.by_step.data_ptr() == log_memory
+    assert venv.episode.setup.ctx.tokens.data_ptr() == tables
+    # The logs are the bank's tables, read through each row's row map: never copied.
+    assert venv.sim_state.log.by_step.value is venv.bank.start.log.by_step.value
     assert all(torch.equal(before[k], kept[k]) for k in kept)
     fresh = BatchedTrafficEnv(scenes, batch, **kw)
     fobs, _ = fresh.reset(scenario_indices=venv.scenario_index.tolist())
@@ -293,11 +303,14 @@ def test_take_and_with_rows_round_trip(scenes):
     rows = torch.tensor([2, 0])
     sub = take_rows(state, rows)
     assert sub.batch_size == 2 and torch.equal(sub.pose[0], state.pose[2])
-    before = state.log.pose.clone()
+    before = state.agents.size.clone()
     copy = with_rows(state, torch.tensor([1]), take_rows(state, torch.tensor([0])))
-    assert torch.equal(copy.log.pose[1], state.log.pose[0])
-    assert torch.equal(copy.log.pose[2], state.log.pose[2])
-    assert torch.equal(state.log.pose, before), "with_rows returns a new tree"
+    assert torch.equal(copy.agents.size[1], state.agents.size[0])
+    assert torch.equal(copy.agents.size[2], state.agents.size[2])
+    assert torch.equal(state.agents.size, before), "with_rows returns a new tree"
+    # Shared tables (the logs) pass through; their row maps are rows like any other.
+    assert copy.log.pose is state.log.pose and copy.log.row.tolist() == [0, 0, 2]
+    assert torch.equal(copy.log.take("pose")[1], state.log.take("pose")[0])
     with pytest.raises(ValueError, match="cannot take"):
         with_rows(state.pose, torch.tensor([0]), state.pose[:1, :3])
     with pytest.raises(TypeError):
@@ -312,7 +325,12 @@ def test_cat_rows_inverts_taking_rows(scenes):
     whole = take_rows(state, torch.tensor([2, 0, 1]))
     joined = cat_rows(parts)
     assert type(joined) is type(state) and joined.batch_size == 3
-    assert torch.equal(joined.log.pose, whole.log.pose) and torch.equal(joined.pose, whole.pose)
+    assert torch.equal(joined.log.take("pose"), whole.log.take("pose"))
+    assert torch.equal(joined.pose, whole.pose) and joined.log.pose is state.log.pose
+    other = BatchedTrafficEnv(scenes, 1, seed=0)  # another bank's tables
+    other.reset()
+    with pytest.raises(ValueError, match="share their tables"):
+        cat_rows([state, other.sim_state])
     nested = cat_rows([{"a": (torch.ones(1), None)}, {"a": (torch.zeros(2), None)}])
     assert nested["a"][0].tolist() == [1.0, 0.0, 0.0] and nested["a"][1] is None
     with pytest.raises(ValueError, match="at least one"):
@@ -329,9 +347,9 @@ def test_with_rows_in_place_writes_owned_tensors_only(scenes):
     state = take_rows(venv.sim_state, torch.arange(3))  # tensors of our own
     rows, fresh = torch.tensor([2, 0]), take_rows(state, torch.tensor([1, 1]))
     expected = with_rows(state, rows, fresh)
-    pose = state.log.pose
+    size = state.agents.size
     merged = with_rows(state, rows, fresh, in_place=True)
-    assert merged.log.pose is pose and torch.equal(pose, expected.log.pose)
+    assert merged.agents.size is size and torch.equal(size, expected.agents.size)
     assert torch.equal(merged.pose, expected.pose) and torch.equal(merged.valid, expected.valid)
     base = torch.zeros(4, 3)
     for view in (base[1:3], base[:1].expand(2, 3)):

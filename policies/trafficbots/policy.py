@@ -232,12 +232,13 @@ class TrafficBotsPolicy:
     @staticmethod
     def _log_agents(state: SimState, slot: torch.Tensor, offset: torch.Tensor, t: torch.Tensor):
         """Logged (pose, speed, valid) of the token agents at per-scene steps t [B]."""
-        b = torch.arange(slot.shape[0], device=slot.device)[:, None]
+        log = state.log
+        b = log.row[:, None]  # each row's log table row
         rows, tt = slot.clamp(min=0), t[:, None]
-        pose = state.log.pose[b, rows, tt].clone()
+        pose = log.pose.value[b, rows, tt].clone()
         pose[..., :2] += offset[:, None]
-        valid = state.log.valid[b, rows, tt] & (slot >= 0)
-        return pose * valid[..., None], state.log.speed[b, rows, tt] * valid, valid
+        valid = log.valid.value[b, rows, tt] & (slot >= 0)
+        return pose * valid[..., None], log.speed.value[b, rows, tt] * valid, valid
 
     @staticmethod
     def _log_signals(

@@ -339,9 +339,9 @@ def log_record(scenario: Scenario, track: int, traffic: str = "log") -> EpisodeR
     sim = build_sim_state([scenario], start_step=start)
     log = sim.log
     steps = slice(start, end + 1)
-    pose = log.pose[0, :, steps].transpose(0, 1).double()  # [S+1, N, 3] shifted frame
-    speed = log.speed[0, :, steps].transpose(0, 1).double()
-    valid = log.valid[0, :, steps].transpose(0, 1)
+    pose = log.take("pose")[0, :, steps].transpose(0, 1).double()  # [S+1, N, 3] shifted frame
+    speed = log.take("speed")[0, :, steps].transpose(0, 1).double()
+    valid = log.take("valid")[0, :, steps].transpose(0, 1)
     slot = int(torch.nonzero(sim.agents.track_index[0] == track)[0, 0])
     size = sim.agents.size[0, :, :2]
     corners = box_corner_xy(pose[:, slot].float()[None], size[slot, 0], size[slot, 1])

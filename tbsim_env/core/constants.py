@@ -236,6 +236,10 @@ CPU_ATTENTION_CHUNK_ELEMENTS = 1 << 19
 BANK_METRICS_CHUNK = 256
 """Scenarios per chunk when an episode bank computes its first metrics (their agent
 distances are [S, Q, N])."""
+FIRST_OBS_BANK_MAX_BYTES = 256 * 2**20
+"""``BatchedTrafficEnv`` keeps every bank row's first observation (observed once) when they
+take at most this many bytes: a restarted slot then gathers its first observation instead of
+copying its new episode's rows and observing them."""
 COMPONENT_MERGE_MIN_SLOTS = 1536
 """``sim.core.step`` and ``merge_actions`` merge [B, N, K] poses and actions by [B, N] masks a
 component at a time from this many slots (B N) on (``torch_utils.where_into``; a [B, N, 1]

@@ -307,10 +307,25 @@ def reset_rows(
     ks: torch.Tensor,
     in_place: bool = False,
 ) -> EpisodeState:
-    """``state`` with the rows ``rows`` [R] (distinct) restarted on the bank rows ``ks`` [R]; the
-    other rows and ``policy_state`` are unchanged (restarting the policy is the caller's: it needs
-    the scenarios and the random generator). ``in_place``: as ``merge_rows``."""
-    return merge_rows(state, rows, start(bank, ks)[0], in_place)
+    """``state`` with the rows ``rows`` [R] (distinct) restarted on the bank rows ``ks`` [R]
+    (``start``'s episodes of them, read straight from the bank: no R-row copy is made
+    first); the other rows and ``policy_state`` are unchanged (restarting the policy is the
+    caller's: it needs the scenarios and the random generator). ``in_place``: as
+    ``merge_rows``."""
+    put = lambda dst, src: with_rows(dst, rows, src, in_place=in_place, src_rows=ks)  # noqa: E731
+    zero = lambda x: with_rows(x, rows, x.new_zeros((len(rows), *x.shape[1:])), in_place=in_place)  # noqa: E731
+    return dataclasses.replace(
+        state,
+        sim=put(state.sim, bank.start),
+        history=put(state.history, bank.history),
+        setup=put(state.setup, bank.setup),
+        progress=put(state.progress, bank.first.progress),
+        goal_reached=zero(state.goal_reached),
+        alive=put(state.alive, bank.setup.qmask),
+        episode_return=zero(state.episode_return),
+        episode_length=zero(state.episode_length),
+        scenario=with_rows(state.scenario, rows, ks, in_place=in_place),
+    )
 
 
 def merge_rows(
@@ -509,19 +524,20 @@ def expert_actions(state: EpisodeState) -> torch.Tensor:
     or the agent is not alive. Following them from the start reproduces the log within
     centimetres where the log is feasible."""
     sim, query = state.sim, state.setup.query
-    n_t = sim.log.valid.shape[-1]
+    n_t = sim.log.num_steps
     rows = cached_arange(state.batch_size, sim.device)[:, None]
     t1 = (sim.step + 1).clamp(max=n_t - 1)[:, None].expand_as(query)
     max_acc, max_yaw = action_limits(sim.agents.object_type[rows, query])
+    log_row = sim.log.row[:, None]  # each row's log table row
     act = inverse_step(
         sim.pose[rows, query],
         sim.speed[rows, query],
-        sim.log.pose[rows, query, t1],
-        sim.log.speed[rows, query, t1],
+        sim.log.pose.value[log_row, query, t1],
+        sim.log.speed.value[log_row, query, t1],
         max_acc,
         max_yaw,
     )
-    keep = sim.log.valid[rows, query, t1] & state.alive
+    keep = sim.log.valid.value[log_row, query, t1] & state.alive
     return act * keep[..., None]
 
 

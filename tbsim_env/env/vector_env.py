@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from policies.base import Policy, PolicyState
+from tbsim_env.core import constants as C
 from tbsim_env.core.config import EnvConfig
 from tbsim_env.core.errors import ActionError
 from tbsim_env.core.torch_utils import cached_arange, gather_rows, torch_threads
@@ -57,7 +58,7 @@ from tbsim_env.env.setup import (
     resolve_device,
     select_scenarios,
 )
-from tbsim_env.observation.rows import with_rows
+from tbsim_env.observation.rows import take_rows, with_rows
 from tbsim_env.observation.tokens import (
     IndexedObservation,
     ObsConfig,
@@ -245,6 +246,7 @@ class BatchedTrafficEnv:
         self._pending_seed = seed
         self._episode: EpisodeState | None = None
         self._has_npc = False
+        self._first_obs: dict[str, torch.Tensor] | None = None  # ``_first_observations``
 
     # ------------------------------------------------------------------ spaces
     @property
@@ -352,28 +354,71 @@ class BatchedTrafficEnv:
         )
 
     def _restart(
-        self, state: EpisodeState, rows: torch.Tensor
-    ) -> tuple[EpisodeState, EpisodeState]:
+        self, state: EpisodeState, rows: torch.Tensor, observe: bool = True
+    ) -> tuple[EpisodeState, dict[str, torch.Tensor] | None]:
         """(``state`` with new episodes in the slots ``rows`` [R], everything else untouched;
-        the R new episodes alone, without policy state)."""
+        the observation dict of the R new episodes, None unless ``observe``)."""
         ks = self._draw(len(rows))
         # Every slot at once (episodes of one length end together): the new episodes go into
         # the batch's own tensors (nothing handed out is a view of them: ``_package``).
         every = len(rows) == state.batch_size
         every = every and bool((rows == cached_arange(len(rows), rows.device)).all())
-        fresh, _ = ep.start(self.bank, ks, reuse=state if every else None)
-        # In place: a restart costs the restarted rows, not a copy of every table of the batch.
-        state = ep.merge_rows(state, rows, fresh, in_place=True)
+        if every:
+            fresh, _ = ep.start(self.bank, ks, reuse=state)
+            state = ep.merge_rows(state, rows, fresh, in_place=True)
+            fresh_sim = fresh.sim
+        else:
+            # In place, from the bank's rows: a restart costs the restarted rows, not a copy
+            # of every table of the batch.
+            state = ep.reset_rows(self.bank, state, rows, ks, in_place=True)
+            fresh, fresh_sim = None, None
+        obs = self._first_observation(fresh or state, rows, ks) if observe else None
         policy_state = state.policy_state
         if self._has_npc:
-            started = self._policy_start(fresh.sim, ks)
+            if fresh_sim is None:
+                fresh_sim = take_rows(self.bank.start, ks)
+            started = self._policy_start(fresh_sim, ks)
             # Every slot restarted in order: the new state is the batch's (no row copies).
             policy_state = started if every else with_rows(policy_state, rows, started, False)
         elif bool(self.bank.setup.npc[ks].any()):
             # No slot had NPCs so far: start the policy on the whole batch.
             self._has_npc = True
             policy_state = self._policy_start(state.sim, state.scenario)
-        return dataclasses.replace(state, policy_state=policy_state), fresh
+        return dataclasses.replace(state, policy_state=policy_state), obs
+
+    def _first_observation(
+        self, state: EpisodeState, rows: torch.Tensor, ks: torch.Tensor
+    ) -> dict[str, torch.Tensor]:
+        """The observation dict of the new episodes (bank rows ``ks`` [R]) in the slots
+        ``rows`` [R] of ``state`` (or, with R = B rows, ``state`` the new episodes alone):
+        the rows of the bank's first observations (``_first_observations``), or observed
+        anew where those are not kept."""
+        first = self._first_observations()
+        if first is not None:
+            return {k: v.index_select(0, ks) for k, v in first.items()}
+        if state.batch_size != len(rows):
+            state = take_rows(dataclasses.replace(state, policy_state=None), rows)
+        return self._observe(state)
+
+    def _first_observations(self) -> dict[str, torch.Tensor] | None:
+        """The observation dict of every bank row's first state, [S, ...] each, observed at
+        the first restart (chunks of ``BANK_METRICS_CHUNK`` rows) and kept when it takes at
+        most ``FIRST_OBS_BANK_MAX_BYTES`` (else None): an episode's first observation
+        depends on its scenario alone, so a restart gathers it instead of observing."""
+        if self._first_obs is None:
+            s = self.bank.num_scenarios
+            ks = torch.arange(s, device=self.device)
+            one = self._observe(ep.start(self.bank, ks[:1])[0])
+            size = sum(v.numel() * v.element_size() for v in one.values())
+            if size * s > C.FIRST_OBS_BANK_MAX_BYTES:
+                self._first_obs = {}
+            else:
+                parts = [
+                    self._observe(ep.start(self.bank, ks[lo : lo + C.BANK_METRICS_CHUNK])[0])
+                    for lo in range(0, s, C.BANK_METRICS_CHUNK)
+                ]
+                self._first_obs = {k: torch.cat([p[k] for p in parts]) for k in one}
+        return self._first_obs or None
 
     def reset_slots(self, slots: Sequence[int] | torch.Tensor) -> dict[str, torch.Tensor]:
         """Start new episodes (drawn from the seeded generator) in some slots now, as the
@@ -395,7 +440,7 @@ class BatchedTrafficEnv:
                 f"slots must be distinct indices in [0, {self.batch_size}), got {rows.tolist()}"
             )
         with torch_threads(self.torch_threads), torch.no_grad():
-            self._episode = self._restart(self.episode, rows)[0]
+            self._episode = self._restart(self.episode, rows, observe=False)[0]
             return self._observe(self.episode)
 
     # ------------------------------------------------------------------ step
@@ -467,8 +512,7 @@ class BatchedTrafficEnv:
         )
         if bool(out.done.any()):
             rows = out.done.nonzero(as_tuple=True)[0]
-            state, fresh = self._restart(state, rows)
-            sub = self._observe(fresh)
+            state, sub = self._restart(state, rows)
             obs = {k: v.index_copy(0, rows, sub[k]) for k, v in obs.items()}
         self._episode = state
         infos["agent_mask"] = state.alive.clone()

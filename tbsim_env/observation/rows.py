@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -45,7 +45,7 @@ def take_rows(tree: Any, rows: torch.Tensor, out: Any = None) -> Any:
     if isinstance(tree, torch.Tensor):
         if _can_receive(out, tree, rows):
             return torch.index_select(tree, 0, rows, out=out)
-        return tree[rows]
+        return tree.index_select(0, rows)
     if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
         fields = {
             f.name: take_rows(getattr(tree, f.name), rows, _part(out, tree, f.name))
@@ -92,7 +92,11 @@ def cat_rows(trees: Sequence[Any]) -> Any:
     if not trees:
         raise ValueError("cat_rows needs at least one tree")
     first = trees[0]
-    if first is None or isinstance(first, Shared):
+    if isinstance(first, Shared):
+        if any(not isinstance(t, Shared) or t.value is not first.value for t in trees):
+            raise ValueError("cat_rows: the trees do not share their tables (another bank)")
+        return first
+    if first is None:
         return first
     if isinstance(first, torch.Tensor):
         return torch.cat(list(trees))
@@ -114,25 +118,51 @@ def cat_rows(trees: Sequence[Any]) -> Any:
 
 
 def with_rows(
-    dst: Any, rows: torch.Tensor, src: Any, strict: bool = True, in_place: bool = False
+    dst: Any,
+    rows: torch.Tensor,
+    src: Any,
+    strict: bool = True,
+    in_place: bool = False,
+    src_rows: torch.Tensor | None = None,
 ) -> Any:
     """``dst`` with the rows ``rows`` of every tensor replaced by ``src``'s (a new tree).
 
     Args:
         dst: tree (tensor, dataclass, dict, list, tuple) whose tensors have a leading batch.
         rows: [R] int64 rows of ``dst`` to replace.
-        src: the same structure with R rows.
+        src: the same structure with R rows, or any number of rows with ``src_rows``.
         strict: raise on non-tensor leaves (other than None); when False they are kept as
             in ``dst`` (batch-wide metadata such as a policy's step counter).
         in_place: write the rows into ``dst``'s tensors (each that owns its whole storage;
             any other is copied) instead of copying every tensor: the cost of the R rows, not
             of the batch. Only for a tree whose owner alone holds its tensors (the batched
             env's own episode, whose restart would otherwise copy every table of the batch).
+        src_rows: optional [R] int64, the rows of ``src`` that go into ``rows`` (a bank's
+            rows, say): read straight from ``src``, with no R-row copy of it made first
+            (in place and for a few rows, row by row: ``ROW_COPY_MAX``).
 
     Raises:
         ValueError: a tensor's trailing shape differs between the trees.
         TypeError: the structures differ, or a non-tensor leaf with ``strict``.
     """
+    pairs = None
+    if src_rows is not None and in_place and rows.numel() <= ROW_COPY_MAX:
+        pairs = tuple(zip(rows.tolist(), src_rows.tolist(), strict=True))
+    return _with(dst, _Rows(rows, src_rows, pairs), src, strict, in_place)
+
+
+class _Rows(NamedTuple):
+    """Where ``with_rows`` writes: ``dst`` [R] rows of the destination, ``src`` [R] rows of
+    the source (None: all of it, in order), ``pairs`` the (dst, src) row numbers when the
+    rows are copied one at a time (``ROW_COPY_MAX``)."""
+
+    dst: torch.Tensor
+    src: torch.Tensor | None
+    pairs: tuple[tuple[int, int], ...] | None
+
+
+def _with(dst: Any, rows: _Rows, src: Any, strict: bool, in_place: bool) -> Any:
+    """``with_rows``' recursion over the trees."""
     if dst is None and src is None:
         return None
     if isinstance(dst, Shared):
@@ -143,25 +173,42 @@ def with_rows(
         if not isinstance(src, torch.Tensor) or dst.shape[1:] != src.shape[1:]:
             got = tuple(src.shape) if isinstance(src, torch.Tensor) else type(src).__name__
             raise ValueError(f"with_rows: {tuple(dst.shape)} rows cannot take {got}")
-        if in_place and _owns_storage(dst):
-            return dst.index_copy_(0, rows, src.to(dst.dtype))
-        return dst.index_copy(0, rows, src.to(dst.dtype))
+        if src.dtype != dst.dtype:
+            src = src.to(dst.dtype)
+        return _put_rows(dst, rows, src, in_place and _owns_storage(dst))
+    again = lambda a, b: _with(a, rows, b, strict, in_place)  # noqa: E731
     if dataclasses.is_dataclass(dst) and not isinstance(dst, type):
         if type(src) is not type(dst):
             raise TypeError(f"with_rows: {type(dst).__name__} vs {type(src).__name__}")
         fields = {
-            f.name: with_rows(getattr(dst, f.name), rows, getattr(src, f.name), strict, in_place)
+            f.name: again(getattr(dst, f.name), getattr(src, f.name))
             for f in dataclasses.fields(dst)
         }
         return dataclasses.replace(dst, **fields)
     if isinstance(dst, dict):
-        return {k: with_rows(dst[k], rows, src[k], strict, in_place) for k in dst}
+        return {k: again(dst[k], src[k]) for k in dst}
     if isinstance(dst, (list, tuple)):
-        items = [with_rows(a, rows, b, strict, in_place) for a, b in zip(dst, src, strict=True)]
-        return _rebuild(dst, items)
+        return _rebuild(dst, [again(a, b) for a, b in zip(dst, src, strict=True)])
     if not strict and type(src) is type(dst):
         return dst
     raise TypeError(f"cannot put rows into {type(dst).__name__}; use tensors and dataclasses")
+
+
+ROW_COPY_MAX = 4
+"""``with_rows`` with ``src_rows`` writes in place up to this many rows a row at a time (one
+``copy_`` of a row view each: no gathered copy of the rows is allocated and faulted in);
+more rows in one gather and one ``index_copy_``."""
+
+
+def _put_rows(dst: torch.Tensor, rows: _Rows, src: torch.Tensor, in_place: bool) -> torch.Tensor:
+    """``dst`` with its rows ``rows.dst`` from ``src`` (its rows ``rows.src``, or all of it),
+    written into ``dst`` when ``in_place``, else into a copy."""
+    if in_place and rows.pairs is not None:
+        for r, k in rows.pairs:
+            dst.select(0, r).copy_(src.select(0, k))
+        return dst
+    part = src if rows.src is None else src.index_select(0, rows.src)
+    return dst.index_copy_(0, rows.dst, part) if in_place else dst.index_copy(0, rows.dst, part)
 
 
 def _owns_storage(x: torch.Tensor) -> bool:

@@ -223,11 +223,11 @@ def init_history(state: SimState, length: int) -> History:
     ``History.data``'s layout: one ``index_select`` of the H steps of every row, then a
     transpose, instead of a gather per field.
     """
-    n_b, n_t = state.batch_size, state.log.valid.shape[-1]
+    n_b, n_t = state.batch_size, state.log.num_steps
     steps = state.step[:, None] - torch.arange(length - 1, -1, -1, device=state.device)  # [B, H]
     inside = steps >= 0
-    rows = cached_arange(n_b, state.device)[:, None] * n_t + steps.clamp(0, n_t - 1)
-    blocks = state.log.by_step.flatten(0, 1).index_select(0, rows.reshape(-1))  # [B H, N, 5]
+    rows = state.log.row_steps[:, None] + steps.clamp(0, n_t - 1)
+    blocks = state.log.by_step.value.flatten(0, 1).index_select(0, rows.reshape(-1))  # [B H, N, 5]
     data = blocks.view(n_b, length, -1, 5).transpose(1, 2).contiguous()  # [B, N, H, 5]
     data[..., 4] *= inside[:, None, :]
     data[..., -1, :] = _history_row(state)[..., 0, :]

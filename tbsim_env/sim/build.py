@@ -184,15 +184,12 @@ def _log_trajectory(tracks: dict[str, np.ndarray], device: torch.device) -> LogT
     """The ``LogTrajectory`` of ``_padded_tracks``' arrays (speed signed along the heading)."""
     pose, vel = _tensor(tracks["pose"], device), _tensor(tracks["vel"], device)
     valid = _tensor(tracks["valid"], device)
-    n_t = tracks["valid"].shape[-1]
-    first = np.where(tracks["valid"], np.arange(n_t), n_t).min(axis=-1)
-    return LogTrajectory(
+    return LogTrajectory.of_tables(
         pose=pose,
         speed=signed_speed(vel, pose[..., 2]) * valid,
         velocity=vel,
         z=_tensor(tracks["z"], device),
         valid=valid,
-        first_valid=_tensor(first.astype(np.int64), device),
     )
 
 
@@ -230,9 +227,9 @@ def build_sim_state(
     agents = AgentInfo(**{k: _tensor(tracks[k], dev) for k in fields})
     return SimState(
         step=torch.full((b,), start_step, dtype=torch.int64, device=dev),
-        pose=log.pose[:, :, start_step].clone(),
-        speed=log.speed[:, :, start_step].clone(),
-        valid=log.valid[:, :, start_step].clone(),
+        pose=log.pose.value[:, :, start_step].clone(),
+        speed=log.speed.value[:, :, start_step].clone(),
+        valid=log.valid.value[:, :, start_step].clone(),
         controlled=torch.zeros((b, n), dtype=torch.bool, device=dev),
         agents=agents,
         log=log,

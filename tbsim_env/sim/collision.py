@@ -29,7 +29,8 @@ def boxes_overlap(box_a: torch.Tensor, box_b: torch.Tensor) -> torch.Tensor:
     dims: the separating axis theorem, no axis of a or b separates them.
 
     Args:
-        box_a, box_b: [..., 5] (x m, y m, yaw rad, length m, width m), broadcastable.
+        box_a: [..., 5] (x m, y m, yaw rad, length m, width m).
+        box_b: [..., 5], broadcastable with ``box_a``.
 
     Returns:
         [...] bool, the broadcast shape.

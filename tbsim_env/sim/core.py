@@ -13,7 +13,6 @@ from tbsim_env.core import constants as C
 from tbsim_env.core.torch_utils import (
     const,
     gather_rows,
-    row_offsets,
     scalar,
     select_rows,
     where_into,
@@ -77,7 +76,7 @@ def step(state: SimState, action: torch.Tensor, movers: torch.Tensor | None = No
         The state at ``step + 1``.
     """
     b, n = state.valid.shape
-    n_t = state.log.by_step.shape[1]
+    n_t = state.log.num_steps
     nxt = torch.add(state.step, scalar(1, state.step.dtype, state.device))
     nxt = nxt.clamp_max_(scalar(n_t - 1, nxt.dtype, nxt.device))
     at = _log_at(state, nxt)  # [B, N, 5]
@@ -176,7 +175,5 @@ def _integrate_movers(
 def _log_at(state: SimState, t: torch.Tensor) -> torch.Tensor:
     """[B, N, 5] the log at step ``t`` [B] of each scenario (x, y, yaw, speed, valid as 0 / 1):
     one ``index_select`` of the time-major ``by_step`` blocks, b-th row at t[b]."""
-    log = state.log
-    b, n_t = state.batch_size, log.by_step.shape[1]
-    rows = t + row_offsets(b, n_t, 1, state.device)
-    return select_rows(log.by_step, rows).view(b, *log.by_step.shape[2:])
+    table = state.log.by_step.value  # [K, T, N, 5]
+    return select_rows(table, t + state.log.row_steps).view(-1, *table.shape[2:])

@@ -44,36 +44,93 @@ class AgentInfo:
             object.__setattr__(self, "action_limit", limit)
 
 
-@dataclass(frozen=True)
-class LogTrajectory:
-    """The logged trajectories of every agent slot.
+@dataclass(frozen=True, eq=False)
+class Shared:
+    """A table of K scenarios that batch rows read through a row map (``CellLists.row``,
+    ``LogTrajectory.row``).
+
+    Row operations (``tbsim_env.observation.rows``) pass it through instead of splitting it:
+    rows of one bank share its tables, so starting a new episode in a row copies none of them
+    (a road-edge grid is megabytes per scenario).
 
     Attributes:
-        pose: [B, N, T, 3] float32 (x m, y m, yaw rad wrapped).
-        speed: [B, N, T] float32 signed speed m/s.
-        velocity: [B, N, T, 2] float32 m/s.
-        z: [B, N, T] float32 box-centre height m.
-        valid: [B, N, T] bool.
-        first_valid: [B, N] int64, first step the agent is valid (T if never).
-        by_step: [B, T, N, 5] float32, what a simulation step reads of the log, time-major
-            (x, y, yaw, speed, valid as 0 / 1): one contiguous block per row and step, so
-            that reading step t of every row is one ``index_select`` (derived from the fields
-            above when not given).
+        value: [K, ...] tensor.
     """
 
-    pose: torch.Tensor
-    speed: torch.Tensor
-    velocity: torch.Tensor
-    z: torch.Tensor
-    valid: torch.Tensor
-    first_valid: torch.Tensor
-    by_step: torch.Tensor | None = field(default=None)
+    value: torch.Tensor
 
-    def __post_init__(self) -> None:
-        if self.by_step is None:
-            cols = [self.pose, self.speed[..., None], self.valid[..., None].to(self.pose.dtype)]
-            packed = torch.cat(cols, -1).transpose(1, 2).contiguous()
-            object.__setattr__(self, "by_step", packed)
+
+@dataclass(frozen=True)
+class LogTrajectory:
+    """The logged trajectories of every agent slot: per-scenario tables (``Shared``, K rows)
+    that batch rows read through ``row``, so that starting a new episode in a row, or
+    repeating a row for rollouts, copies none of them (about 1.2 MB per real scenario).
+
+    Attributes:
+        pose: Shared [K, N, T, 3] float32 (x m, y m, yaw rad wrapped).
+        speed: Shared [K, N, T] float32 signed speed m/s.
+        velocity: Shared [K, N, T, 2] float32 m/s.
+        z: Shared [K, N, T] float32 box-centre height m.
+        valid: Shared [K, N, T] bool.
+        by_step: Shared [K, T, N, 5] float32, what a simulation step reads of the log,
+            time-major (x, y, yaw, speed, valid as 0 / 1): one contiguous block per scenario
+            and step, so that reading step t of every row is one ``index_select``.
+        first_valid: [B, N] int64, first step the agent is valid (T if never).
+        row: [B] int64, each batch row's row of the tables.
+        row_steps: [B] int64, ``row * T``: the row's first block of the flattened
+            ``by_step`` [K T, N, 5].
+
+    ``LogTrajectory.of_tables`` makes one from [K, ...] tensors (batch row k reads row k);
+    ``take`` gives a table's rows of the batch.
+    """
+
+    pose: Shared
+    speed: Shared
+    velocity: Shared
+    z: Shared
+    valid: Shared
+    by_step: Shared
+    first_valid: torch.Tensor
+    row: torch.Tensor
+    row_steps: torch.Tensor
+
+    @classmethod
+    def of_tables(
+        cls,
+        pose: torch.Tensor,
+        speed: torch.Tensor,
+        velocity: torch.Tensor,
+        z: torch.Tensor,
+        valid: torch.Tensor,
+    ) -> LogTrajectory:
+        """The log of K scenarios from their [K, N, T, ...] tensors (as the attributes'),
+        batch row k reading table row k; ``by_step`` and ``first_valid`` derived."""
+        k, n_t = valid.shape[0], valid.shape[-1]
+        cols = [pose, speed[..., None], valid[..., None].to(pose.dtype)]
+        steps = torch.arange(n_t, device=valid.device)
+        first = torch.where(valid, steps, n_t).amin(-1)
+        row = torch.arange(k, device=valid.device)
+        return cls(
+            pose=Shared(pose),
+            speed=Shared(speed),
+            velocity=Shared(velocity),
+            z=Shared(z),
+            valid=Shared(valid),
+            by_step=Shared(torch.cat(cols, -1).transpose(1, 2).contiguous()),
+            first_valid=first.long(),
+            row=row,
+            row_steps=row * n_t,
+        )
+
+    @property
+    def num_steps(self) -> int:
+        """T, the log's steps."""
+        return int(self.valid.value.shape[-1])
+
+    def take(self, name: str) -> torch.Tensor:
+        """[B, ...] the table ``name`` (``pose``, ``speed``, ``velocity``, ``z``, ``valid``,
+        ``by_step``) of every batch row: a gathered copy (for code off the hot path)."""
+        return getattr(self, name).value.index_select(0, self.row)
 
 
 @dataclass(frozen=True)
@@ -91,21 +148,6 @@ class SignalLog:
     state: torch.Tensor
     valid: torch.Tensor
     stop_point: torch.Tensor
-
-
-@dataclass(frozen=True, eq=False)
-class Shared:
-    """A table of K scenarios that batch rows read through a row map (``CellLists.row``).
-
-    Row operations (``tbsim_env.observation.rows``) pass it through instead of splitting it:
-    rows of one bank share its tables, so starting a new episode in a row copies none of them
-    (a road-edge grid is megabytes per scenario).
-
-    Attributes:
-        value: [K, ...] tensor.
-    """
-
-    value: torch.Tensor
 
 
 @dataclass(frozen=True)
