@@ -295,7 +295,7 @@ def test_stops_at_a_red_light_and_goes_on_green():
 
 def test_stops_fully_at_a_stop_sign_then_goes():
     sc = scene([(EAST, 100.0, 8.0)], JUNCTION, signs=((500, (-1.0, -3.0), [2]),))
-    out = drive(sc, 120)
+    out = drive(sc, 130)  # past the log's end (step 90): the search cadence goes on
     front, speed = out["pose"][:, 0, 0] + 0.5 * CAR[0], out["speed"][:, 0]
     at_line = (front > -3.0) & (front < 0.0)
     assert (speed[at_line] < 0.5).any()  # a full stop at the line

@@ -127,6 +127,13 @@ class IDMState:
             it), shrinking by ``HEADWAY_RELAX_TIME``.
         crosswalks: [B, W, V, 2] float32 m crosswalk outlines (zeros: none).
         valid: [B, N] bool, the slot has a route (agents that never appear have none).
+        clock: the batch's step count for the search cadence: its rows' step when the state
+            started, one more each ``act``. The rows look for leaders and stand lines
+            together when it is a multiple of ``IDMConfig.leader_period`` (and a row at its
+            first act), so that a row restarted alone (``BatchedTrafficEnv``) searches on
+            the others' steps after its first, not on steps of its own (a search of a few
+            agents costs the tensor operations of a search of all). A number, kept as it
+            is when rows are replaced (``rows.with_rows(strict=False)``).
     """
 
     route: torch.Tensor
@@ -140,6 +147,7 @@ class IDMState:
     motion: torch.Tensor
     crosswalks: torch.Tensor
     valid: torch.Tensor
+    clock: int = 0
 
     progress = _motion_column("progress")
     lead_gap = _motion_column("lead_gap")
@@ -230,6 +238,10 @@ class IDMPolicy:
     """
 
     name = "idm"
+    owns_state = True
+    """Every tensor of an ``IDMState`` is made for it (``initial_state`` pads the cached rows
+    into new tables; ``act`` carries them on or makes new ones): a batched env writes
+    restarted rows into them in place (``tbsim_env.sim.policy``)."""
     exact_replay = False
 
     def __init__(self, route: str | None = None, config: IDMConfig | None = None, **fields):
@@ -325,6 +337,7 @@ class IDMPolicy:
             sign_flags=torch.zeros(b, n, 2, MAX_SIGN_STOPS, dtype=torch.bool, device=dev),
             lead_known=torch.zeros(b, n, dtype=torch.bool, device=dev),
             motion=torch.tensor(list(_START_MOTION.values()), device=dev).repeat(b, n, 1),
+            clock=steps[0] if steps else 0,
             **f,
         )
         # The start headway of each agent that follows is fixed at its first leader search
@@ -378,11 +391,15 @@ class IDMPolicy:
         last, gap, lead_speed, crossing, stand_arc, cut = take(ps.motion).unbind(-1)
         progress = advance_progress(ps.route, agent, last, pose[:, :2])
         a, decel, headway, s0, delta, max_decel, look0, look_t = take(ps.params).unbind(-1)
-        # Stand lines and leaders are looked for by a row's agents together, on its steps
-        # that are multiples of ``leader_period`` and at its first act (nobody has searched),
-        # and carried on in between: one search of a few agents costs the tensor operations
-        # of a search of all, so two steps in three skip both whole.
-        turn = (state.step % cfg.leader_period == 0) | ~ps.lead_known.any(1)  # [B]
+        # Stand lines and leaders are looked for by all rows together, on the batch's steps
+        # that are multiples of ``leader_period`` (``IDMState.clock``), and by a row at its
+        # first act (nobody has searched), and carried on in between: one search of a few
+        # agents costs the tensor operations of a search of all, so two steps in three skip
+        # both whole.
+        if ps.clock % cfg.leader_period == 0:
+            turn = torch.ones(b, dtype=torch.bool, device=state.device)
+        else:
+            turn = ~ps.lead_known.any(1)  # [B]
         turn = turn.index_select(0, agent // n)  # [L]
         searching = bool(turn.any())
         pending = None  # agents whose start headway this search fixes (NaN cut)
@@ -426,10 +443,11 @@ class IDMPolicy:
         motion = put(ps.motion, row)
         motion[..., MOTION_FIELDS.index("headway_cut")] *= HEADWAY_RELAX_STEP  # every slot's
         if not searching:
-            return action, dataclasses.replace(ps, motion=motion)
+            return action, dataclasses.replace(ps, motion=motion, clock=ps.clock + 1)
         nxt = dataclasses.replace(
             ps,
             motion=motion,
+            clock=ps.clock + 1,
             sign_flags=put(ps.sign_flags, flags),
             lead_known=ps.lead_known if known is None else put(ps.lead_known, known),
         )

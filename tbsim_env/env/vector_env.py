@@ -379,7 +379,10 @@ class BatchedTrafficEnv:
                 fresh_sim = take_rows(self.bank.start, ks)
             started = self._policy_start(fresh_sim, ks)
             # Every slot restarted in order: the new state is the batch's (no row copies).
-            policy_state = started if every else with_rows(policy_state, rows, started, False)
+            in_place = bool(getattr(self.npc_policy, "owns_state", False))
+            policy_state = (
+                started if every else with_rows(policy_state, rows, started, False, in_place)
+            )
         elif bool(self.bank.setup.npc[ks].any()):
             # No slot had NPCs so far: start the policy on the whole batch.
             self._has_npc = True

@@ -11,6 +11,11 @@ Optional: ``for_scenarios(scenarios) -> Policy``. A caller that will only start 
 known set of scenarios and restarts batch rows one at a time (``BatchedTrafficEnv``) calls it
 once and uses the returned policy, whose state shapes must then be the same for any batch drawn
 from the set (``TrafficBotsPolicy`` trims its token rows to those the set uses).
+
+Optional: ``owns_state = True``. Every tensor of the policy's states is the state's alone (no
+cache, constant or other state refers to it, none is a view of another), so a caller that
+alone holds a state (``BatchedTrafficEnv``) may write restarted rows into it in place instead
+of copying the batch's tables (``IDMPolicy``: its routes are megabytes per batch).
 """
 
 from __future__ import annotations
