@@ -114,8 +114,9 @@ def _reference_observe(state, history, ctx, observers, cfg, static):
     m_dist = torch.linalg.vector_norm(ctx.pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
     m_idx, m_mask = _nearest(m_dist, ctx.valid[:, None], cfg.num_map, cfg.map_radius)
     m_f = m_mask.float()
-    t_now = state.step.clamp(max=ctx.tl_state.shape[-1] - 1)[:, None]
-    tl_state, tl_valid = ctx.tl_state[bq, :, t_now][:, 0], ctx.tl_valid[bq, :, t_now][:, 0]
+    lights, lights_valid = ctx.tl_state.value[ctx.row], ctx.tl_valid.value[ctx.row]
+    t_now = state.step.clamp(max=lights.shape[-1] - 1)[:, None]
+    tl_state, tl_valid = lights[bq, :, t_now][:, 0], lights_valid[bq, :, t_now][:, 0]
     t_dist = torch.linalg.vector_norm(ctx.tl_pose[:, None, :, :2] - me[:, :, None, :2], dim=-1)
     t_idx, t_mask = _nearest(t_dist, tl_valid[:, None], cfg.num_traffic_lights, 200.0)
     t_f = t_mask.float()
@@ -128,8 +129,8 @@ def _reference_observe(state, history, ctx, observers, cfg, static):
         "agents_attributes": attrs[bk, a_idx] * a_f[..., None],
         "agents_pose": _relative_pose(me[:, :, None], nb_pose) * a_f[..., None],
         "agents_mask": a_f,
-        "map": ctx.nodes[bk, m_idx] * m_f[..., None, None],
-        "map_nodes_mask": ctx.nodes_valid[bk, m_idx] * m_f[..., None],
+        "map": ctx.nodes.value[ctx.row][bk, m_idx] * m_f[..., None, None],
+        "map_nodes_mask": ctx.nodes_valid.value[ctx.row][bk, m_idx] * m_f[..., None],
         "map_class": torch.eye(C.NUM_MAP_CLASSES)[ctx.map_class[bk, m_idx]] * m_f[..., None],
         "map_pose": _relative_pose(me[:, :, None], ctx.pose[bk, m_idx]) * m_f[..., None],
         "map_mask": m_f,

@@ -208,14 +208,16 @@ def test_restarting_every_slot_reuses_the_batch_memory(scenes, batch, layout):
     kw = dict(controlled="sdc", npc_policy="log_replay", obs_layout=layout)
     venv = BatchedTrafficEnv(scenes, batch, seed=2, **kw)
     venv.reset()
-    tables = venv.episode.setup.ctx.tokens.data_ptr()  # per-row map tokens
+    tables = venv.episode.setup.ctx.pose.data_ptr()  # per-row piece poses
     for _ in range(5):
         before, *_ = venv.step(venv.expert_actions())
     kept = {k: v.clone() for k, v in before.items()}
     obs = venv.reset_slots(list(range(batch)))
-    assert venv.episode.setup.ctx.tokens.data_ptr() == tables
-    # The logs are the bank's tables, read through each row's row map: never copied.
+    assert venv.episode.setup.ctx.pose.data_ptr() == tables
+    # The logs and the map tokens are the bank's tables, read through each row's row map:
+    # never copied.
     assert venv.sim_state.log.by_step.value is venv.bank.start.log.by_step.value
+    assert venv.episode.setup.ctx.tokens.value is venv.bank.setup.ctx.tokens.value
     assert all(torch.equal(before[k], kept[k]) for k in kept)
     fresh = BatchedTrafficEnv(scenes, batch, **kw)
     fobs, _ = fresh.reset(scenario_indices=venv.scenario_index.tolist())

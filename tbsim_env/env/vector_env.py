@@ -579,13 +579,14 @@ class BatchedTrafficEnv:
         obs_cfg = self.obs_config
         ind = IndexedObservation(
             agent_tokens=obs["agent_tokens"],
-            map_tokens=self.map_token_bank[obs["scene"]],
+            map_tokens=self.map_token_bank,
             light_tokens=obs["light_tokens"],
             ego=obs["ego"],
             index=obs["index"],
             pose=obs["pose"],
             mask=obs["mask"],
             sizes=(obs_cfg.num_agents, obs_cfg.num_map, obs_cfg.num_traffic_lights),
+            map_rows=obs["scene"],
         )
         m = obs["observer_mask"]
         o = self._dense_keys(densify_flat(ind, obs_cfg.tokens.piece_segments) * m.unsqueeze(-1))
@@ -598,7 +599,7 @@ class BatchedTrafficEnv:
         """[S, M, P * 4 + P + NUM_MAP_CLASSES] float32 map-piece tokens of every scenario of
         the env (row = ``obs["scene"]``), fixed for the env's life: what the ``"index"``
         entries of map pieces refer to in an indexed observation. Read-only."""
-        return self.bank.setup.ctx.tokens
+        return self.bank.setup.ctx.tokens.value
 
     def _infos(self, state: EpisodeState, metrics: StepMetrics) -> dict[str, Any]:
         # Tensors of the state are cloned: a caller writing into an info must not change it.

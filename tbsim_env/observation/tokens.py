@@ -50,25 +50,30 @@ from tbsim_env.observation.spec import (
 from tbsim_env.sim.collision import agent_distances
 from tbsim_env.sim.geometry import cos_sin, relative_pose, rotate_by, to_local_xy
 from tbsim_env.sim.knn import k_nearest, planar_distances
-from tbsim_env.sim.state import SimState
+from tbsim_env.sim.state import Shared, SimState
 
 
 @dataclass(frozen=True)
 class MapContext:
     """Static map and traffic-light tokens of a batch, computed once per scenario.
 
+    The large tables (``Shared``, K rows) are read by batch row b at row ``row[b]`` (the
+    piece grid's row map): rows of a bank share them, so that starting a new episode in a
+    row copies none of them (about half a megabyte per real scene).
+
     Attributes:
         pose: [B, M, 3] piece pose (node 0 position, first segment heading).
-        nodes: [B, M, P, 4] node features in the piece frame.
-        nodes_valid: [B, M, P] bool.
+        nodes: Shared [K, M, P, 4] node features in the piece frame.
+        nodes_valid: Shared [K, M, P] bool.
         map_class: [B, M] int64 (``MapClass``), 0 for padding.
         valid: [B, M] bool.
         tl_pose: [B, L, 3] pose of the controlled lane piece.
-        tl_state: [B, L, T] int64 ``TLState`` from the log.
-        tl_valid: [B, L, T] bool.
-        tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, derived: what an observation
-            shows of a piece in its own frame, concatenated (``nodes``, ``nodes_valid``, the
-            ``map_class`` one-hot), so that a step gathers it in one operation.
+        tl_state: Shared [K, L, T] int64 ``TLState`` from the log.
+        tl_valid: Shared [K, L, T] bool.
+        tokens: Shared [K, M, P * 4 + P + NUM_MAP_CLASSES] float32, derived: what an
+            observation shows of a piece in its own frame, concatenated (``nodes``,
+            ``nodes_valid``, the ``map_class`` one-hot), so that a step gathers it in one
+            operation.
         invalid: [B, 1, M] bool, derived: not ``valid`` (padding pieces).
         tl_tokens: [B, T, L, NUM_TL_STATES] float32, derived: one-hot of ``tl_state``
             (step-major, so that a step's lights are one view).
@@ -80,19 +85,24 @@ class MapContext:
     """
 
     pose: torch.Tensor
-    nodes: torch.Tensor
-    nodes_valid: torch.Tensor
+    nodes: Shared
+    nodes_valid: Shared
     map_class: torch.Tensor
     valid: torch.Tensor
     tl_pose: torch.Tensor
-    tl_state: torch.Tensor
-    tl_valid: torch.Tensor
-    tokens: torch.Tensor
+    tl_state: Shared
+    tl_valid: Shared
+    tokens: Shared
     invalid: torch.Tensor
     tl_tokens: torch.Tensor
     tl_invalid: torch.Tensor
     knn_xy: torch.Tensor
     grid: PieceGrid
+
+    @property
+    def row(self) -> torch.Tensor:
+        """[B] int64, each batch row's row of the ``Shared`` tables."""
+        return self.grid.row
 
 
 @dataclass(frozen=True)
@@ -198,12 +208,14 @@ def build_map_context(
     )
     tl_tokens = _TL_EYE.to(dev)[t["tl_state"]]  # [B, L, T, NUM_TL_STATES]
     map_xy = t["pose"][..., :2].masked_fill(~t["valid"][..., None], float("inf"))
+    for key in ("nodes", "nodes_valid", "tl_state", "tl_valid"):
+        t[key] = Shared(t[key])
     return MapContext(
         **t,
-        tokens=tokens,
+        tokens=Shared(tokens),
         invalid=~t["valid"][:, None],
         tl_tokens=_dense(tl_tokens.transpose(1, 2)),
-        tl_invalid=_dense(~t["tl_valid"].transpose(1, 2)[:, :, None]),
+        tl_invalid=_dense(~t["tl_valid"].value.transpose(1, 2)[:, :, None]),
         knn_xy=_dense(torch.cat([map_xy, t["tl_pose"][..., :2]], 1)[:, None]),
         grid=build_piece_grid(t["pose"][..., :2], t["valid"]),
     )
@@ -276,8 +288,9 @@ class IndexedObservation:
             the agent's own current frame, the history mask, its attributes (length, width,
             type one-hot, speed). A row per agent slot (R = N), or per observer and seen
             neighbour (R = Q (1 + Ka), when that is fewer: ``observe_indexed``).
-        map_tokens: [B, M, P * 4 + P + NUM_MAP_CLASSES] float32, map pieces (nodes in the
-            piece frame, node mask, class one-hot); fixed for an episode.
+        map_tokens: [K, M, P * 4 + P + NUM_MAP_CLASSES] float32, map pieces (nodes in the
+            piece frame, node mask, class one-hot) of the maps the rows read (``map_rows``);
+            fixed for an episode.
         light_tokens: [B, L, NUM_TL_STATES] float32, traffic-light state one-hot this step.
         ego: [B, Q] int64, each observer's own row of ``agent_tokens``.
         index: [B, Q, Ka + Km + Kt] int64, the tokens each observer sees: Ka rows of
@@ -290,6 +303,7 @@ class IndexedObservation:
         grouped: ``agent_tokens`` has a row per observer and neighbour, grouped by observer:
             observer q's own row ``q (1 + Ka)``, then its Ka neighbours' in order (what
             ``index`` refers to, masked entries aside), so ``densify`` reads them as views.
+        map_rows: [B] int64, each row's row of ``map_tokens`` (None: row b, K = B).
     """
 
     agent_tokens: torch.Tensor
@@ -301,6 +315,7 @@ class IndexedObservation:
     mask: torch.Tensor
     sizes: tuple[int, int, int]
     grouped: bool = False
+    map_rows: torch.Tensor | None = None
 
 
 def agent_tokens(
@@ -564,7 +579,7 @@ def observe_indexed(
         index, rel, mask = _masked(index, rel, seen)
     return IndexedObservation(
         agent_tokens=tokens,
-        map_tokens=ctx.tokens,
+        map_tokens=ctx.tokens.value,
         light_tokens=lights[1],
         ego=observers,
         index=index,
@@ -572,6 +587,7 @@ def observe_indexed(
         mask=mask,
         sizes=(cfg.num_agents, cfg.num_map, cfg.num_traffic_lights),
         grouped=compact,
+        map_rows=ctx.row,
     )
 
 
@@ -623,7 +639,7 @@ def densify_flat(obs: IndexedObservation, piece_segments: int) -> torch.Tensor:
     parts = [
         ego,
         nb.view(b, q, -1),
-        (gather_rows(obs.map_tokens, m_idx) * m_f).view(b, q, -1),
+        (gather_rows(obs.map_tokens, m_idx, obs.map_rows) * m_f).view(b, q, -1),
         (gather_rows(obs.light_tokens, t_idx) * t_f).view(b, q, -1),
         obs.pose.view(b, q, -1),
         obs.mask,
