@@ -312,8 +312,13 @@ def reset_rows(
     first); the other rows and ``policy_state`` are unchanged (restarting the policy is the
     caller's: it needs the scenarios and the random generator). ``in_place``: as
     ``merge_rows``."""
-    put = lambda dst, src: with_rows(dst, rows, src, in_place=in_place, src_rows=ks)  # noqa: E731
-    zero = lambda x: with_rows(x, rows, x.new_zeros((len(rows), *x.shape[1:])), in_place=in_place)  # noqa: E731
+
+    def put(dst, src):  # the bank rows ks of src into the rows of dst
+        return with_rows(dst, rows, src, in_place=in_place, src_rows=ks)
+
+    def zero(x: torch.Tensor) -> torch.Tensor:
+        return with_rows(x, rows, x.new_zeros((len(rows), *x.shape[1:])), in_place=in_place)
+
     return dataclasses.replace(
         state,
         sim=put(state.sim, bank.start),

@@ -372,7 +372,8 @@ class BatchedTrafficEnv:
             # of every table of the batch.
             state = ep.reset_rows(self.bank, state, rows, ks, in_place=True)
             fresh, fresh_sim = None, None
-        obs = self._first_observation(fresh or state, rows, ks) if observe else None
+        seen = state if fresh is None else fresh
+        obs = self._first_observation(seen, rows, ks) if observe else None
         policy_state = state.policy_state
         if self._has_npc:
             if fresh_sim is None:
