@@ -17,6 +17,7 @@ on the surviving pairs alone, on the chords of the corridor's quarters their pat
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -296,7 +297,7 @@ def pair_gaps(
     other = slots.index_select(1, fj)  # [7, Q]
     half = CHORDS // 2
     quarters = _near_quarters(_quarter_discs(lanes, own[1], li), other)  # [M / 2, Q]
-    near = quarters.any(0)
+    near = functools.reduce(torch.bitwise_or, quarters.unbind(0))  # ATen's any(0): ~20x slower
     k = true_index(near)
     # One entry per (quarter, pair) j comes near: only those chords are tested.
     entry = true_index(quarters)
