@@ -68,21 +68,28 @@ def test_step_is_a_function_of_its_inputs(core):
     assert _equal(a_state, b_state) and _equal(a_out, b_out)
 
 
-@pytest.mark.parametrize("rows", [[1], [2, 0], [0, 1, 2], [2, 0, 1], [1, 0, 2]])
-def test_reset_rows_equals_a_fresh_start_of_those_rows(core, rows):
+@pytest.mark.parametrize("in_place", [False, True])
+@pytest.mark.parametrize("rows", [[1], [2, 0], [0, 1, 2], [2, 0, 1], [1, 0, 2], [5, 0, 3, 1, 4]])
+def test_reset_rows_equals_a_fresh_start_of_those_rows(core, rows, in_place):
+    """The rows restart as ``start`` of their bank rows, read straight from the bank (a row
+    at a time up to ``ROW_COPY_MAX`` rows in place, gathered beyond); the others keep their
+    episodes."""
     bank, config = core
-    state, _ = ep.start(bank, torch.tensor([0, 1, 2]))
-    actions = torch.zeros(3, bank.setup.query.shape[1], 2)
+    state, _ = ep.start(bank, torch.tensor([0, 1, 2, 0, 1, 2]))
+    actions = torch.zeros(6, bank.setup.query.shape[1], 2)
     for _ in range(3):
         state, _ = ep.step(state, actions, None, config)
+    before = take_rows(state, torch.arange(6))  # a copy
     rows_t = torch.tensor(rows)
     ks = torch.tensor([(r + 1) % 3 for r in rows])
-    out = ep.reset_rows(bank, state, rows_t, ks)
+    out = ep.reset_rows(bank, state, rows_t, ks, in_place=in_place)
     fresh, _ = ep.start(bank, ks)
     for i, r in enumerate(rows):
         assert _equal(take_rows(out, torch.tensor([r])), take_rows(fresh, torch.tensor([i])))
-    for r in set(range(3)) - set(rows):
-        assert _equal(take_rows(out, torch.tensor([r])), take_rows(state, torch.tensor([r])))
+    for r in set(range(6)) - set(rows):
+        assert _equal(take_rows(out, torch.tensor([r])), take_rows(before, torch.tensor([r])))
+    if not in_place:
+        assert _equal(state, before), "reset_rows returns a new tree"
 
 
 def test_start_into_a_state_reuses_its_tensors_and_equals_a_fresh_start(core):
