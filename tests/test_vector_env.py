@@ -537,3 +537,30 @@ def test_trafficbots_restarts_from_its_scene_caches_exactly(scenes):
     (cached, n1), (fresh, n2) = run(True), run(False)
     assert n1 == n2 >= 2
     assert all(torch.equal(a, b) for a, b in zip(cached, fresh))
+
+
+def test_a_policy_that_owns_its_state_restarts_in_place_with_the_same_results(scenes):
+    """``IDMPolicy.owns_state``: restarted slots' rows are written into the batch's policy
+    state in place; the episodes are those of the copying path, slot restarts included."""
+    from policies.idm import IDMPolicy
+
+    runs = []
+    for owns in (True, False):
+        policy = IDMPolicy()
+        policy.owns_state = owns
+        venv = BatchedTrafficEnv(scenes, 3, controlled="sdc", npc_policy=policy, seed=3)
+        venv.reset()
+        g = torch.Generator().manual_seed(0)
+        trace, restarts = [], 0
+        for t in range(60):
+            a = torch.randn(3, venv.num_agents, 2, generator=g) * torch.tensor([4.0, 0.8])
+            obs, rew, *_, info = venv.step(a)
+            restarts += int(info["done"].sum())
+            if t == 20:
+                venv.reset_slots([1])
+            trace.append((rew.clone(), {k: v.clone() for k, v in obs.items()}))
+        runs.append((trace, restarts))
+    (a_trace, a_restarts), (b_trace, _) = runs
+    assert a_restarts >= 2
+    for (ra, oa), (rb, ob) in zip(a_trace, b_trace, strict=True):
+        assert torch.equal(ra, rb) and all(torch.equal(oa[k], ob[k]) for k in oa)
