@@ -117,18 +117,12 @@ def _merge_few(
 def _merge_dense(
     state: SimState, action: torch.Tensor, at: torch.Tensor, masks: tuple[torch.Tensor, ...]
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """``_merge_few``'s values on a larger batch, a component at a time into the components
-    of the new pose (``where_into``): no [B, N, 1] mask broadcast over [B, N, 3] poses."""
+    """``_merge_few``'s values on a larger batch (``_merge_planes``)."""
     moving, from_log = masks
-    now, logged = state.pose.unbind(-1), at.unbind(-1)
     limit = state.agents.action_limit
     act = torch.clamp(action, -limit, limit)  # clip_action
-    *sim_pose, sim_speed = unicycle_planes(now, state.speed, act.unbind(-1))
-    pose = torch.empty_like(state.pose)
-    for k in range(3):
-        where_into(pose[..., k], moving, sim_pose[k], torch.where(from_log, logged[k], now[k]))
-    speed = torch.where(from_log, logged[3], state.speed)
-    return pose, torch.where(moving, sim_speed, speed)
+    *sim_pose, sim_speed = unicycle_planes(state.pose.unbind(-1), state.speed, act.unbind(-1))
+    return _merge_planes(state, at, from_log, (moving, sim_pose, sim_speed))
 
 
 def _merge_movers(
@@ -140,12 +134,30 @@ def _merge_movers(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """``_merge_dense``'s values with only the ``movers`` [B, K] integrating."""
     moving, from_log = masks
+    merged = _merge_planes(state, at, from_log)
+    return _integrate_movers(state, action, movers, moving, merged)
+
+
+def _merge_planes(
+    state: SimState,
+    at: torch.Tensor,
+    from_log: torch.Tensor,
+    sim: tuple[torch.Tensor, list[torch.Tensor], torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(pose [B, N, 3], speed [B, N]): the log ``at`` where ``from_log``, else the state's, and
+    with ``sim`` = (moving [B, N] bool, simulated (x, y, yaw) planes, speed) the simulated
+    values where moving; a component at a time into the components of the new pose
+    (``where_into``: no [B, N, 1] mask broadcast over [B, N, 3] poses)."""
     now, logged = state.pose.unbind(-1), at.unbind(-1)
     pose = torch.empty_like(state.pose)
     for k in range(3):
-        where_into(pose[..., k], from_log, logged[k], now[k])
+        if sim is None:
+            where_into(pose[..., k], from_log, logged[k], now[k])
+        else:
+            kept = torch.where(from_log, logged[k], now[k])
+            where_into(pose[..., k], sim[0], sim[1][k], kept)
     speed = torch.where(from_log, logged[3], state.speed)
-    return _integrate_movers(state, action, movers, moving, (pose, speed))
+    return pose, speed if sim is None else torch.where(sim[0], sim[2], speed)
 
 
 def _integrate_movers(
