@@ -38,7 +38,7 @@ import torch
 from safetensors.torch import load_file, save_file
 from tqdm import tqdm
 
-from policies.trafficbots.config import InferenceConfig
+from policies.trafficbots.config import InferenceConfig, RoadKeeping
 from policies.trafficbots.wosac import (
     load_default_model,
     record_rollouts,
@@ -123,8 +123,8 @@ VARIANTS: dict[str, Callable[[], Variant]] = {
     "clip_history": lambda: Variant(
         "clip_history", "history motion clipped", _shipped(clip_history_motion=True)
     ),
-    "no_road_keeping": lambda: Variant(
-        "no_road_keeping", "road keeping off", _shipped(road_keeping=None)
+    "road_keeping": lambda: Variant(
+        "road_keeping", "road keeping on", _shipped(road_keeping=RoadKeeping())
     ),
     "collisions_only": lambda: Variant(
         "collisions_only", "selection: collisions only", _shipped(road_edge_weight=0.0)

@@ -237,7 +237,7 @@ def main() -> None:
     p.add_argument(
         "--road-keeping",
         metavar="off|NAME=VALUE,...",
-        help='the road-keeping rule (on when shipped): "off", or RoadKeeping fields to change '
+        help='the road-keeping rule (off when shipped): "off", or RoadKeeping fields to change '
         '("" for its defaults)',
     )
     p.add_argument("--samples", type=int, default=16)

@@ -168,8 +168,8 @@ def main() -> None:
     p.add_argument(
         "--road-keeping",
         metavar="off|NAME=VALUE,...",
-        help="TrafficBots' road-keeping rule (on when shipped): 'off', or RoadKeeping fields "
-        'to change ("" for its defaults)',
+        help="TrafficBots' road-keeping rule (off when shipped): RoadKeeping fields to change "
+        '("" for its defaults)',
     )
     p.add_argument("--data", default=os.environ.get("TBSIM_WOMD_DIR", "../shared/data/womd"))
     p.add_argument(

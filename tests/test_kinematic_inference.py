@@ -155,9 +155,8 @@ def test_yaw_rate_smoothing_mixes_the_networks_yaw_rate_with_the_last_one(batch)
     """At a step of the model: applied yaw rate = 0.5 * the squashed network's + 0.5 * the
     history's last yaw rate (the heading's finite difference), where the agent was valid at
     both steps; the network's own output is unchanged (``StepOutput.raw_action``)."""
-    others_off = {"gap_keeping": None, "road_keeping": None, "hold_parked": False}
-    model = _model(yaw_rate_smoothing=0.5, **others_off)
-    plain = _model(**others_off)
+    model = _model(yaw_rate_smoothing=0.5, gap_keeping=None, hold_parked=False)
+    plain = _model(gap_keeping=None, hold_parked=False)
     ctx = _prepare(model, batch, n=1)
     states = [model.initial_state(ctx), plain.initial_state(ctx)]
     for t in range(C.CURRENT_INDEX + 2):

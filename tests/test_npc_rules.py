@@ -14,7 +14,7 @@ import torch
 
 from policies.trafficbots import TrafficBotsConfig
 from policies.trafficbots.batch import TokenBatch
-from policies.trafficbots.config import GapKeeping, InferenceConfig, RoadKeeping
+from policies.trafficbots.config import GapKeeping, InferenceConfig
 from policies.trafficbots.model import TrafficBots
 from policies.trafficbots.policy import TrafficBotsPolicy
 from policies.trafficbots.rules import (
@@ -111,7 +111,7 @@ def test_clip_history_motion_keeps_speed_and_clips_to_type_limits():
 def test_inference_config_defaults_are_the_shipped_rules_and_spec_turns_them_off():
     shipped = InferenceConfig()
     assert shipped.hold_parked and shipped.dest_temperature == 1.0
-    assert shipped.gap_keeping == GapKeeping() and shipped.road_keeping == RoadKeeping()
+    assert shipped.gap_keeping == GapKeeping() and shipped.road_keeping is None
     spec = InferenceConfig.spec()
     assert not spec.hold_parked and spec.vehicle_max_curvature is None
     assert spec.gap_keeping is None and spec.road_keeping is None

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 
@@ -26,17 +24,12 @@ N = 6  # samples per call
 
 @pytest.fixture(scope="module")
 def model():
-    """The shipped weights with the road-keeping rule off: samples that leave the road (which
-    the rule prevents on these scenes) are what the selection is tested on."""
-    shipped = load_default_model()
-    shipped.inference = dataclasses.replace(shipped.inference, road_keeping=None)
-    return shipped
+    return load_default_model()
 
 
 @pytest.fixture(scope="module")
 def scenario():
-    # With the shipped weights (road keeping off), 0 to 2 of its evaluated agents leave the
-    # road per sample.
+    # With the shipped weights, 0 to 2 of its evaluated agents leave the road per sample.
     return generate_scenario("intersection", 4)
 
 
@@ -73,6 +66,8 @@ def test_road_departure_counts_only_agents_on_the_road_now(scenario, plain):
     """An evaluated agent driven into a lot corner of the junction departs from the road
     when it starts on it, and does not when it already stands in the lot at the current step;
     the other agents' flags stay as they are."""
+    import dataclasses
+
     from tbsim_env.data.generator import frame_offset
     from tbsim_env.metrics.wosac.trajectories import select_objects
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
@@ -52,14 +51,8 @@ def test_default_env_drives_a_full_episode_with_the_shipped_npcs():
 
 
 def _reference_rollout() -> dict:
-    """Two seeded rollouts of the shipped network, its road-keeping rule off: the rule's
-    steering near kerbs grows the kernels' rounding to a few millimetres by step 40 (6 mm
-    measured across kernel paths), past this guard's tolerance; the rule has tests of its own
-    (``test_road_keeping.py``, and the frame-invariance tests run it)."""
     sc = generate_scenario("merge", seed=10007)
-    model = load_default_model()
-    model.inference = dataclasses.replace(model.inference, road_keeping=None)
-    r = trafficbots_rollouts(model, sc, num_rollouts=2, num_samples=2, seed=5)
+    r = trafficbots_rollouts(load_default_model(), sc, num_rollouts=2, num_samples=2, seed=5)
     ids = r.object_id[:4].tolist()
     return {
         "scenario_id": sc.scenario_id,

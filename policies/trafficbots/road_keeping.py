@@ -1,27 +1,21 @@
 """The road-keeping rule around the TrafficBots network (``InferenceConfig.road_keeping``).
 
-A moving vehicle whose constant action would carry a front corner towards or across a road
-edge, from the road side, within ``RoadKeeping.horizon`` seconds is turned towards the road
-and slowed, by amounts that grow continuously with how close to the edge (or how far past it)
-the corner would end up. No threshold decides whether the rule acts: a tiny change of the
-state (float rounding in another world frame) changes the action by a tiny amount, so the
-rule keeps the NPC's frame invariance (``tests/test_frame_invariance.py``;
-``bench/frame_invariance.py``: with the rule, at least 97.5% of the agent-rollouts stay within
-10 cm of their twins on every kernel path, where a rule of yes-or-no crossing tests and
-discrete yaw offsets left 93.9% on one of them).
+A vehicle on the road whose action would carry a front corner across a road edge, from the
+road side to the outside, within ``RoadKeeping.horizon`` seconds (constant action) gets the
+nearest yaw rate among ``RoadKeeping.yaw_offsets`` that does not, or brakes if none does.
 
-Sides follow WOSAC's sign rule: a road-edge segment (a -> a + d) has the road on its left (a
-point p is outside where cross(p - a, d) > 0, as ``tbsim_env.sim.edge_grid.joint_sign``), so
-a corner on the road side now has cross < 0. A vehicle that stands in a lot and drives onto
-the road starts outside the edges it crosses and is left alone.
+The test needs no global on/off-road status: a road-edge segment (a -> a + d) has the road on
+its left (WOSAC's sign rule: a point p is outside where cross(p - a, d) > 0, as
+``tbsim_env.sim.edge_grid.joint_sign``), so a corner path c0 -> c1 leaves the road across it
+where cross(c0 - a, d) < 0 < cross(c1 - a, d) and the path meets the segment. A vehicle that
+stands in a lot and drives onto the road crosses edges the other way and is left alone.
 
 The edges are the road-edge map tokens the network sees (``MapTokens.node_pose``, classes
-``ROAD_EDGE_BOUNDARY`` / ``ROAD_EDGE_MEDIAN``); each vehicle reads the segments of its
+``ROAD_EDGE_BOUNDARY`` / ``ROAD_EDGE_MEDIAN``); each vehicle tests the segments of its
 ``RoadKeeping.pieces`` edge pieces nearest (by first node) to the middle of its path.
 
-Shipped on (``InferenceConfig.road_keeping``), chosen on the 57 real validation scenes (128
-rollouts sampled, 32 kept, paired against the same inference without it): meta-metric +0.014
-[+0.006, +0.023], off-road rate 0.192 -> 0.142, minADE 3.92 -> 3.74 m, collisions unchanged.
+Off in the shipped config (``InferenceConfig(road_keeping=RoadKeeping())`` turns it on): it
+breaks the NPC's frame invariance (``RoadKeeping`` says by how much and why).
 """
 
 from __future__ import annotations
@@ -116,6 +110,32 @@ def nearest_edge_segments(
     )
 
 
+def leaves_road(
+    now: torch.Tensor,
+    then: torch.Tensor,
+    segments: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
+) -> torch.Tensor:
+    """Whether a corner path crosses a road-edge segment from the road side to the outside.
+
+    Args:
+        now, then: [B, N, A, 2, 2] corner positions (``front_corner_paths``).
+        segments: (start, direction, valid) [B, N, S, ...] (``nearest_edge_segments``).
+
+    Returns:
+        [B, N, A] bool.
+    """
+    a, d, ok = (s[:, :, None, None] for s in segments)  # [B, N, 1, 1, S, ...]
+    c0, c1 = now[..., None, :], then[..., None, :]  # [B, N, A, 2, 1, 2]
+    ax, ay, dx, dy = a[..., 0], a[..., 1], d[..., 0], d[..., 1]
+    side0 = _cross(c0[..., 0] - ax, c0[..., 1] - ay, dx, dy)
+    side1 = _cross(c1[..., 0] - ax, c1[..., 1] - ay, dx, dy)
+    ex, ey = c1[..., 0] - c0[..., 0], c1[..., 1] - c0[..., 1]
+    u0 = _cross(ax - c0[..., 0], ay - c0[..., 1], ex, ey)
+    u1 = _cross(ax + dx - c0[..., 0], ay + dy - c0[..., 1], ex, ey)
+    crossing = ok & (side0 < 0) & (side1 > 0) & (u0 * u1 <= 0)
+    return crossing.flatten(-2).any(-1)
+
+
 def keep_on_road(
     action: torch.Tensor,
     speed: torch.Tensor,
@@ -123,15 +143,12 @@ def keep_on_road(
     agents: tuple[torch.Tensor, torch.Tensor, MapTokens],
     rule: RoadKeeping,
 ) -> torch.Tensor:
-    """Vehicle actions turned away from the road edges they would reach within
-    ``rule.horizon`` s, and slowed where turning cannot help.
+    """Vehicle actions that keep their front corners on the road for ``rule.horizon`` s.
 
-    Each moving vehicle (at least ``rule.min_speed``) gets, from ``edge_urgency``, the
-    urgency u in [0, 1] of its most pressing edge and the mean turn c in [-1, 1] towards the
-    road (the sine between its heading and the edges' inward normals, weighted by urgency). Its
-    yaw rate gains ``u * rule.max_offset * c`` and its acceleration loses ``u * max_acc *
-    (1 - |c|)`` (heading straight at an edge, it brakes), both within the type's limits.
-    Other agents keep their actions.
+    Vehicles below ``rule.min_speed`` and other agents keep their actions. A vehicle whose
+    action leaves the road takes the first yaw rate ``action + offset`` (``rule.yaw_offsets``,
+    each tried with both signs, within the type's limit) that does not; if none does, it
+    keeps its yaw rate and brakes at the type's limit.
 
     Args:
         action: [B, N, 2] (acceleration m/s^2, yaw rate rad/s).
@@ -151,57 +168,22 @@ def keep_on_road(
     # The moving vehicles as rows of their own, [V, 1, ...] (map row b of vehicle row v).
     p, v, sz = pose[b, n][:, None], speed[b, n][:, None], size[b, n][:, None]
     base = action[b, n]  # [V, 2]
-    urgency, turn = edge_urgency((p, v, sz), base, (mp, b), rule)
-    max_acc, max_yaw = (x[b, n] for x in action_limits(ag_type))
-    yaw_rate = base[:, 1] + urgency * rule.max_offset * turn
-    yaw_rate = torch.maximum(torch.minimum(yaw_rate, max_yaw), -max_yaw)
-    acc = torch.maximum(base[:, 0] - urgency * max_acc * (1.0 - turn.abs()), -max_acc)
+    mid = front_corner_paths(p, v, base[:, None, None], sz, 0.5 * rule.horizon)[1]
+    segments = nearest_edge_segments(mp, mid[:, :, 0].mean(-2), rule.pieces, b)  # [V, 1, S]
+    paths = front_corner_paths(p, v, base[:, None, None], sz, rule.horizon)
+    go = leaves_road(*paths, segments)[:, 0, 0].nonzero()[:, 0]  # [L] leaving vehicle rows
+    if len(go) == 0:
+        return action
+    max_acc, max_yaw = (x[b[go], n[go]] for x in action_limits(ag_type))
+    base = base[go]
+    offsets = const(rule.yaw_offsets, action)
+    offsets = torch.stack([offsets, -offsets], -1).flatten()  # +o1, -o1, +o2, ...
+    yaw = torch.maximum(torch.minimum(base[:, 1:] + offsets, max_yaw[:, None]), -max_yaw[:, None])
+    tried = torch.stack([base[:, :1].expand_as(yaw), yaw], -1)  # [L, A, 2]
+    paths = front_corner_paths(p[go], v[go], tried[:, None], sz[go], rule.horizon)
+    ok = ~leaves_road(*paths, tuple(x[go] for x in segments))[:, 0]  # [L, A]
+    fixed = tried[torch.arange(len(go), device=go.device), ok.to(torch.uint8).argmax(-1)]
+    brake = torch.stack([-max_acc, base[:, 1]], -1)
     out = action.clone()
-    out[b, n] = torch.stack([acc, yaw_rate], -1)
+    out[b[go], n[go]] = torch.where(ok.any(-1, keepdim=True), fixed, brake)
     return out
-
-
-def edge_urgency(
-    vehicles: tuple[torch.Tensor, torch.Tensor, torch.Tensor],
-    action: torch.Tensor,
-    edges: tuple[MapTokens, torch.Tensor],
-    rule: RoadKeeping,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """How pressing the road edges ahead of V vehicles are, and which way is back to the road.
-
-    A front corner on the road side of a nearby edge segment now (``nearest_edge_segments``),
-    and beside it (within ``rule.overlap`` m of its ends) after ``rule.horizon`` s of the
-    constant action, has a depth: how far its end point lies past the segment's line (m,
-    negative on the road side). Its urgency is clamp((depth + margin) / margin, 0, 1): 0 while
-    the corner stays ``rule.margin`` inside, 1 from the line on.
-
-    Args:
-        vehicles: (pose [V, 1, 3], speed [V, 1] m/s, (length, width) [V, 1, 2] m).
-        action: [V, 2] the vehicles' actions.
-        edges: (the map tokens, [V] int64 map row of each vehicle).
-        rule: the rule's parameters.
-
-    Returns:
-        (urgency [V]: the largest over corners and segments; turn [V] in [-1, 1]: the
-        urgency-weighted mean of cross(heading, inward normal), positive to the left).
-    """
-    (p, v, sz), (mp, rows) = vehicles, edges
-    tried = action[:, None, None]  # [V, 1, 1, 2]
-    mid = front_corner_paths(p, v, tried, sz, 0.5 * rule.horizon)[1]
-    start, direction, ok = nearest_edge_segments(mp, mid[:, :, 0].mean(-2), rule.pieces, rows)
-    now, then = front_corner_paths(p, v, tried, sz, rule.horizon)
-    c0, c1 = now[:, 0, 0, :, None, :], then[:, 0, 0, :, None, :]  # [V, 2 corners, 1, 2]
-    a, d, ok = start[:, 0, None], direction[:, 0, None], ok[:, 0, None]  # [V, 1, S, ...]
-    length = torch.hypot(d[..., 0], d[..., 1]).clamp_min(1e-6)  # [V, 1, S]
-    side0 = _cross(c0[..., 0] - a[..., 0], c0[..., 1] - a[..., 1], d[..., 0], d[..., 1]) / length
-    side1 = _cross(c1[..., 0] - a[..., 0], c1[..., 1] - a[..., 1], d[..., 0], d[..., 1]) / length
-    along = ((c1[..., 0] - a[..., 0]) * d[..., 0] + (c1[..., 1] - a[..., 1]) * d[..., 1]) / length
-    beside = (along >= -rule.overlap) & (along <= length + rule.overlap)
-    pressing = ((side1 + rule.margin) / rule.margin).clamp(0.0, 1.0) * (ok & (side0 < 0) & beside)
-    # The inward (road-side) unit normal of each segment: the road is on its left.
-    nx, ny = -d[..., 1] / length, d[..., 0] / length  # [V, 1, S]
-    yaw = p[:, 0, 2, None, None]
-    toward = torch.cos(yaw) * ny - torch.sin(yaw) * nx  # cross(heading, normal)
-    total = pressing.sum((-2, -1))
-    turn = (pressing * toward).sum((-2, -1)) / total.clamp_min(1e-6)
-    return pressing.flatten(1).amax(-1), turn

@@ -24,8 +24,6 @@ retraining (the first two are shipped):
   car cannot.
 * **History motion inside the action limits** (``clip_history_motion``, off).
 
-A third shipped rule, road keeping, lives in ``policies/trafficbots/road_keeping.py``.
-
 ``InferenceConfig.spec()`` switches every rule off (the spec's behaviour, for comparison).
 """
 
