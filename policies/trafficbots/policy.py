@@ -232,13 +232,11 @@ class TrafficBotsPolicy:
     @staticmethod
     def _log_agents(state: SimState, slot: torch.Tensor, offset: torch.Tensor, t: torch.Tensor):
         """Logged (pose, speed, valid) of the token agents at per-scene steps t [B]."""
-        log = state.log
-        b = log.row[:, None]  # each row's log table row
-        rows, tt = slot.clamp(min=0), t[:, None]
-        pose = log.pose.value[b, rows, tt].clone()
+        log, rows, tt = state.log, slot.clamp(min=0), t[:, None]
+        pose = log.of_slots("pose", rows, tt)  # a gathered copy
         pose[..., :2] += offset[:, None]
-        valid = log.valid.value[b, rows, tt] & (slot >= 0)
-        return pose * valid[..., None], log.speed.value[b, rows, tt] * valid, valid
+        valid = log.of_slots("valid", rows, tt) & (slot >= 0)
+        return pose * valid[..., None], log.of_slots("speed", rows, tt) * valid, valid
 
     @staticmethod
     def _log_signals(

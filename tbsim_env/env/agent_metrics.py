@@ -130,9 +130,8 @@ def build_route(state: SimState, query: torch.Tensor) -> Route:
         state: any state of the rollout (only the log is read).
         query: [B, Q] int64 agent slots.
     """
-    log_row = state.log.row[:, None]  # [B, 1]: each row's log table row
-    pts = state.log.pose.value[log_row, query, :, :2]  # [B, Q, T, 2]
-    valid = state.log.valid.value[log_row, query]  # [B, Q, T]
+    pts = state.log.of_slots("pose", query)[..., :2]  # [B, Q, T, 2]
+    valid = state.log.of_slots("valid", query)  # [B, Q, T]
     n_t = valid.shape[-1]
     steps = torch.arange(n_t, device=state.device)
     # Forward-fill invalid steps with the last valid one (backward-fill before the first).
@@ -182,8 +181,8 @@ def _query_fields(state: SimState, query: torch.Tensor) -> dict[str, torch.Tenso
         "near_limit": near_limits(query, size, state.agents.size[..., :2]),
         "corner_along": along,
         "corner_across": across,
-        "log_xy": state.log.pose.value[state.log.row[:, None], query, :, :2],
-        "log_valid": state.log.valid.value[state.log.row[:, None], query],
+        "log_xy": state.log.of_slots("pose", query)[..., :2],
+        "log_valid": state.log.of_slots("valid", query),
     }
 
 

@@ -533,16 +533,15 @@ def expert_actions(state: EpisodeState) -> torch.Tensor:
     rows = cached_arange(state.batch_size, sim.device)[:, None]
     t1 = (sim.step + 1).clamp(max=n_t - 1)[:, None].expand_as(query)
     max_acc, max_yaw = action_limits(sim.agents.object_type[rows, query])
-    log_row = sim.log.row[:, None]  # each row's log table row
     act = inverse_step(
         sim.pose[rows, query],
         sim.speed[rows, query],
-        sim.log.pose.value[log_row, query, t1],
-        sim.log.speed.value[log_row, query, t1],
+        sim.log.of_slots("pose", query, t1),
+        sim.log.of_slots("speed", query, t1),
         max_acc,
         max_yaw,
     )
-    keep = sim.log.valid.value[log_row, query, t1] & state.alive
+    keep = sim.log.of_slots("valid", query, t1) & state.alive
     return act * keep[..., None]
 
 

@@ -127,6 +127,15 @@ class LogTrajectory:
         """T, the log's steps."""
         return int(self.valid.value.shape[-1])
 
+    def of_slots(
+        self, name: str, slots: torch.Tensor, steps: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """The table ``name`` (as ``take``'s) at the agent slots ``slots`` [B, S] of each
+        batch row, every step ([B, S, T, ...]) or the steps ``steps`` (broadcastable with
+        ``slots``: [B, S, ...])."""
+        table, row = getattr(self, name).value, self.row[:, None]
+        return table[row, slots] if steps is None else table[row, slots, steps]
+
     def take(self, name: str) -> torch.Tensor:
         """[B, ...] the table ``name`` (``pose``, ``speed``, ``velocity``, ``z``, ``valid``,
         ``by_step``) of every batch row: a gathered copy (for code off the hot path)."""
